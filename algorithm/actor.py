@@ -1,0 +1,237 @@
+"""The actor side: a policy steps a vector env, steps become trajectory chunks, chunks go to replay.
+
+Usage (one process; ``ds/`` runs the same loop with a gRPC table and ZeroMQ parameters)::
+
+    actor = ActorLoop(env, policy, sink=table.insert, chunk_length=64)
+    while training:
+        stats = actor.step()          # one step of every env; full chunks are handed to `sink`
+        for ret, length in stats.finished: ...
+
+The loop never needs to know where chunks go or where parameters come from: ``policy`` is anything
+with :meth:`Policy.act`, ``sink`` any callable taking a :class:`~algorithm.types.Chunk`.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any, Protocol
+
+import numpy as np
+
+from algorithm.spaces import ActionSpec, EnvSpec
+from algorithm.types import Chunk
+
+
+class Policy(Protocol):
+    def act(self, obs: list[np.ndarray], deterministic: bool = False) -> tuple[np.ndarray, np.ndarray]:
+        """Batched actions ``[N, A]`` in model space and their behaviour log-probabilities ``[N]``."""
+        ...
+
+
+class VectorEnvLike(Protocol):
+    """What :mod:`envs.make` provides; declared here so ``algorithm`` imports nothing from ``envs``."""
+
+    num_envs: int
+    spec: EnvSpec
+
+    def reset(self, seed: int | None = None) -> list[np.ndarray]: ...
+
+    def step(self, actions: np.ndarray) -> Any: ...
+
+    def reset_env(self, index: int) -> list[np.ndarray]: ...
+
+    def close(self) -> None: ...
+
+
+class ChunkBuilder:
+    """Accumulates per-env steps and cuts :class:`Chunk` s at episode end or ``chunk_length`` steps.
+
+    Buffers are ``[N, chunk_length + 1, ...]`` and every env writes its own row with one fancy-index
+    assignment per field, so a step costs the same for 1 or 64 envs; only emitting a chunk copies.
+    """
+
+    def __init__(self, num_envs: int, spec: EnvSpec, chunk_length: int) -> None:
+        self.num_envs = num_envs
+        self.chunk_length = chunk_length
+        n, t, a = num_envs, chunk_length, spec.action.size
+        self._obs = [np.zeros((n, t + 1, *s.shape), dtype=s.dtype) for s in spec.sensors]
+        self._actions = np.zeros((n, t, a), dtype=np.float32)
+        self._prev_actions = np.zeros((n, t, a), dtype=np.float32)
+        self._rewards = np.zeros((n, t), dtype=np.float32)
+        self._terminated = np.zeros((n, t), dtype=bool)
+        self._truncated = np.zeros((n, t), dtype=bool)
+        self._logp = np.zeros((n, t), dtype=np.float32)
+        self._t = np.zeros(n, dtype=np.int64)
+        self._envs = np.arange(n)
+
+    def add(
+        self,
+        obs: list[np.ndarray],
+        actions: np.ndarray,
+        prev_actions: np.ndarray,
+        behaviour_logp: np.ndarray,
+        rewards: np.ndarray,
+        terminated: np.ndarray,
+        truncated: np.ndarray,
+        final_obs: list[np.ndarray],
+    ) -> list[Chunk]:
+        """Record one step of every env; returns the chunks completed by it (possibly none).
+
+        ``obs`` is what the policy saw, ``final_obs`` the observation after the step (the true final
+        one where an episode ended)."""
+        e, t = self._envs, self._t
+        for buf, o in zip(self._obs, obs, strict=True):
+            buf[e, t] = o
+        self._actions[e, t] = actions
+        self._prev_actions[e, t] = prev_actions
+        self._logp[e, t] = behaviour_logp
+        self._rewards[e, t] = rewards
+        self._terminated[e, t] = terminated
+        self._truncated[e, t] = truncated
+        self._t += 1
+        done = terminated | truncated
+        cut = np.flatnonzero(done | (self._t == self.chunk_length))
+        chunks = []
+        for i in cut:
+            length = int(self._t[i])
+            for buf, o in zip(self._obs, final_obs, strict=True):
+                buf[i, length] = o[i]
+            chunks.append(self._emit(int(i), length))
+        return chunks
+
+    def flush(self, index: int, final_obs: list[np.ndarray], truncate: bool) -> Chunk | None:
+        """Cut env ``index``'s open chunk now; ``final_obs`` is its next observation, per sensor.
+
+        ``truncate=True`` marks the episode as ended by the caller (a forced reset); False just
+        cuts the chunk (e.g. before a final checkpoint) and the episode continues elsewhere."""
+        length = int(self._t[index])
+        if length == 0:
+            return None
+        self._truncated[index, length - 1] = truncate
+        for buf, o in zip(self._obs, final_obs, strict=True):
+            buf[index, length] = o
+        return self._emit(index, length)
+
+    def _emit(self, i: int, length: int) -> Chunk:
+        self._t[i] = 0
+        return Chunk(
+            obs=[buf[i, : length + 1].copy() for buf in self._obs],
+            actions=self._actions[i, :length].copy(),
+            prev_actions=self._prev_actions[i, :length].copy(),
+            rewards=self._rewards[i, :length].copy(),
+            terminated=self._terminated[i, :length].copy(),
+            truncated=self._truncated[i, :length].copy(),
+            behaviour_logp=self._logp[i, :length].copy(),
+        )
+
+
+def uniform_random_actions(spec: ActionSpec, n: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """Uniform exploration actions in model space with their exact behaviour log-density."""
+    parts = []
+    logp = np.zeros(n, dtype=np.float64)
+    for branch in spec.discrete_branches:
+        choice = rng.integers(branch, size=n)
+        parts.append(np.eye(branch, dtype=np.float32)[choice])
+        logp -= np.log(branch)
+    if spec.continuous_dim:
+        parts.append(rng.uniform(-1.0, 1.0, size=(n, spec.continuous_dim)).astype(np.float32))
+        logp -= spec.continuous_dim * np.log(2.0)  # density of U[-1, 1]^d
+    return np.concatenate(parts, axis=1), logp.astype(np.float32)
+
+
+@dataclass
+class StepStats:
+    env_steps: int
+    finished: list[tuple[float, int]] = field(default_factory=list)  # (return, length) of ended episodes
+    chunks: int = 0
+    iteration_ended: bool = False
+
+
+class ActorLoop:
+    """Steps ``env`` with ``policy`` and hands completed chunks to ``sink``.
+
+    ``random_steps``: the first that many env steps (over all envs) use uniform random actions.
+    ``reset_on_iteration``: when env 0's episode ends, every other env is cut (truncated, real final
+    observation kept) and reset too, so all envs start the next iteration together.
+    """
+
+    def __init__(
+        self,
+        env: VectorEnvLike,
+        policy: Policy,
+        sink: Callable[[Chunk], Any],
+        chunk_length: int,
+        random_steps: int = 0,
+        reset_on_iteration: bool = False,
+        seed: int | None = None,
+    ) -> None:
+        self.env = env
+        self.policy = policy
+        self.sink = sink
+        self.random_steps = random_steps
+        self.reset_on_iteration = reset_on_iteration
+        self.rng = np.random.default_rng(seed)
+        self.spec = env.spec
+        n = env.num_envs
+        self.builder = ChunkBuilder(n, self.spec, chunk_length)
+        self.obs = env.reset(seed=seed)
+        self.prev_actions = np.zeros((n, self.spec.action.size), dtype=np.float32)
+        self.episode_return = np.zeros(n, dtype=np.float64)
+        self.episode_length = np.zeros(n, dtype=np.int64)
+        self.total_steps = 0
+
+    def step(self) -> StepStats:
+        n = self.env.num_envs
+        if self.total_steps < self.random_steps:
+            actions, logp = uniform_random_actions(self.spec.action, n, self.rng)
+        else:
+            actions, logp = self.policy.act(self.obs, deterministic=False)
+        result = self.env.step(actions)
+        chunks = self.builder.add(
+            self.obs, actions, self.prev_actions, logp,
+            result.rewards, result.terminated, result.truncated, result.final_obs,
+        )
+        self.total_steps += n
+        self.episode_return += result.rewards
+        self.episode_length += 1
+        done = result.terminated | result.truncated
+        stats = StepStats(env_steps=n)
+        self.prev_actions = np.where(done[:, None], 0.0, actions).astype(np.float32)
+        self.obs = result.obs
+        for i in np.flatnonzero(done):
+            stats.finished.append((float(self.episode_return[i]), int(self.episode_length[i])))
+            self.episode_return[i] = 0.0
+            self.episode_length[i] = 0
+        if done[0]:
+            stats.iteration_ended = True
+            if self.reset_on_iteration:
+                chunks.extend(self._reset_others())
+        for chunk in chunks:
+            self.sink(chunk)
+        stats.chunks = len(chunks)
+        return stats
+
+    def flush(self) -> int:
+        """Hand every open chunk to the sink now (before a final checkpoint); returns how many."""
+        count = 0
+        for i in range(self.env.num_envs):
+            chunk = self.builder.flush(i, [o[i] for o in self.obs], truncate=False)
+            if chunk is not None:
+                self.sink(chunk)
+                count += 1
+        return count
+
+    def _reset_others(self) -> list[Chunk]:
+        chunks = []
+        for i in range(1, self.env.num_envs):
+            chunk = self.builder.flush(i, [o[i] for o in self.obs], truncate=True)
+            if chunk is not None:
+                chunks.append(chunk)
+            fresh = self.env.reset_env(i)
+            for o, f in zip(self.obs, fresh, strict=True):
+                o[i] = f
+            self.prev_actions[i] = 0.0
+            self.episode_return[i] = 0.0
+            self.episode_length[i] = 0
+        return chunks

@@ -1,0 +1,105 @@
+"""Atomic checkpoints in ``<run>/model/<step>.pt``, keeping the last K.
+
+A checkpoint is a plain dict of tensors, numbers, strings and containers (loaded with
+``torch.load(weights_only=True)``, so a file from elsewhere cannot run code). It is written to a
+temp file in the same folder, fsynced and renamed, so a crash mid-write leaves the previous
+checkpoint intact and never a half-written ``<step>.pt``.
+"""
+
+from __future__ import annotations
+
+import os
+import random
+import re
+import tempfile
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+FORMAT_VERSION = 1
+_NAME = re.compile(r"^(\d+)\.pt$")
+
+
+class CheckpointError(RuntimeError):
+    """A checkpoint is missing, unreadable, or not one of ours; the message names the file."""
+
+
+def atomic_write(path: Path, write: Any) -> None:
+    """Call ``write(file_object)`` on a temp file next to ``path``, fsync, then rename over ``path``."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            write(f)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    dir_fd = os.open(path.parent, os.O_RDONLY)
+    try:
+        os.fsync(dir_fd)
+    finally:
+        os.close(dir_fd)
+
+
+def list_checkpoints(model_dir: Path) -> list[int]:
+    """Steps of the checkpoints in ``model_dir``, ascending."""
+    if not model_dir.is_dir():
+        return []
+    return sorted(int(m.group(1)) for p in model_dir.iterdir() if (m := _NAME.match(p.name)))
+
+
+def save_checkpoint(model_dir: Path, step: int, state: dict[str, Any], keep: int) -> Path:
+    path = model_dir / f"{step}.pt"
+    atomic_write(path, lambda f: torch.save({"format_version": FORMAT_VERSION, **state}, f))
+    for old in list_checkpoints(model_dir)[:-keep]:
+        (model_dir / f"{old}.pt").unlink(missing_ok=True)
+    return path
+
+
+def checkpoint_path(model_dir: Path, step: int | None = None) -> Path:
+    """The checkpoint for ``step``, or the latest; raises :class:`CheckpointError` if there is none."""
+    steps = list_checkpoints(model_dir)
+    if step is None:
+        if not steps:
+            raise CheckpointError(f"no checkpoint in {model_dir}")
+        step = steps[-1]
+    elif step not in steps:
+        raise CheckpointError(f"no checkpoint for step {step} in {model_dir}; available: {steps or 'none'}")
+    return model_dir / f"{step}.pt"
+
+
+def load_checkpoint(path: Path) -> dict[str, Any]:
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=True)
+    except FileNotFoundError:
+        raise CheckpointError(f"checkpoint {path} does not exist") from None
+    except Exception as e:  # torch raises several types for corrupt or foreign files
+        raise CheckpointError(f"checkpoint {path} is unreadable or not an ASAC checkpoint: {e}") from None
+    if not isinstance(state, dict) or state.get("format_version") != FORMAT_VERSION:
+        raise CheckpointError(
+            f"checkpoint {path} is not an ASAC checkpoint of format {FORMAT_VERSION} "
+            f"(found {state.get('format_version') if isinstance(state, dict) else type(state).__name__})"
+        )
+    return state
+
+
+def capture_rng() -> dict[str, Any]:
+    """Global RNG states (python, numpy legacy, torch) for exact resumption."""
+    np_state = np.random.get_state()
+    return {
+        "python": random.getstate(),
+        "numpy": [np_state[0], torch.from_numpy(np_state[1].astype(np.int64)), *np_state[2:]],
+        "torch": torch.get_rng_state(),
+    }
+
+
+def restore_rng(state: dict[str, Any]) -> None:
+    random.setstate(state["python"])
+    name, keys, *rest = state["numpy"]
+    np.random.set_state((name, keys.numpy().astype(np.uint32), *rest))
+    torch.set_rng_state(state["torch"])

@@ -1,0 +1,238 @@
+"""Config loading: YAML layering, CLI overrides and validation against the typed schema.
+
+Layers, each overriding the previous (ARCHITECTURE.md 8):
+
+1. ``algorithm/default_config.yaml`` (the schema defaults, written out);
+2. the ``default`` section of the task's ``envs/<task>/config.yaml``;
+3. the section named by ``-c NAME`` in the same file;
+4. ``--override section.key=value`` from the command line (``sac.n_step=5`` works for
+   ``sac_config.n_step``).
+
+Every leaf remembers which layer set it, so an unknown key, a wrong type or an out-of-range value
+is reported as ``sac_config.learning_rate (envs/gym/pendulum/config.yaml [fast]): ...``.
+"""
+
+from __future__ import annotations
+
+import copy
+import difflib
+import re
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import yaml
+from pydantic import BaseModel, ValidationError
+
+from algorithm.config_schema import Config
+
+DEFAULT_CONFIG_PATH = Path(__file__).with_name("default_config.yaml")
+
+
+class ConfigError(ValueError):
+    """A config file, section or override is invalid; the message names the key and its source."""
+
+
+class _Loader(yaml.SafeLoader):
+    """SafeLoader that reads ``3e-4`` as a float (YAML 1.1 needs ``3.0e-4``; people write ``3e-4``)."""
+
+
+_FLOAT_RE = re.compile(
+    r"""^(?:[-+]?(?:[0-9][0-9_]*)\.[0-9_]*(?:[eE][-+]?[0-9]+)?
+    |[-+]?(?:[0-9][0-9_]*)(?:[eE][-+]?[0-9]+)
+    |\.[0-9_]+(?:[eE][-+]?[0-9]+)?
+    |[-+]?\.(?:inf|Inf|INF)
+    |\.(?:nan|NaN|NAN))$""",
+    re.X,
+)
+_Loader.yaml_implicit_resolvers = {
+    k: [(tag, rx) for tag, rx in v if tag != "tag:yaml.org,2002:float"]
+    for k, v in yaml.SafeLoader.yaml_implicit_resolvers.items()
+}
+_Loader.add_implicit_resolver("tag:yaml.org,2002:float", _FLOAT_RE, list("-+0123456789."))
+
+
+def parse_yaml(text: str, source: str) -> Any:
+    try:
+        return yaml.load(text, Loader=_Loader)
+    except yaml.YAMLError as e:
+        raise ConfigError(f"{source}: not valid YAML: {e}") from None
+
+
+def read_yaml(path: Path) -> Any:
+    try:
+        text = path.read_text()
+    except OSError as e:
+        raise ConfigError(f"cannot read config file {path}: {e.strerror}") from None
+    return parse_yaml(text, str(path))
+
+
+@dataclass
+class ResolvedConfig:
+    """The validated config plus where each key came from."""
+
+    config: Config
+    sources: dict[str, str]
+
+    def to_yaml(self) -> str:
+        return config_to_yaml(self.config)
+
+
+def config_to_yaml(config: Config) -> str:
+    return yaml.safe_dump(config.model_dump(mode="json"), sort_keys=False, default_flow_style=False)
+
+
+def _section_aliases() -> dict[str, str]:
+    """``sac`` -> ``sac_config`` etc., for short override keys."""
+    aliases = {}
+    for name in Config.model_fields:
+        aliases[name] = name
+        if name.endswith("_config"):
+            aliases[name[: -len("_config")]] = name
+    return aliases
+
+
+def _merge(base: dict[str, Any], layer: Any, source: str, sources: dict[str, str], prefix: str = "") -> None:
+    """Deep-merge ``layer`` into ``base`` in place, recording the source of every leaf set."""
+    if not isinstance(layer, dict):
+        where = prefix.rstrip(".") or "top level"
+        raise ConfigError(f"{source}: {where} must be a mapping of keys, got {type(layer).__name__}")
+    for key, value in layer.items():
+        if not isinstance(key, str):
+            raise ConfigError(f"{source}: key {key!r} under {prefix.rstrip('.') or 'top level'} is not a string")
+        dotted = prefix + key
+        if isinstance(value, dict) and _is_section_path(dotted):
+            if not isinstance(base.get(key), dict):
+                base[key] = {}
+            _merge(base[key], value, source, sources, dotted + ".")
+        else:
+            base[key] = copy.deepcopy(value)
+            sources[dotted] = source
+
+
+def _is_section_path(dotted: str) -> bool:
+    """Mappings that are config sections merge key by key; dict-valued keys (env_kwargs) replace."""
+    return "." not in dotted and dotted in Config.model_fields
+
+
+def parse_override(text: str) -> tuple[list[str], Any]:
+    """``"sac.n_step=5"`` -> (["sac_config", "n_step"], 5). Values are YAML scalars/lists."""
+    if "=" not in text:
+        raise ConfigError(f"override {text!r}: expected section.key=value")
+    key, raw = text.split("=", 1)
+    parts = key.strip().split(".")
+    if len(parts) != 2 or not all(parts):
+        raise ConfigError(f"override {text!r}: key must be section.key, e.g. sac_config.n_step=5")
+    aliases = _section_aliases()
+    if parts[0] not in aliases:
+        close = difflib.get_close_matches(parts[0], list(aliases), n=1)
+        hint = f" (did you mean {close[0]!r}?)" if close else ""
+        raise ConfigError(f"override {text!r}: unknown section {parts[0]!r}{hint}")
+    parts[0] = aliases[parts[0]]
+    return parts, parse_yaml(raw, f"override {text!r}") if raw.strip() else None
+
+
+def _format_errors(err: ValidationError, sources: dict[str, str]) -> str:
+    lines = []
+    for e in err.errors():
+        loc = [str(p) for p in e["loc"]]
+        dotted = ".".join(loc)
+        source = _source_of(loc, sources)
+        msg = e["msg"]
+        if e["type"] == "extra_forbidden":
+            model: Any = Config
+            for part in loc[:-1]:
+                field = model.model_fields.get(part) if isinstance(model, type) else None
+                model = field.annotation if field is not None else None
+            known = list(model.model_fields) if isinstance(model, type) and issubclass(model, BaseModel) else []
+            close = difflib.get_close_matches(loc[-1], known, n=1)
+            msg = "unknown key" + (f" (did you mean {close[0]!r}?)" if close else "")
+        elif e["type"] == "value_error":
+            msg = msg.removeprefix("Value error, ")
+        lines.append(f"{dotted or 'config'} ({source}): {msg}" + _got(e))
+    return "invalid config:\n  " + "\n  ".join(lines)
+
+
+def _source_of(loc: list[str], sources: dict[str, str]) -> str:
+    """Where the value at ``loc`` came from; for a cross-field error on a whole section, every file
+    that set one of its keys (defaults last, since a default alone rarely causes it)."""
+    if ".".join(loc) in sources:
+        return sources[".".join(loc)]
+    prefix = ".".join(loc) + "." if loc else ""
+    inside = list(dict.fromkeys(v for k, v in sources.items() if k.startswith(prefix)))
+    chosen = [v for v in inside if v != str(DEFAULT_CONFIG_PATH)] or inside
+    if chosen:
+        return ", ".join(chosen)
+    for i in range(len(loc) - 1, 0, -1):
+        if ".".join(loc[:i]) in sources:
+            return sources[".".join(loc[:i])]
+    return "defaults"
+
+
+def _got(e: Any) -> str:
+    if e["type"] in ("extra_forbidden", "missing") or "input" not in e or isinstance(e["input"], dict):
+        return ""
+    return f"; got {e['input']!r}"
+
+
+def task_config_path(task_dir: Path) -> Path:
+    return task_dir / "config.yaml"
+
+
+def load_config(
+    task_dir: str | Path | None = None,
+    config_name: str | None = None,
+    overrides: list[str] | tuple[str, ...] = (),
+    default_path: Path = DEFAULT_CONFIG_PATH,
+) -> ResolvedConfig:
+    """Resolve the four layers into a validated :class:`Config` (raises :class:`ConfigError`)."""
+    merged: dict[str, Any] = {}
+    sources: dict[str, str] = {}
+    _merge(merged, read_yaml(default_path) or {}, str(default_path), sources)
+
+    if task_dir is not None:
+        path = task_config_path(Path(task_dir))
+        task_file = read_yaml(path) if path.exists() else {}
+        if not isinstance(task_file, dict):
+            raise ConfigError(f"{path}: top level must map section names (default, ...) to configs")
+        _merge(merged, task_file.get("default") or {}, f"{path} [default]", sources)
+        if config_name is not None:
+            if config_name not in task_file or config_name == "default":
+                names = sorted(k for k in task_file if k != "default")
+                raise ConfigError(f"{path}: no config section {config_name!r}; available: {names or 'none'}")
+            _merge(merged, task_file[config_name] or {}, f"{path} [{config_name}]", sources)
+    elif config_name is not None:
+        raise ConfigError(f"-c {config_name}: no task folder to look it up in")
+
+    return _validate(merged, sources, overrides)
+
+
+def apply_overrides(config: Config, overrides: list[str] | tuple[str, ...]) -> Config:
+    """``config`` with ``--override`` values applied on top (e.g. to a resumed run's saved config)."""
+    if not overrides:
+        return config
+    return _validate(config.model_dump(mode="json"), {}, overrides).config
+
+
+def _validate(merged: dict[str, Any], sources: dict[str, str], overrides: list[str] | tuple[str, ...]) -> ResolvedConfig:
+    for text in overrides:
+        parts, value = parse_override(text)
+        section = merged.setdefault(parts[0], {})
+        if not isinstance(section, dict):
+            raise ConfigError(f"override {text!r}: {parts[0]} is not a section")
+        section[parts[1]] = value
+        sources[".".join(parts)] = f"override {text!r}"
+    try:
+        config = Config.model_validate(merged)
+    except ValidationError as e:
+        raise ConfigError(_format_errors(e, sources)) from None
+    return ResolvedConfig(config, sources)
+
+
+def config_from_yaml(text: str, source: str = "config.yaml") -> Config:
+    """Parse a resolved config written by :func:`config_to_yaml` (e.g. a run directory's)."""
+    data = parse_yaml(text, source)
+    try:
+        return Config.model_validate(data or {})
+    except ValidationError as e:
+        raise ConfigError(_format_errors(e, {k: source for k in (data or {})})) from None

@@ -1,0 +1,129 @@
+"""The typed config schema: one pydantic model per section, one documented field per key.
+
+Section and key names follow the original system (SPEC.md D) so its users feel at home; new
+sections (``nn_config``, ``actor_config``, ``eval_config``) hold keys for parts it did not have.
+Every model forbids unknown keys; :mod:`algorithm.config` layers YAML files onto these models and
+turns validation errors into messages that name the key and the file.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+
+class Section(BaseModel):
+    """Base for every section: unknown keys are errors, assignments are validated."""
+
+    model_config = ConfigDict(extra="forbid", validate_assignment=True, strict=False)
+
+
+class BaseConfig(Section):
+    env_type: Literal["GYM"] = Field("GYM", description="Environment family; Unity is out of scope.")
+    scene: str = Field("scene", description="Readable task name shown in TensorBoard.")
+    build_path: str = Field("Pendulum-v1", description="Gymnasium id, e.g. 'HalfCheetah-v5'.")
+    env_kwargs: dict[str, Any] = Field(default_factory=dict, description="Extra kwargs for gymnasium.make.")
+    name: str = Field("{time}", description="Run name; '{time}' becomes the start time.")
+    nn: str = Field("nn", description="Model file in the task folder (nn.py) when it exists.")
+    n_agents: int = Field(1, ge=1, description="Parallel envs stepped by the actor.")
+    max_iter: int = Field(-1, ge=-1, description="Stop after this many iterations (episodes of env 0); -1 off.")
+    max_step: int = Field(-1, ge=-1, description="Stop after this many env steps over all envs; -1 off.")
+    max_step_each_iter: int = Field(-1, ge=-1, description="Time limit per episode in steps; -1 = env's own.")
+    reset_on_iteration: bool = Field(True, description="Reset every env when an iteration ends.")
+    torch_threads: int = Field(0, ge=0, description="torch.set_num_threads; 0 leaves torch's default.")
+
+
+class ReplayConfig(Section):
+    batch_size: int = Field(256, ge=1)
+    capacity: int = Field(524288, ge=2, description="Rows stored (steps plus one bootstrap row per chunk).")
+    alpha: float = Field(0.9, ge=0.0, le=1.0, description="Priority exponent; 0 = uniform replay.")
+    beta: float = Field(0.4, ge=0.0, le=1.0, description="Initial importance-sampling exponent.")
+    beta_increment_per_sampling: float = Field(0.001, ge=0.0, description="Added to beta per update, up to 1.")
+    td_error_min: float = Field(0.01, gt=0.0, description="Floor of |TD| before ** alpha.")
+    td_error_max: float = Field(1.0, gt=0.0, description="Ceiling of |TD| before ** alpha.")
+    samples_per_insert: float = Field(
+        256.0, gt=0.0, description="Sampled windows per inserted step; batch_size / this = env steps per update."
+    )
+    samples_per_insert_tolerance: float = Field(
+        0.0, ge=0.0, description="How many windows the learner may run ahead/behind before blocking (distributed)."
+    )
+    min_size_to_sample: int = Field(1000, ge=1, description="Steps stored before the first update.")
+    save_replay: bool = Field(False, description="Save replay contents with checkpoints and restore them.")
+
+    @model_validator(mode="after")
+    def _check_td_range(self) -> ReplayConfig:
+        if self.td_error_min > self.td_error_max:
+            raise ValueError("td_error_min must be <= td_error_max")
+        return self
+
+
+class SacConfig(Section):
+    seed: int | None = Field(None, description="Seeds torch, numpy and every env (per env index).")
+    write_summary_per_step: int = Field(1000, ge=1, description="TensorBoard write interval in updates.")
+    save_model_per_step: int = Field(100000, ge=1, description="Checkpoint every N env steps.")
+    save_model_per_minute: float = Field(5, gt=0, description="... or every N minutes, whichever comes first.")
+    keep_checkpoints: int = Field(3, ge=1, description="How many checkpoints model/ keeps.")
+    ensemble_q_num: int = Field(2, ge=1, description="Q heads in the ensemble.")
+    ensemble_q_sample: int = Field(2, ge=1, description="Heads in each random subset a minimum is taken over.")
+    burn_in_step: int = Field(0, ge=0)
+    n_step: int = Field(1, ge=1)
+    use_rnn: bool = False
+    tau: float = Field(0.005, gt=0.0, le=1.0)
+    update_target_per_step: int = Field(1, ge=1)
+    init_log_alpha: float = -2.3
+    use_auto_alpha: bool = True
+    learning_rate: float = Field(3e-4, gt=0.0)
+    gamma: float = Field(0.99, ge=0.0, le=1.0)
+    v_lambda: float = Field(1.0, ge=0.0, le=1.0)
+    v_rho: float = Field(1.0, gt=0.0)
+    v_c: float = Field(1.0, gt=0.0)
+    clip_epsilon: float | None = Field(
+        None, gt=0.0, description="Value clipping around the target head; null = off (the original used 0.2)."
+    )
+    discrete_dqn_like: bool = False
+    use_priority: bool = Field(True, description="Weight the Q loss by PER importance weights.")
+    use_n_step_is: bool = Field(False, description="V-trace correction of n-step targets.")
+    use_prediction: bool = False
+    transition_kl: float = 0.8
+    use_extra_data: bool = True
+    use_curiosity: bool = False
+    curiosity_strength: float = 1.0
+    use_rnd: bool = False
+    rnd_n_sample: int = Field(10, ge=1)
+    use_normalization: bool = False
+    max_nonfinite_steps: int = Field(100, ge=1, description="Consecutive skipped (non-finite) updates before stopping.")
+
+    @model_validator(mode="after")
+    def _check_ensemble(self) -> SacConfig:
+        if self.ensemble_q_sample > self.ensemble_q_num:
+            raise ValueError("ensemble_q_sample must be <= ensemble_q_num")
+        return self
+
+
+class NNConfig(Section):
+    hidden_units: list[int] = Field(default_factory=lambda: [256, 256], min_length=1)
+    activation: Literal["relu", "tanh", "elu", "silu"] = "relu"
+    log_std_min: float = -20.0
+    log_std_max: float = 2.0
+
+
+class ActorConfig(Section):
+    chunk_length: int = Field(64, ge=1, description="Steps per trajectory chunk sent to replay.")
+    random_steps: int = Field(0, ge=0, description="Uniform random actions for the first N env steps.")
+
+
+class EvalConfig(Section):
+    eval_per_step: int = Field(5000, ge=0, description="Evaluate every N env steps; 0 = never.")
+    eval_episodes: int = Field(10, ge=1, description="Deterministic episodes per evaluation.")
+    eval_envs: int = Field(5, ge=1, description="Parallel evaluation envs (separate from training envs).")
+
+
+class Config(Section):
+    base_config: BaseConfig = Field(default_factory=BaseConfig)
+    reset_config: dict[str, Any] | None = None
+    replay_config: ReplayConfig = Field(default_factory=ReplayConfig)
+    sac_config: SacConfig = Field(default_factory=SacConfig)
+    nn_config: NNConfig = Field(default_factory=NNConfig)
+    actor_config: ActorConfig = Field(default_factory=ActorConfig)
+    eval_config: EvalConfig = Field(default_factory=EvalConfig)

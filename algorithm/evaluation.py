@@ -1,0 +1,76 @@
+"""Deterministic evaluation on envs separate from training, appended to ``evaluations.csv``.
+
+The CSV (``env_steps,updates,wall_seconds,return_mean,return_std``) is the interface scripts and
+our own learning checks read; TensorBoard gets the same numbers as ``eval/*``.
+"""
+
+from __future__ import annotations
+
+import csv
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from algorithm.actor import Policy, VectorEnvLike
+
+CSV_FIELDS = ("env_steps", "updates", "wall_seconds", "return_mean", "return_std")
+
+
+@dataclass
+class EvalResult:
+    returns: np.ndarray
+    lengths: np.ndarray
+
+    @property
+    def mean(self) -> float:
+        return float(self.returns.mean())
+
+    @property
+    def std(self) -> float:
+        return float(self.returns.std())
+
+
+def evaluate(env: VectorEnvLike, policy: Policy, episodes: int, seed: int | None) -> EvalResult:
+    """Run ``episodes`` deterministic episodes, spread evenly over ``env``'s sub-envs.
+
+    Each sub-env runs a fixed quota of episodes (not "the first N to finish"), so short episodes
+    are not over-represented. Envs are reset with ``seed`` each time, so successive evaluations
+    face the same start states.
+    """
+    n = env.num_envs
+    quota = np.full(n, episodes // n) + (np.arange(n) < episodes % n)
+    obs = env.reset(seed=seed)
+    returns: list[float] = []
+    lengths: list[int] = []
+    ep_ret = np.zeros(n)
+    ep_len = np.zeros(n, dtype=np.int64)
+    done_count = np.zeros(n, dtype=np.int64)
+    while (done_count < quota).any():
+        actions, _ = policy.act(obs, deterministic=True)
+        result = env.step(actions)
+        ep_ret += result.rewards
+        ep_len += 1
+        for i in np.flatnonzero(result.terminated | result.truncated):
+            if done_count[i] < quota[i]:
+                returns.append(float(ep_ret[i]))
+                lengths.append(int(ep_len[i]))
+                done_count[i] += 1
+            ep_ret[i] = 0.0
+            ep_len[i] = 0
+        obs = result.obs
+    return EvalResult(np.asarray(returns), np.asarray(lengths))
+
+
+def append_evaluation(path: Path, env_steps: int, updates: int, wall_seconds: float, result: EvalResult) -> None:
+    new = not path.exists()
+    with path.open("a", newline="") as f:
+        writer = csv.writer(f)
+        if new:
+            writer.writerow(CSV_FIELDS)
+        writer.writerow([env_steps, updates, f"{wall_seconds:.2f}", f"{result.mean:.4f}", f"{result.std:.4f}"])
+
+
+def read_evaluations(path: Path) -> list[dict[str, float]]:
+    with path.open(newline="") as f:
+        return [{k: float(v) for k, v in row.items()} for row in csv.DictReader(f)]

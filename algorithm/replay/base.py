@@ -1,0 +1,55 @@
+"""The replay table interface every implementation provides (in-process, gRPC client, fakes).
+
+Usage, from an actor and a learner sharing one table::
+
+    keys = table.insert(chunk)                      # actor: one chunk -> one key per step
+    batch = table.sample(batch_size, timeout=1.0)   # learner: B windows, with keys and probabilities
+    table.update_priorities(batch.keys, td_abs)     # learner: |TD| per sampled key; evicted keys ignored
+    stats = table.info()                            # anyone: sizes, counters, normalizer stats
+
+``update_priorities`` and ``insert(..., priorities=...)`` take raw magnitudes (mean |TD| over Q
+heads); the table maps them to sampling priorities ``clip(p, td_error_min, td_error_max) ** alpha``
+itself, so callers never need the replay's hyper-parameters.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any, Protocol
+
+import numpy as np
+
+from algorithm.types import Batch, Chunk
+
+
+class SampleTimeout(TimeoutError):
+    """No batch could be sampled before the timeout (table too small or rate-limited)."""
+
+
+class ReplayTable(Protocol):
+    def insert(self, chunk: Chunk, priorities: np.ndarray | None = None) -> np.ndarray:
+        """Store a chunk contiguously; returns its ``len(chunk)`` new uint64 keys (increasing,
+        never reused). New rows get the current maximum priority unless ``priorities`` is given.
+        May block while the rate limiter says the learner is behind, if the table was built to."""
+        ...
+
+    def sample(self, batch_size: int, timeout: float | None = None) -> Batch:
+        """Draw ``batch_size`` windows proportionally to priority. Blocks until the rate limiter
+        allows it; raises :class:`SampleTimeout` after ``timeout`` seconds (None: wait forever)."""
+        ...
+
+    def update_priorities(self, keys: np.ndarray, priorities: np.ndarray) -> None:
+        """Set the priority of each key still stored; evicted or unknown keys are ignored."""
+        ...
+
+    def info(self) -> dict[str, Any]:
+        """Flat dict: ``size``, ``capacity``, ``inserted_steps``, ``sampled_windows``, ... ."""
+        ...
+
+    def save(self, path: str | Path) -> None:
+        """Write the whole table atomically (temp file, fsync, rename)."""
+        ...
+
+    def load(self, path: str | Path) -> None:
+        """Replace the contents with what :meth:`save` wrote; a bad file raises and changes nothing."""
+        ...

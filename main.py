@@ -1,0 +1,238 @@
+"""Single-process ASAC: ``python main.py gym/pendulum`` trains; ``--run`` plays a checkpoint.
+
+Thin by design: parse flags, resolve the config, wire env factories into algorithm/ (ARCHITECTURE.md 1).
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import os
+import random
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from algorithm.checkpoint import CheckpointError, checkpoint_path, load_checkpoint
+from algorithm.config import ConfigError, apply_overrides, config_from_yaml, load_config
+from algorithm.config_schema import Config
+from algorithm.evaluation import evaluate
+from algorithm.sac import SAC
+from algorithm.trainer import EmbeddedTrainer, RunDir, seed_everything
+from envs.make import make_env, make_vector_env
+
+ROOT = Path(__file__).resolve().parent
+ENVS_DIR = ROOT / "envs"
+log = logging.getLogger("asac")
+
+
+class UsageError(Exception):
+    """Bad task name, run name or flag combination; printed without a traceback."""
+
+
+def build_parser(prog: str = "main.py") -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog=prog,
+        description="Train or play ASAC (Soft Actor-Critic) on a task from envs/.",
+        epilog="examples:\n  python main.py gym/pendulum\n"
+               "  python main.py mujoco/half_cheetah -n 'test_{time}' --agents 2 --override sac.n_step=3\n"
+               "  python main.py gym/pendulum -n myrun --run --render",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    add_common_args(p)
+    return p
+
+
+def add_common_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("env", help="task folder under envs/, e.g. gym/pendulum or mujoco/half_cheetah")
+    p.add_argument("-c", "--config", help="variant section of the task's config.yaml")
+    p.add_argument("--run", action="store_true", help="play the latest (or --ckpt) checkpoint deterministically")
+    p.add_argument("--render", action="store_true", help="with --run: show frames, or save an mp4 when headless")
+    p.add_argument("--logger_in_file", action="store_true", help="also log to <run dir>/log.txt")
+    p.add_argument("-n", "--name", help="run name ('{time}' becomes the start time); default base_config.name")
+    p.add_argument("--nn", help="model file in the task folder (default base_config.nn)")
+    p.add_argument("--ckpt", type=int, help="checkpoint step to resume from or play")
+    p.add_argument("--agents", type=int, help="parallel envs (base_config.n_agents)")
+    p.add_argument("--repeat", type=int, default=1, help="train K runs one after another (seeds seed, seed+1, ...)")
+    p.add_argument("--device", default="cpu", help="torch device for the learner, e.g. cpu or cuda")
+    p.add_argument("--override", action="append", default=[], metavar="SECTION.KEY=VALUE",
+                   help="set any config key, e.g. sac.n_step=5 (repeatable)")
+    p.add_argument("--model_root", default="models", help="where run folders go (default ./models)")
+    p.add_argument("--episodes", type=int, help="with --run: episodes to play (default eval_config.eval_episodes)")
+    p.add_argument("--no_progress", action="store_true", help="no progress line")
+
+
+def task_dir(task: str) -> Path:
+    path = (ENVS_DIR / task).resolve()
+    if ENVS_DIR.resolve() not in path.parents or not (path / "config.yaml").is_file():
+        known = sorted(str(p.parent.relative_to(ENVS_DIR)) for p in ENVS_DIR.glob("*/*/config.yaml"))
+        raise UsageError(f"unknown task {task!r}: no envs/{task}/config.yaml. Known tasks: {', '.join(known)}")
+    return path
+
+
+def cli_overrides(args: argparse.Namespace) -> list[str]:
+    overrides = []
+    if args.agents is not None:
+        overrides.append(f"base_config.n_agents={args.agents}")
+    if args.nn is not None:
+        overrides.append(f"base_config.nn={args.nn}")
+    return overrides + list(args.override)
+
+
+def check_nn_file(task: Path, config: Config) -> None:
+    if (task / f"{config.base_config.nn}.py").exists():
+        raise UsageError(f"{task / (config.base_config.nn + '.py')}: custom nn.py models are not supported yet; "
+                         "models are built from nn_config")
+
+
+def env_factories(config: Config):  # noqa: ANN201 - returns two closures
+    base, ev = config.base_config, config.eval_config
+    limit = base.max_step_each_iter if base.max_step_each_iter > 0 else None
+
+    def train_env(seed: int):  # noqa: ANN202
+        return make_vector_env(base.build_path, base.n_agents, seed=seed, env_kwargs=base.env_kwargs,
+                               max_episode_steps=limit)
+
+    def eval_env(seed: int):  # noqa: ANN202
+        return make_vector_env(base.build_path, ev.eval_envs, seed=seed, env_kwargs=base.env_kwargs,
+                               max_episode_steps=limit)
+
+    return train_env, eval_env
+
+
+def setup_logging(run_dir: Path | None, in_file: bool) -> None:
+    handlers: list[logging.Handler] = [logging.StreamHandler(sys.stderr)]
+    if in_file and run_dir is not None:
+        run_dir.mkdir(parents=True, exist_ok=True)
+        handlers.append(logging.FileHandler(run_dir / "log.txt"))
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s",
+                        handlers=handlers, force=True)
+
+
+def train(args: argparse.Namespace) -> int:
+    task = task_dir(args.env)
+    resolved = load_config(task, args.config, cli_overrides(args))
+    config = resolved.config
+    check_nn_file(task, config)
+    name_template = args.name or config.base_config.name
+    for repeat in range(args.repeat):
+        run_config = config.model_copy(deep=True)
+        name = name_template.replace("{time}", time.strftime("%Y%m%d%H%M%S"))
+        if args.repeat > 1:
+            name = f"{name}_{repeat}"
+        run_dir = Path(args.model_root) / args.env / name
+        if RunDir(run_dir).config.exists():
+            # Resuming: the run's own resolved config wins; command-line overrides still apply.
+            saved = config_from_yaml(RunDir(run_dir).config.read_text(), str(RunDir(run_dir).config))
+            run_config = apply_overrides(saved, cli_overrides(args))
+        if run_config.sac_config.seed is None:
+            run_config.sac_config.seed = random.SystemRandom().randrange(2**31)
+        elif args.repeat > 1:
+            run_config.sac_config.seed = int(run_config.sac_config.seed) + repeat
+        run_config.base_config.name = name
+        setup_logging(run_dir, args.logger_in_file)
+        log.info("run %s (seed %s)", run_dir, run_config.sac_config.seed)
+        train_env, eval_env = env_factories(run_config)
+        trainer = EmbeddedTrainer(run_config, run_dir, train_env, eval_env, device=args.device,
+                                  progress=not args.no_progress, ckpt_step=args.ckpt)
+        if trainer.env_steps:
+            log.info("resumed at %d env steps, %d updates", trainer.env_steps, trainer.updates)
+        summary = trainer.run()
+        log.info("%s after %d env steps, %d updates, %.0f s; last eval return %s",
+                 "interrupted" if summary.interrupted else "finished", summary.env_steps, summary.updates,
+                 summary.wall_seconds, "n/a" if summary.last_eval_mean is None else f"{summary.last_eval_mean:.1f}")
+        if summary.interrupted:
+            return 130
+    return 0
+
+
+def play(args: argparse.Namespace) -> int:
+    task_dir(args.env)  # validates the task name
+    run_root = Path(args.model_root) / args.env
+    if args.name is None or "{time}" in args.name:
+        runs = sorted((p for p in run_root.glob("*") if RunDir(p).config.exists()), key=lambda p: p.stat().st_mtime)
+        if not runs:
+            raise UsageError(f"--run: no trained runs under {run_root}; train first or give -n NAME")
+        run_dir = runs[-1]
+    else:
+        run_dir = run_root / args.name
+    paths = RunDir(run_dir)
+    if not paths.config.exists():
+        raise UsageError(f"--run: {run_dir} is not a run folder (no config.yaml)")
+    config = apply_overrides(config_from_yaml(paths.config.read_text(), str(paths.config)), cli_overrides(args))
+    setup_logging(run_dir, args.logger_in_file)
+    ckpt = checkpoint_path(paths.model, args.ckpt)
+    state = load_checkpoint(ckpt)
+    seed = int(config.sac_config.seed or 0)
+    seed_everything(seed)
+    episodes = args.episodes or config.eval_config.eval_episodes
+    base = config.base_config
+    limit = base.max_step_each_iter if base.max_step_each_iter > 0 else None
+    if args.render:
+        return _play_rendered(config, state, run_dir, ckpt.stem, episodes, limit, args.device)
+    env = make_vector_env(base.build_path, min(episodes, config.eval_config.eval_envs), seed=seed,
+                          env_kwargs=base.env_kwargs, max_episode_steps=limit)
+    sac = SAC(env.spec, config.sac_config, config.nn_config, config.replay_config, device=args.device)
+    _load_policy(sac, state, ckpt)
+    result = evaluate(env, sac, episodes, seed)
+    print(f"{run_dir} checkpoint {ckpt.stem}: return {result.mean:.1f} +- {result.std:.1f} over {episodes} episodes")
+    return 0
+
+
+def _load_policy(sac: SAC, state: dict, ckpt: Path) -> None:
+    try:
+        sac.load_state_dict(state["sac"])
+    except (KeyError, RuntimeError, ValueError) as e:
+        raise CheckpointError(f"checkpoint {ckpt} does not match this task's models: {e}") from None
+
+
+def _play_rendered(config: Config, state: dict, run_dir: Path, step: str, episodes: int, limit: int | None,
+                   device: str) -> int:
+    base = config.base_config
+    headless = not os.environ.get("DISPLAY")
+    env = make_env(base.build_path, seed=int(config.sac_config.seed or 0), env_kwargs=base.env_kwargs,
+                   max_episode_steps=limit, render_mode="rgb_array" if headless else "human")
+    from algorithm.spaces import env_spec, to_env_action
+
+    spec = env_spec(env.observation_space, env.action_space)
+    sac = SAC(spec, config.sac_config, config.nn_config, config.replay_config, device=device)
+    _load_policy(sac, state, run_dir / "model" / f"{step}.pt")
+    frames: list[np.ndarray] = []
+    returns = []
+    for ep in range(episodes):
+        obs, _ = env.reset(seed=int(config.sac_config.seed or 0) + ep)
+        total, done = 0.0, False
+        while not done:
+            sensors = obs if isinstance(obs, list | tuple) else [obs]
+            batch = [np.asarray(o, dtype=s.dtype)[None] for o, s in zip(sensors, spec.sensors, strict=True)]
+            action, _ = sac.act(batch, deterministic=True)
+            obs, reward, terminated, truncated, _ = env.step(to_env_action(spec.action, action)[0])
+            total += float(reward)
+            done = bool(terminated or truncated)
+            if headless:
+                frames.append(env.render())
+        returns.append(total)
+    env.close()
+    print(f"{run_dir} checkpoint {step}: return {np.mean(returns):.1f} +- {np.std(returns):.1f} over {episodes} episodes")
+    if headless and frames:
+        import imageio.v2 as imageio
+
+        video = run_dir / f"play_{step}.mp4"
+        imageio.mimwrite(video, frames, fps=int(env.metadata.get("render_fps", 30)))
+        print(f"no display: frames saved to {video}")
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        return play(args) if args.run else train(args)
+    except (UsageError, ConfigError, CheckpointError) as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())
