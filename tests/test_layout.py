@@ -1,0 +1,42 @@
+"""The import direction of ARCHITECTURE.md 2: algorithm imports nothing of ours but itself, envs only
+algorithm.spaces, and nothing imports main*.py."""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+OURS = ("algorithm", "envs", "ds", "protos", "main", "main_ds")
+
+
+def imported_packages(path: Path) -> set[str]:
+    names: set[str] = set()
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.Import):
+            names.update(alias.name for alias in node.names)
+        elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+            names.add(node.module)
+    return {n for n in names if n.split(".")[0] in OURS}
+
+
+def test_algorithm_imports_only_itself() -> None:
+    for path in (ROOT / "algorithm").rglob("*.py"):
+        bad = {n for n in imported_packages(path) if not n.startswith("algorithm")}
+        assert not bad, f"{path.relative_to(ROOT)} imports {bad}"
+
+
+def test_envs_import_only_spaces_from_algorithm() -> None:
+    for path in (ROOT / "envs").rglob("*.py"):
+        bad = {n for n in imported_packages(path)
+               if not (n.startswith("envs") or n == "algorithm.spaces")}
+        assert not bad, f"{path.relative_to(ROOT)} imports {bad}"
+
+
+def test_nothing_imports_the_launchers() -> None:
+    for folder in ("algorithm", "envs", "ds", "tests"):
+        for path in (ROOT / folder).rglob("*.py"):
+            if path.name == "test_main.py":
+                continue
+            bad = {n for n in imported_packages(path) if n.split(".")[0] in ("main", "main_ds")}
+            assert not bad, f"{path.relative_to(ROOT)} imports {bad}"
