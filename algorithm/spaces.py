@@ -82,6 +82,9 @@ def action_spec(space: gym.Space) -> ActionSpec:
     low: list[float] = []
     high: list[float] = []
     for part in parts:
+        if isinstance(part, (gym.spaces.Discrete, gym.spaces.MultiDiscrete)) and np.any(part.start != 0):
+            # to_env_action gives argmax indices 0..n-1, which an env counting from start would misread
+            raise ValueError(f"discrete action spaces must start at 0, got start={part.start} in {part}")
         if isinstance(part, gym.spaces.Discrete):
             branches.append(int(part.n))
         elif isinstance(part, gym.spaces.MultiDiscrete):
@@ -110,6 +113,11 @@ def to_env_action(spec: ActionSpec, actions: np.ndarray) -> np.ndarray | tuple[n
     one branch -> ``[N]`` ints; several branches -> ``[N, n_branches]``; mixed -> a tuple.
     """
     actions = np.asarray(actions)
+    if actions.ndim != 2 or actions.shape[1] != spec.size:
+        raise ValueError(
+            f"actions must have shape [N, {spec.size}] (discrete branches {spec.discrete_branches}, "
+            f"{spec.continuous_dim} continuous dims), got {actions.shape}"
+        )
     discrete = []
     start = 0
     for n in spec.discrete_branches:
@@ -119,8 +127,10 @@ def to_env_action(spec: ActionSpec, actions: np.ndarray) -> np.ndarray | tuple[n
     if spec.continuous_dim:
         low = np.asarray(spec.low, dtype=np.float32)
         high = np.asarray(spec.high, dtype=np.float32)
-        unit = np.clip(actions[:, start:], -1.0, 1.0)
-        continuous = low + (unit + 1.0) * 0.5 * (high - low)
+        # np.minimum/np.maximum instead of np.clip: same result, half the cost on the actor's hot path.
+        unit = np.minimum(np.maximum(actions[:, start:], -1.0), 1.0)
+        # the final clip: float32 rounding of low + (high - low) can overshoot high (low=-3, high=0.4)
+        continuous = np.minimum(np.maximum(low + (unit + 1.0) * 0.5 * (high - low), low), high)
     if continuous is not None and not discrete:
         return continuous
     disc = discrete[0] if len(discrete) == 1 else np.stack(discrete, axis=1)
