@@ -1,0 +1,67 @@
+"""Replay files: one ``.npz`` archive of plain arrays plus a JSON ``meta`` entry; never pickles.
+
+:func:`write_atomic` writes to a temp file beside the target, fsyncs it, renames it over the target
+and fsyncs the directory, so a crash leaves either the old file or the new one. :func:`read_checked`
+reads everything and checks the format, the layout the reader expects and every array's name,
+shape and dtype before returning; any problem is a ``ValueError`` that names the file and the field.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import threading
+import zipfile
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+FORMAT = "asac-replay-v1"
+
+
+def write_atomic(path: Path, arrays: dict[str, np.ndarray], meta: dict[str, Any]) -> None:
+    """Write ``arrays`` and JSON ``meta`` to ``path`` atomically (temp file, fsync, rename)."""
+    contents: dict[str, Any] = {**arrays, "meta": np.array(json.dumps({"format": FORMAT, **meta}))}
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.{threading.get_ident()}.tmp")
+    try:
+        with open(tmp, "wb") as f:
+            np.savez(f, **contents)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
+    dir_fd = os.open(path.parent, os.O_RDONLY)
+    try:
+        os.fsync(dir_fd)  # make the rename itself durable
+    finally:
+        os.close(dir_fd)
+
+
+def read_checked(
+    path: Path, layout: dict[str, Any], expected: dict[str, tuple[tuple[int, ...], np.dtype]]
+) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+    """Read a file written by :func:`write_atomic`; returns ``(arrays, meta)``.
+
+    ``meta`` must hold every ``layout`` entry with the same value, and the arrays must be exactly
+    ``expected`` (name -> shape, dtype).
+    """
+    try:
+        with np.load(path, allow_pickle=False) as f:
+            arrays = {name: f[name] for name in f.files}
+        meta = json.loads(str(arrays.pop("meta")))
+    except (OSError, ValueError, EOFError, KeyError, zipfile.BadZipFile) as e:
+        raise ValueError(f"{path}: not a readable replay file ({type(e).__name__}: {e})") from e
+    if not isinstance(meta, dict) or meta.get("format") != FORMAT:
+        raise ValueError(f"{path}: not a replay file of format {FORMAT}")
+    for name, want in layout.items():
+        if meta.get(name) != want:
+            raise ValueError(f"{path}: saved {name} is {meta.get(name)!r}, this table has {want!r}")
+    if set(arrays) != set(expected):
+        raise ValueError(f"{path}: arrays {sorted(arrays)} do not match the expected {sorted(expected)}")
+    for name, (shape, dtype) in expected.items():
+        got = arrays[name]
+        if got.shape != shape or got.dtype != dtype:
+            raise ValueError(f"{path}: array {name!r} is {got.dtype} {got.shape}, expected {dtype} {shape}")
+    return arrays, meta

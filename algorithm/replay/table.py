@@ -1,0 +1,510 @@
+"""The in-process prioritized replay table: trajectory chunks in, priority-weighted windows out.
+
+Usage (see :class:`~algorithm.replay.base.ReplayTable` for the contract)::
+
+    table = PrioritizedTable.from_config(cfg.replay_config, env_spec.sensors, env_spec.action.size,
+                                         window=burn_in_step + n_step, seed=0)
+    keys = table.insert(chunk)                    # T new keys; the chunk also fills one bootstrap row
+    batch = table.sample(256, timeout=1.0)        # [B, L] windows, keys, probabilities, table size
+    table.update_priorities(batch.keys, td_abs)   # raw |TD|; evicted keys are ignored
+    table.save(path); other.load(path)            # atomic; sampling continues identically
+
+Storage is a ring of ``capacity`` rows; key ``k`` lives in row ``k % capacity``. A chunk of ``T``
+steps takes ``T + 1`` consecutive keys: ``T`` step rows and one *bootstrap row* holding only
+``obs[T]`` (its per-step fields are zeros and its priority is 0, so it never starts a window). Every
+row remembers the key of its chunk's bootstrap row (``end``). A window of ``L`` steps starting at key
+``s`` reads observation ``k`` from key ``min(s + k, end)`` and step ``k`` from the same key, with
+``mask[k] = s + k < end``: past the chunk's end it repeats the final observation and reads the
+bootstrap row's zeros, and it never reads another chunk. Eviction is FIFO by key (a row is evicted
+when a new key overwrites it); because keys increase, a stored step row's whole chunk tail is
+still stored, so every sampleable window is intact.
+
+Priorities are ``clip(raw, td_error_min, td_error_max) ** alpha`` in a float64 :class:`SumTree`.
+All operations run under one lock (the rate limiter's condition, so that admission and action are
+atomic); the hot paths are vectorised numpy plus compiled tree loops, with no per-item Python loops.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any, Protocol
+
+import numpy as np
+
+from algorithm.normalizer import RunningMeanStd
+from algorithm.replay import persistence
+from algorithm.replay.rate_limiter import RateLimiter
+from algorithm.replay.sum_tree import SumTree
+from algorithm.spaces import SensorSpec
+from algorithm.types import Batch, Chunk
+
+_EMPTY = -1  # row key of a row that has never been written
+
+
+class ReplayConfigLike(Protocol):
+    """The ``replay_config`` fields :meth:`PrioritizedTable.from_config` reads."""
+
+    capacity: int
+    alpha: float
+    td_error_min: float
+    td_error_max: float
+    samples_per_insert: float
+    samples_per_insert_tolerance: float
+    min_size_to_sample: int
+
+
+class PrioritizedTable:
+    """Prioritized (``alpha > 0``) or uniform (``alpha == 0``) table of fixed-length windows.
+
+    Args:
+        capacity: rows stored, steps plus one bootstrap row per chunk (so a chunk may hold at
+            most ``capacity - 1`` steps).
+        sensors: observation sensors in order; each is stored with its own dtype (uint8 images
+            stay uint8). Vector (non-image) sensors get a running normalizer.
+        action_size: width of the flat action vector.
+        window: ``L = burn_in_step + n_step`` steps per sampled window.
+        alpha, td_error_min, td_error_max: priority transform (``alpha == 0``: uniform).
+        rnn_state_size: width of the stored recurrent state (0: none; chunks must then have
+            ``rnn_state=None``).
+        rate_limiter: one per table; default: ratio not enforced, ``min_size_to_sample=1``.
+        seed: seeds the table's numpy Generator (saved and restored with the table).
+    """
+
+    def __init__(
+        self,
+        capacity: int,
+        sensors: tuple[SensorSpec, ...],
+        action_size: int,
+        window: int,
+        alpha: float = 0.9,
+        td_error_min: float = 0.01,
+        td_error_max: float = 1.0,
+        rnn_state_size: int = 0,
+        rate_limiter: RateLimiter | None = None,
+        seed: int | None = None,
+    ) -> None:
+        if int(capacity) < 2:
+            raise ValueError(f"replay capacity must be >= 2 rows, got {capacity}")
+        if int(window) < 1:
+            raise ValueError(f"replay window (burn_in_step + n_step) must be >= 1, got {window}")
+        if int(action_size) < 1:
+            raise ValueError(f"action_size must be >= 1, got {action_size}")
+        if int(rnn_state_size) < 0:
+            raise ValueError(f"rnn_state_size must be >= 0, got {rnn_state_size}")
+        if not 0.0 <= alpha <= 1.0:
+            raise ValueError(f"replay alpha must be in [0, 1], got {alpha}")
+        if not 0.0 <= td_error_min <= td_error_max or not np.isfinite(td_error_max):
+            raise ValueError(
+                f"need 0 <= td_error_min <= td_error_max < inf, got {td_error_min}, {td_error_max}"
+            )
+        names = [s.name for s in sensors]
+        if not sensors or len(set(names)) != len(names):
+            raise ValueError(f"replay needs at least one sensor and unique sensor names, got {names}")
+        self.capacity = int(capacity)
+        self.sensors = tuple(sensors)
+        self.action_size = int(action_size)
+        self.window = int(window)
+        self.alpha = float(alpha)
+        self.td_error_min = float(td_error_min)
+        self.td_error_max = float(td_error_max)
+        self.rnn_state_size = int(rnn_state_size)
+        self.rate_limiter = rate_limiter or RateLimiter(1.0, 1, enforce_ratio=False)
+        if self.rate_limiter.min_size_to_sample > self.capacity - 1:
+            raise ValueError(
+                f"min_size_to_sample {self.rate_limiter.min_size_to_sample} can never be reached "
+                f"with capacity {self.capacity} (at most capacity - 1 steps are stored)"
+            )
+        self._lock = self.rate_limiter.condition
+        self._rng = np.random.default_rng(seed)
+
+        cap, a = self.capacity, self.action_size
+        self._obs = [np.zeros((cap, *s.shape), dtype=s.dtype) for s in self.sensors]
+        self._steps = {  # per-step fields, named as in Chunk and Batch
+            "actions": np.zeros((cap, a), dtype=np.float32),
+            "prev_actions": np.zeros((cap, a), dtype=np.float32),
+            "rewards": np.zeros(cap, dtype=np.float32),
+            "terminated": np.zeros(cap, dtype=bool),
+            "truncated": np.zeros(cap, dtype=bool),
+            "behaviour_logp": np.zeros(cap, dtype=np.float32),
+        }
+        self._rnn = np.zeros((cap, self.rnn_state_size), dtype=np.float32) if self.rnn_state_size else None
+        self._row_key = np.full(cap, _EMPTY, dtype=np.int64)
+        self._end_key = np.full(cap, _EMPTY, dtype=np.int64)
+        self._tree = SumTree(cap)
+        self._normalizers = {s.name: RunningMeanStd(s.shape) for s in self.sensors if not s.is_image}
+        self._next_key = 0
+        self._max_priority = float(self._transform(np.ones(1))[0])
+        self._counters = dict.fromkeys(
+            (
+                "inserted_chunks",
+                "evicted_rows",
+                "sample_calls",
+                "priority_updates",
+                "priority_updates_ignored",
+            ),
+            0,
+        )
+
+    @classmethod
+    def from_config(
+        cls,
+        replay_config: ReplayConfigLike,
+        sensors: tuple[SensorSpec, ...],
+        action_size: int,
+        window: int,
+        rnn_state_size: int = 0,
+        enforce_ratio: bool = False,
+        seed: int | None = None,
+    ) -> PrioritizedTable:
+        """Build a table and its rate limiter from ``replay_config``.
+
+        ``enforce_ratio=False`` (the single-process loop, which decides itself how many updates to
+        run per env step): inserts never block and sampling waits only for ``min_size_to_sample``.
+        ``True`` (a replay shared by separate actor and learner processes): inserts and samples
+        also wait to keep ``samples_per_insert`` within ``samples_per_insert_tolerance``.
+        """
+        limiter = RateLimiter(
+            samples_per_insert=replay_config.samples_per_insert,
+            min_size_to_sample=replay_config.min_size_to_sample,
+            tolerance=replay_config.samples_per_insert_tolerance,
+            enforce_ratio=enforce_ratio,
+        )
+        return cls(
+            capacity=replay_config.capacity,
+            sensors=sensors,
+            action_size=action_size,
+            window=window,
+            alpha=replay_config.alpha,
+            td_error_min=replay_config.td_error_min,
+            td_error_max=replay_config.td_error_max,
+            rnn_state_size=rnn_state_size,
+            rate_limiter=limiter,
+            seed=seed,
+        )
+
+    # ------------------------------------------------------------------ public interface
+
+    def insert(
+        self, chunk: Chunk, priorities: np.ndarray | None = None, timeout: float | None = None
+    ) -> np.ndarray:
+        """Store ``chunk`` contiguously and return its ``T`` step keys (uint64, increasing).
+
+        New rows get the highest priority seen so far unless raw ``priorities`` ``[T]`` are given.
+        Blocks while the rate limiter says the learner is behind (only when it enforces the
+        ratio); raises :class:`~algorithm.replay.rate_limiter.InsertTimeout` after ``timeout`` s.
+        A chunk that does not match the table's specs raises ``ValueError`` and stores nothing.
+        """
+        t = self._check_chunk(chunk)
+        new_p = (
+            None if priorities is None else self._transform(self._check_priorities(priorities, t, "insert"))
+        )
+        with self._lock:
+            self.rate_limiter.await_insert(t, timeout)
+            first = self._next_key
+            keys = np.arange(first, first + t + 1, dtype=np.int64)
+            rows = keys % self.capacity
+            old = self._row_key[rows]
+            stored = old != _EMPTY
+            evicted_steps = int(np.count_nonzero(stored & (old != self._end_key[rows])))
+
+            # Plain slices when the chunk does not wrap the ring: much cheaper than index arrays.
+            wraps = rows[t] < rows[0]
+            span = rows if wraps else slice(rows[0], rows[t] + 1)
+            steps = rows[:t] if wraps else slice(rows[0], rows[t])
+            boot = rows[t]
+            for store, data in zip(self._obs, chunk.obs, strict=True):
+                store[span] = data
+            for name, store in self._steps.items():
+                store[steps] = getattr(chunk, name)
+                store[boot] = 0  # masked window steps read these zeros
+            if self._rnn is not None:
+                self._rnn[steps] = chunk.rnn_state
+            self._row_key[span] = keys
+            self._end_key[span] = first + t
+
+            if new_p is None:
+                new_p = np.full(t, self._max_priority)
+            else:
+                self._max_priority = max(self._max_priority, float(new_p.max()))
+            self._tree.set(rows, np.append(new_p, 0.0))
+            for spec, data in zip(self.sensors, chunk.obs, strict=True):
+                if spec.name in self._normalizers:
+                    self._normalizers[spec.name].update(data)
+
+            self._next_key = first + t + 1
+            self._counters["inserted_chunks"] += 1
+            self._counters["evicted_rows"] += int(np.count_nonzero(stored))
+            self.rate_limiter.record_insert(t, evicted_steps)
+        return keys[:t].astype(np.uint64)
+
+    def sample(self, batch_size: int, timeout: float | None = None) -> Batch:
+        """Draw ``batch_size`` windows with probability ``priority / total`` (stratified).
+
+        If every stored priority is 0, draws uniformly among sampleable rows. Waits for the rate
+        limiter; raises :class:`~algorithm.replay.base.SampleTimeout` after ``timeout`` seconds.
+        """
+        b = int(batch_size)
+        if b < 1:
+            raise ValueError(f"batch_size must be >= 1, got {batch_size}")
+        with self._lock:
+            self.rate_limiter.await_sample(b, timeout)
+            size = self.rate_limiter.size
+            total = self._tree.total
+            if total > 0.0:
+                rows = self._tree.sample_stratified(b, self._rng)
+                probabilities = self._tree.get(rows) / total
+            else:
+                rows = self._uniform_rows(b)
+                probabilities = np.full(b, 1.0 / size)
+            batch = self._gather(rows, probabilities, size)
+            self._counters["sample_calls"] += 1
+            self.rate_limiter.record_sample(b)
+        return batch
+
+    def update_priorities(self, keys: np.ndarray, priorities: np.ndarray) -> None:
+        """Set raw priorities (e.g. mean |TD| over heads) of ``keys``; keys that are evicted,
+        bootstrap rows or never issued are ignored. Shapes must match; values finite and >= 0."""
+        k = np.asarray(keys)
+        if k.ndim != 1 or (k.size and k.dtype.kind not in "ui"):
+            raise ValueError(f"update_priorities: keys must be a 1-D integer array, got {k.dtype} {k.shape}")
+        p = self._transform(self._check_priorities(priorities, k.shape[0], "update_priorities"))
+        k64 = k.astype(np.int64)  # uint64 keys >= 2**63 wrap to negatives: never issued, so ignored
+        rows = k64 % self.capacity
+        with self._lock:
+            valid = (k64 >= 0) & (self._row_key[rows] == k64) & (self._end_key[rows] != k64)
+            n_valid = int(np.count_nonzero(valid))
+            if n_valid:
+                self._tree.set(rows[valid], p[valid])
+                self._max_priority = max(self._max_priority, float(p[valid].max()))
+            self._counters["priority_updates"] += n_valid
+            self._counters["priority_updates_ignored"] += k.shape[0] - n_valid
+
+    def info(self) -> dict[str, Any]:
+        """Flat ``replay/*`` numbers plus ``"normalizer"``: ``{sensor name: {count, mean, var}}``."""
+        with self._lock:
+            lim = self.rate_limiter
+            out: dict[str, Any] = {
+                "size": lim.size,
+                "capacity": self.capacity,
+                "stored_rows": int(min(self._next_key, self.capacity)),
+                "inserted_steps": lim.inserted,
+                "evicted_steps": lim.evicted,
+                "sampled_windows": lim.sampled,
+                "samples_per_insert_actual": lim.sampled / lim.inserted if lim.inserted else 0.0,
+                "next_key": self._next_key,
+                "max_priority": self._max_priority,
+                "total_priority": self._tree.total,
+                **self._counters,
+                **lim.info(),
+            }
+            out["normalizer"] = self._normalizer_state()
+        return out
+
+    def normalizer_stats(self) -> dict[str, dict[str, Any]]:
+        """``{sensor name: {"count", "mean", "var"}}`` over every inserted observation of each vector
+        sensor (rows ``0..T`` of every chunk); load into a :class:`RunningMeanStd` to normalize."""
+        with self._lock:
+            return self._normalizer_state()
+
+    def save(self, path: str | Path) -> None:
+        """Write the table to ``path`` (an ``.npz`` archive, no pickles) atomically: the state is
+        copied under the lock, then written to a temp file beside ``path``, fsynced and renamed."""
+        with self._lock:
+            arrays = self._state_arrays()
+            meta = {
+                **self._layout(),
+                "next_key": self._next_key,
+                "max_priority": self._max_priority,
+                "counters": dict(self._counters),
+                "rate_limiter": self.rate_limiter.state_dict(),
+                "rng": self._rng.bit_generator.state,
+                "normalizer_counts": {name: rms.count for name, rms in self._normalizers.items()},
+            }
+        persistence.write_atomic(Path(path), arrays, meta)
+
+    def load(self, path: str | Path) -> None:
+        """Replace the contents with a file written by :meth:`save` of a table with the same
+        capacity, sensors, action size, recurrent state size and priority transform. Everything
+        is read and validated first; a bad or mismatched file raises ``ValueError`` naming the
+        problem and leaves this table unchanged. Sampling then continues exactly as it would have
+        in the saved table (same rows, priorities, counters and random state)."""
+        expected = {name: (arr.shape, arr.dtype) for name, arr in self._state_arrays(copy=False).items()}
+        data, meta = persistence.read_checked(Path(path), self._layout(), expected)
+        try:
+            attributes, limiter_state = self._validated_state(data, meta)
+        except (KeyError, TypeError, ValueError) as e:
+            raise ValueError(f"{path}: inconsistent replay file ({type(e).__name__}: {e})") from e
+        with self._lock:
+            self.rate_limiter.load_state_dict(limiter_state)
+            for name, value in attributes.items():
+                setattr(self, name, value)
+
+    # ------------------------------------------------------------------ internals
+
+    def _layout(self) -> dict[str, Any]:
+        """What a saved file must match to be loaded here (JSON-friendly)."""
+        return {
+            "capacity": self.capacity,
+            "sensors": [[s.name, list(s.shape), np.dtype(s.dtype).str] for s in self.sensors],
+            "action_size": self.action_size,
+            "rnn_state_size": self.rnn_state_size,
+            "alpha": self.alpha,
+            "td_error_min": self.td_error_min,
+            "td_error_max": self.td_error_max,
+        }
+
+    def _state_arrays(self, copy: bool = True) -> dict[str, np.ndarray]:
+        arrays = {f"obs_{i}": store for i, store in enumerate(self._obs)}
+        arrays.update(self._steps)
+        arrays.update(
+            row_key=self._row_key,
+            end_key=self._end_key,
+            priorities=self._tree.leaves,
+        )
+        if self._rnn is not None:
+            arrays["rnn_state"] = self._rnn
+        for i, s in enumerate(self.sensors):
+            if s.name in self._normalizers:
+                state = self._normalizers[s.name].state_dict()
+                arrays[f"norm_mean_{i}"], arrays[f"norm_var_{i}"] = state["mean"], state["var"]
+        return {name: arr.copy() for name, arr in arrays.items()} if copy else arrays
+
+    def _validated_state(
+        self, data: dict[str, np.ndarray], meta: dict[str, Any]
+    ) -> tuple[dict[str, Any], dict[str, int]]:
+        """Check a loaded file's internal consistency; return the attributes to install and the
+        rate limiter's counters."""
+        cap, next_key = self.capacity, int(meta["next_key"])
+        row_key, end_key, leaves = data["row_key"], data["end_key"], data["priorities"]
+        stored = row_key != _EMPTY
+        rk, ek = row_key[stored], end_key[stored]
+        if not (
+            (rk % cap == np.flatnonzero(stored)).all()
+            and (rk >= next_key - cap).all()
+            and (ek >= rk).all()
+            and (ek < next_key).all()
+            and (row_key[ek % cap] == ek).all()
+            and (end_key[~stored] == _EMPTY).all()
+        ):
+            raise ValueError("row keys are not a ring of consecutive chunks")
+        is_step = stored & (row_key != end_key)
+        if not np.isfinite(leaves).all() or (leaves < 0).any() or (leaves[~is_step] != 0).any():
+            raise ValueError("priorities must be finite, >= 0, and 0 on bootstrap and empty rows")
+        lim = {k: int(meta["rate_limiter"][k]) for k in ("inserted", "evicted", "sampled")}
+        if min(lim.values()) < 0 or lim["inserted"] - lim["evicted"] != int(np.count_nonzero(is_step)):
+            raise ValueError(f"rate limiter counters {lim} disagree with the stored rows")
+        counters = {name: int(meta["counters"][name]) for name in self._counters}
+        max_priority = float(meta["max_priority"])
+        if not 0.0 <= max_priority < np.inf:
+            raise ValueError(f"max_priority must be finite and >= 0, got {max_priority}")
+        tree = SumTree(cap)
+        tree.set_all(leaves)
+        rng = np.random.default_rng()
+        rng.bit_generator.state = meta["rng"]
+        normalizers = {}
+        for i, s in enumerate(self.sensors):
+            if s.name in self._normalizers:
+                rms = RunningMeanStd(s.shape)
+                rms.load_state_dict(
+                    {
+                        "count": meta["normalizer_counts"][s.name],
+                        "mean": data[f"norm_mean_{i}"],
+                        "var": data[f"norm_var_{i}"],
+                    }
+                )
+                normalizers[s.name] = rms
+        attributes = {
+            "_obs": [data[f"obs_{i}"] for i in range(len(self.sensors))],
+            "_steps": {name: data[name] for name in self._steps},
+            "_rnn": data.get("rnn_state"),
+            "_row_key": row_key,
+            "_end_key": end_key,
+            "_tree": tree,
+            "_normalizers": normalizers,
+            "_next_key": next_key,
+            "_max_priority": max_priority,
+            "_counters": counters,
+            "_rng": rng,
+        }
+        return attributes, lim
+
+    def _transform(self, raw: np.ndarray) -> np.ndarray:
+        return np.power(np.clip(raw, self.td_error_min, self.td_error_max), self.alpha)
+
+    def _normalizer_state(self) -> dict[str, dict[str, Any]]:
+        return {name: rms.state_dict() for name, rms in self._normalizers.items()}
+
+    def _uniform_rows(self, n: int) -> np.ndarray:
+        """``n`` rows drawn uniformly among stored step rows (rejecting bootstrap rows; at most
+        half of the stored rows are bootstrap rows, so a few vectorised rounds suffice)."""
+        low = max(0, self._next_key - self.capacity)
+        picked = np.empty(0, dtype=np.int64)
+        while picked.shape[0] < n:
+            keys = self._rng.integers(low, self._next_key, size=2 * n)
+            rows = keys % self.capacity
+            picked = np.concatenate([picked, rows[self._end_key[rows] != keys]])
+        return picked[:n]
+
+    def _gather(self, rows: np.ndarray, probabilities: np.ndarray, size: int) -> Batch:
+        starts = self._row_key[rows]
+        ends = self._end_key[rows][:, None]
+        pos = starts[:, None] + np.arange(self.window + 1, dtype=np.int64)
+        read = np.minimum(pos, ends) % self.capacity  # [B, L+1]; clamped to the bootstrap row
+        step = read[:, :-1]  # bootstrap rows hold zeros, so masked steps come out zero/False
+        return Batch(
+            keys=starts.astype(np.uint64),
+            probabilities=probabilities,
+            table_size=int(size),
+            obs=[store[read] for store in self._obs],
+            mask=pos[:, :-1] < ends,
+            rnn_state=None if self._rnn is None else self._rnn[rows],
+            **{name: store[step] for name, store in self._steps.items()},
+        )
+
+    def _check_priorities(self, priorities: np.ndarray, n: int, where: str) -> np.ndarray:
+        p = np.asarray(priorities, dtype=np.float64)
+        if p.shape != (n,):
+            raise ValueError(f"{where}: priorities must have shape ({n},), got {p.shape}")
+        if not np.isfinite(p).all() or (p < 0).any():
+            raise ValueError(f"{where}: priorities must be finite and >= 0")
+        return p
+
+    def _check_chunk(self, chunk: Chunk) -> int:
+        """Validate ``chunk`` against the table's specs; returns ``T``. Raises ``ValueError``."""
+        rewards = np.asarray(chunk.rewards)
+        if rewards.ndim != 1 or rewards.shape[0] < 1:
+            raise ValueError(f"chunk.rewards must have shape [T] with T >= 1, got {rewards.shape}")
+        t = rewards.shape[0]
+        if t + 1 > self.capacity:
+            raise ValueError(f"chunk of {t} steps needs {t + 1} rows but replay capacity is {self.capacity}")
+        if len(chunk.obs) != len(self.sensors):
+            raise ValueError(
+                f"chunk has {len(chunk.obs)} observation sensors, the table expects {len(self.sensors)}"
+            )
+        a = self.action_size
+        fields: list[tuple[str, Any, tuple[int, ...], np.dtype]] = [
+            (f"obs[{i}] ({s.name})", chunk.obs[i], (t + 1, *s.shape), np.dtype(s.dtype))
+            for i, s in enumerate(self.sensors)
+        ]
+        fields += [
+            ("actions", chunk.actions, (t, a), np.dtype(np.float32)),
+            ("prev_actions", chunk.prev_actions, (t, a), np.dtype(np.float32)),
+            ("rewards", chunk.rewards, (t,), np.dtype(np.float32)),
+            ("terminated", chunk.terminated, (t,), np.dtype(bool)),
+            ("truncated", chunk.truncated, (t,), np.dtype(bool)),
+            ("behaviour_logp", chunk.behaviour_logp, (t,), np.dtype(np.float32)),
+        ]
+        if self.rnn_state_size:
+            fields.append(("rnn_state", chunk.rnn_state, (t, self.rnn_state_size), np.dtype(np.float32)))
+        elif chunk.rnn_state is not None:
+            raise ValueError("chunk.rnn_state is set but the table was built with rnn_state_size=0")
+        for name, arr, shape, dtype in fields:
+            if not isinstance(arr, np.ndarray):
+                raise ValueError(f"chunk.{name} must be a numpy array, got {type(arr).__name__}")
+            if arr.shape != shape or arr.dtype != dtype:
+                raise ValueError(f"chunk.{name}: expected {dtype} {shape}, got {arr.dtype} {arr.shape}")
+            if dtype.kind == "f" and not np.isfinite(arr).all():
+                raise ValueError(f"chunk.{name} has non-finite values")
+        if chunk.terminated[:-1].any() or chunk.truncated[:-1].any():
+            raise ValueError("only the last step of a chunk may be terminated or truncated")
+        return t

@@ -1,0 +1,87 @@
+"""Window semantics: masks, padding past a chunk's end, and never reading another chunk."""
+
+from __future__ import annotations
+
+import numpy as np
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from algorithm.replay import PrioritizedTable
+from algorithm.types import Batch
+
+from .chunks import VECTOR, make_chunk
+
+
+def test_window_past_the_chunk_end_is_masked_and_repeats_the_final_observation() -> None:
+    tab = PrioritizedTable(32, (VECTOR,), 2, window=4, alpha=0.0, seed=0)
+    tab.insert(make_chunk(3, 0, terminated=True))  # keys 0, 1, 2; bootstrap row 3 holds obs[3]
+    tab.insert(make_chunk(5, 4))  # keys 4..8 must never leak into the first chunk's windows
+    by_key: dict[int, int] = {}
+    batch = tab.sample(64)
+    for b, key in enumerate(batch.keys.tolist()):
+        by_key.setdefault(key, b)
+    assert {0, 1, 2} <= set(by_key)
+
+    b = by_key[1]  # steps 1, 2 valid; 2 is terminal; positions past it masked
+    np.testing.assert_array_equal(batch.mask[b], [True, True, False, False])
+    np.testing.assert_array_equal(batch.obs[0][b, :, 0], [1, 2, 3, 3, 3])  # o_1 o_2 o_3(final) o_3 o_3
+    np.testing.assert_array_equal(batch.rewards[b], [1.5, 2.5, 0, 0])
+    np.testing.assert_array_equal(batch.terminated[b], [False, True, False, False])
+    np.testing.assert_array_equal(batch.actions[b, :, 0], [1, 2, 0, 0])
+    np.testing.assert_array_equal(batch.prev_actions[b, :, 0], [0, 1, 0, 0])
+    np.testing.assert_array_equal(batch.behaviour_logp[b], [-2, -3, 0, 0])
+    assert not batch.truncated[b].any()
+
+    b = by_key[5]  # fully inside the second chunk
+    assert batch.mask[b].all()
+    np.testing.assert_array_equal(batch.obs[0][b, :, 0], [5, 6, 7, 8, 9])
+
+
+def check_windows(batch: Batch, chunks: dict[int, tuple[int, bool]], oldest: int) -> None:
+    """Every window starts at a stored step key and reads only its own chunk; ``chunks`` maps each
+    step key to its chunk's end (bootstrap) key and whether its last step ends the episode."""
+    window = batch.window
+    for b, s in enumerate(batch.keys.tolist()):
+        assert s >= oldest and s in chunks, f"key {s} is not a stored step"
+        end, ends_episode = chunks[s]
+        pos = s + np.arange(window + 1)
+        np.testing.assert_array_equal(batch.obs[0][b, :, 0], np.minimum(pos, end))
+        valid = pos[:-1] < end
+        np.testing.assert_array_equal(batch.mask[b], valid)
+        np.testing.assert_array_equal(batch.rewards[b], np.where(valid, pos[:-1] + 0.5, 0))
+        np.testing.assert_array_equal(batch.actions[b, :, 1], np.where(valid, pos[:-1], 0))
+        np.testing.assert_array_equal(batch.behaviour_logp[b], np.where(valid, -(pos[:-1] + 1), 0))
+        # flags only at the chunk's last step, which is the last valid step if the window reaches it
+        last = valid & (pos[:-1] == end - 1) & ends_episode
+        np.testing.assert_array_equal(batch.terminated[b] | batch.truncated[b], last)
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    capacity=st.integers(2, 40),
+    window=st.integers(1, 6),
+    lengths=st.lists(st.integers(1, 39), min_size=1, max_size=25),
+    alpha=st.sampled_from([0.0, 0.6]),
+    seed=st.integers(0, 2**16),
+)
+def test_windows_never_span_two_chunks(
+    capacity: int, window: int, lengths: list[int], alpha: float, seed: int
+) -> None:
+    tab = PrioritizedTable(capacity, (VECTOR,), 2, window, alpha=alpha, seed=seed)
+    rng = np.random.default_rng(seed)
+    chunks: dict[int, tuple[int, bool]] = {}
+    next_key = 0
+    for t in lengths:
+        t = min(t, capacity - 1)
+        flag = rng.integers(3)
+        keys = tab.insert(make_chunk(t, next_key, terminated=flag == 1, truncated=flag == 2))
+        np.testing.assert_array_equal(keys, np.arange(next_key, next_key + t))
+        chunks.update((k, (next_key + t, bool(flag > 0))) for k in range(next_key, next_key + t))
+        next_key += t + 1
+        oldest = max(0, next_key - capacity)
+        stored_steps = sum(1 for k in chunks if k >= oldest)
+        assert tab.info()["size"] == stored_steps
+        check_windows(tab.sample(32), chunks, oldest)
+        if alpha:  # perturb priorities, including of evicted keys, to exercise the tree
+            some = rng.integers(0, next_key, 8).astype(np.uint64)
+            tab.update_priorities(some, rng.uniform(0.0, 2.0, 8))
