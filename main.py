@@ -5,9 +5,14 @@ Thin by design: parse flags, resolve the config, wire env factories into algorit
 
 from __future__ import annotations
 
+import os
+
+# Before torch is imported: with OpenMP's active waiting, multi-threaded torch slowed ~200x when
+# another process held a core (bench/learner.py); passive waiting costs nothing measurable.
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
 import argparse
 import logging
-import os
 import random
 import sys
 import time

@@ -144,7 +144,9 @@ class EmbeddedTrainer:
         self.writer.text("config", config_to_yaml(config), self.env_steps)
 
     # -- the loop ---------------------------------------------------------------------------
-    def run(self) -> TrainSummary:
+    def run(self, until_step: int | None = None) -> TrainSummary:
+        """Train until max_step/max_iter (then flush, save, close) or Ctrl-C (same), or pause at
+        ``until_step`` env steps with everything left open so a later ``run()`` continues."""
         cfg = self.config
         base, replay_cfg = cfg.base_config, cfg.replay_config
         summary_every = cfg.sac_config.write_summary_per_step
@@ -156,7 +158,7 @@ class EmbeddedTrainer:
         last_save_time = time.perf_counter()
         interrupted = False
         try:
-            while not self._done():
+            while not self._done() and (until_step is None or self.env_steps < until_step):
                 with self.timers.phase("env"):
                     stats = self.actor.step()
                 self.env_steps += stats.env_steps
@@ -172,7 +174,7 @@ class EmbeddedTrainer:
                         batch = self.table.sample(replay_cfg.batch_size)
                     with self.timers.phase("update"):
                         result = self.sac.update(batch, with_metrics=with_metrics)
-                    if priorities_matter:
+                    if priorities_matter and not result.skipped:
                         with self.timers.phase("priorities"):
                             self.table.update_priorities(batch.keys, result.td_abs)
                     self.owed_updates -= 1.0
@@ -197,9 +199,10 @@ class EmbeddedTrainer:
         finally:
             if bar is not None:
                 bar.close()
-        self.actor.flush()  # open chunks go to replay before the final save: nothing collected is lost
-        self.save()
-        self.writer.close()
+        if interrupted or self._done():
+            self.actor.flush()  # open chunks go to replay before the final save: nothing collected is lost
+            self.save()
+            self.writer.close()
         return TrainSummary(self.env_steps, self.updates, self.episodes, self.wall_seconds,
                             self.last_eval_mean, interrupted)
 

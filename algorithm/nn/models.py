@@ -1,0 +1,160 @@
+"""The three SAC models: representation, batched Q ensemble, tanh-squashed Gaussian policy.
+
+Shapes: a *state* is ``[N, state_dim]``; actions are ``[N, A]`` in model space (ARCHITECTURE.md 3).
+Subclass :class:`Representation` for other encoders (conv for images, GRU/LSTM for ``use_rnn``):
+the rest of the learner only relies on ``state_dim`` and ``forward(obs) -> state``.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+from collections.abc import Sequence
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+from algorithm.nn.layers import EnsembleLinear, activation, mlp
+from algorithm.spaces import SensorSpec
+
+_LOG2 = math.log(2.0)
+_HALF_LOG_2PI = 0.5 * math.log(2.0 * math.pi)
+
+
+class Representation(nn.Module):
+    """``rep(obs sensors) -> state``: the input every Q head and the policy see.
+
+    ``forward`` takes one tensor per sensor, each ``[*lead, *sensor_shape]`` with the same leading
+    dims, and returns ``[*lead, state_dim]``. The learner keeps a Polyak-averaged target copy.
+    """
+
+    state_dim: int
+
+    def forward(self, obs: list[Tensor]) -> Tensor:  # pragma: no cover - interface
+        raise NotImplementedError
+
+
+class VectorRepresentation(Representation):
+    """Concatenation of (flattened) vector sensors; has no parameters."""
+
+    def __init__(self, sensors: Sequence[SensorSpec]) -> None:
+        super().__init__()
+        if not sensors:
+            raise ValueError("VectorRepresentation needs at least one sensor")
+        for s in sensors:
+            if s.is_image:
+                raise NotImplementedError(
+                    f"image sensor {s.name!r} {s.shape}: conv encoders are not built yet"
+                )
+        self.sensor_ranks = [len(s.shape) for s in sensors]
+        self.state_dim = sum(math.prod(s.shape) for s in sensors)
+
+    def forward(self, obs: list[Tensor]) -> Tensor:
+        if len(obs) != len(self.sensor_ranks):
+            raise ValueError(f"expected {len(self.sensor_ranks)} sensors, got {len(obs)}")
+        flat = [o.flatten(-rank) if rank != 1 else o for o, rank in zip(obs, self.sensor_ranks, strict=True)]
+        return flat[0] if len(flat) == 1 else torch.cat(flat, dim=-1)
+
+
+class QEnsemble(nn.Module):
+    """``E`` independent Q heads ``Q_i(state, action) -> scalar`` as one batched MLP.
+
+    Every layer is an :class:`EnsembleLinear`, so each layer is one batched matmul for all heads.
+    ``forward`` returns ``[E, N]`` (or ``[len(heads), N]`` when ``heads`` selects a subset);
+    ``detach_params=True`` lets gradients reach ``state``/``action`` but not the heads' weights
+    (the policy loss uses it to leave the critic's gradients untouched).
+    """
+
+    def __init__(
+        self,
+        state_dim: int,
+        action_dim: int,
+        hidden_units: Sequence[int],
+        ensemble_size: int,
+        activation_name: str = "relu",
+    ) -> None:
+        super().__init__()
+        sizes = [state_dim + action_dim, *hidden_units, 1]
+        self.ensemble_size = ensemble_size
+        self.layers = nn.ModuleList(EnsembleLinear(ensemble_size, i, o) for i, o in itertools.pairwise(sizes))
+        self.act = activation(activation_name)
+
+    def forward(
+        self, state: Tensor, action: Tensor, heads: Tensor | None = None, detach_params: bool = False
+    ) -> Tensor:
+        h = torch.cat([state, action], dim=-1)
+        last = len(self.layers) - 1
+        for i, layer in enumerate(self.layers):
+            h = layer(h, heads, detach_params)
+            if i < last:
+                h = self.act(h)
+        return h.squeeze(-1)
+
+
+def squashed_gaussian_log_prob(noise: Tensor, log_std: Tensor, pre_tanh: Tensor) -> Tensor:
+    """``log pi(tanh(u))`` for ``u = mean + std * noise``, summed over the last dim.
+
+    Gaussian part from the noise directly (no division by ``std``); the tanh change of variables
+    uses ``log(1 - tanh(u)^2) = 2 (log 2 - u - softplus(-2u))``, which stays finite for large
+    ``|u|`` where ``1 - tanh(u)^2`` rounds to zero (Haarnoja et al. 2018, 1812.05905, appendix C;
+    the same identity as ``torch.distributions.transforms.TanhTransform``).
+    """
+    gaussian = -0.5 * noise.pow(2) - log_std - _HALF_LOG_2PI
+    log_det = 2.0 * (_LOG2 - pre_tanh - F.softplus(-2.0 * pre_tanh))
+    return (gaussian - log_det).sum(-1)
+
+
+class TanhGaussianPolicy(nn.Module):
+    """``pi(a|s)``: a Gaussian over ``u`` squashed by ``tanh`` into ``[-1, 1]^A``.
+
+    ``log_std`` is clamped to ``[log_std_min, log_std_max]`` (as in the authors' code and SB3).
+    """
+
+    def __init__(
+        self,
+        state_dim: int,
+        action_dim: int,
+        hidden_units: Sequence[int],
+        activation_name: str = "relu",
+        log_std_min: float = -20.0,
+        log_std_max: float = 2.0,
+    ) -> None:
+        super().__init__()
+        if log_std_min >= log_std_max:
+            raise ValueError(f"nn_config: log_std_min ({log_std_min}) must be < log_std_max ({log_std_max})")
+        self.action_dim = action_dim
+        self.log_std_min = log_std_min
+        self.log_std_max = log_std_max
+        self.trunk = mlp(state_dim, hidden_units, activation_name)
+        last = hidden_units[-1] if hidden_units else state_dim
+        self.head = nn.Linear(last, 2 * action_dim)
+
+    def forward(self, state: Tensor) -> tuple[Tensor, Tensor]:
+        """``(mean, log_std)`` of the pre-tanh Gaussian, each ``[N, A]``."""
+        mean, log_std = self.head(self.trunk(state)).chunk(2, dim=-1)
+        return mean, log_std.clamp(self.log_std_min, self.log_std_max)
+
+    def sample(self, state: Tensor, noise: Tensor | None) -> tuple[Tensor, Tensor]:
+        """Reparameterised ``(action [N, A], log_prob [N])`` with ``u = mean + std * noise``.
+
+        ``noise`` is standard normal ``[N, A]`` drawn by the caller (so the caller owns the RNG);
+        ``None`` gives the deterministic action ``tanh(mean)`` and the density at it.
+        """
+        mean, log_std = self(state)
+        if noise is None:
+            noise = torch.zeros_like(mean)
+            pre_tanh = mean
+        else:
+            pre_tanh = mean + log_std.exp() * noise
+        return torch.tanh(pre_tanh), squashed_gaussian_log_prob(noise, log_std, pre_tanh)
+
+
+class SacModels(nn.Module):
+    """Container of the online models; the learner derives target copies from it."""
+
+    def __init__(self, representation: Representation, q: QEnsemble, policy: TanhGaussianPolicy) -> None:
+        super().__init__()
+        self.representation = representation
+        self.q = q
+        self.policy = policy

@@ -1,0 +1,161 @@
+"""Model building blocks: the batched ensemble layer, the Q ensemble, the tanh-Gaussian policy."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+from torch.distributions import Normal, TanhTransform, TransformedDistribution
+
+from algorithm.config_schema import NNConfig, SacConfig
+from algorithm.nn.builder import build_models
+from algorithm.nn.layers import EnsembleLinear, activation
+from algorithm.nn.models import (
+    QEnsemble,
+    TanhGaussianPolicy,
+    VectorRepresentation,
+    squashed_gaussian_log_prob,
+)
+from algorithm.spaces import ActionSpec, EnvSpec, SensorSpec
+
+
+@pytest.fixture(autouse=True)
+def _seed() -> None:
+    torch.manual_seed(0)
+
+
+def test_ensemble_linear_equals_one_linear_per_head() -> None:
+    layer = EnsembleLinear(3, 5, 4)
+    shared = torch.randn(7, 5)
+    per_head = torch.randn(3, 7, 5)
+    for i in range(3):
+        torch.testing.assert_close(layer(shared)[i], shared @ layer.weight[i].T + layer.bias[i])
+        torch.testing.assert_close(layer(per_head)[i], per_head[i] @ layer.weight[i].T + layer.bias[i])
+    heads = torch.tensor([2, 0])
+    torch.testing.assert_close(layer(shared, heads), layer(shared)[heads])
+    torch.testing.assert_close(layer(per_head[heads], heads), layer(per_head)[heads])
+
+
+def test_ensemble_linear_init_matches_torch_linear_per_head() -> None:
+    fan_in = 64
+    layer = EnsembleLinear(4, fan_in, 256)
+    bound = 1 / math.sqrt(fan_in)
+    reference = torch.nn.Linear(fan_in, 256)
+    for p in (layer.weight, layer.bias):
+        assert p.abs().max() <= bound
+    # uniform(-b, b) has std b / sqrt(3), like nn.Linear's weights
+    assert layer.weight.std().item() == pytest.approx(bound / math.sqrt(3), rel=0.05)
+    assert reference.weight.std().item() == pytest.approx(bound / math.sqrt(3), rel=0.05)
+    assert not torch.equal(layer.weight[0], layer.weight[1])  # heads are initialised independently
+
+
+def test_ensemble_linear_rejects_bad_sizes() -> None:
+    with pytest.raises(ValueError, match="ensemble_size=0"):
+        EnsembleLinear(0, 3, 3)
+
+
+def test_detached_params_pass_input_grads_but_not_weight_grads() -> None:
+    layer = EnsembleLinear(2, 3, 1)
+    x = torch.randn(4, 3, requires_grad=True)
+    layer(x, detach_params=True).sum().backward()
+    assert layer.weight.grad is None and layer.bias.grad is None
+    torch.testing.assert_close(x.grad, layer.weight.detach().sum(0).squeeze(0).expand(4, 3))
+
+
+def test_q_ensemble_heads_are_independent() -> None:
+    q = QEnsemble(state_dim=3, action_dim=2, hidden_units=[8, 8], ensemble_size=3)
+    out = q(torch.randn(5, 3), torch.randn(5, 2))
+    assert out.shape == (3, 5)
+    out[1].pow(2).sum().backward()
+    for layer in q.layers:
+        assert isinstance(layer, EnsembleLinear)
+        for p in (layer.weight, layer.bias):
+            assert p.grad is not None
+            assert p.grad[1].abs().sum() > 0
+            assert torch.all(p.grad[0] == 0) and torch.all(p.grad[2] == 0)
+
+
+def test_q_ensemble_subset_equals_the_selected_rows() -> None:
+    q = QEnsemble(3, 2, [8], ensemble_size=4)
+    s, a = torch.randn(5, 3), torch.randn(5, 2)
+    heads = torch.tensor([3, 1])
+    torch.testing.assert_close(q(s, a, heads), q(s, a)[heads])
+
+
+def test_squashed_log_prob_matches_a_transformed_distribution() -> None:
+    mean, log_std = torch.randn(1000, 3), torch.rand(1000, 3) - 1.5
+    noise = torch.randn(1000, 3)
+    pre_tanh = mean + log_std.exp() * noise
+    reference = TransformedDistribution(Normal(mean, log_std.exp()), [TanhTransform(cache_size=1)])
+    action = reference.transforms[0](pre_tanh)  # caches pre_tanh, so log_prob does not invert tanh
+    expected = reference.log_prob(action).sum(-1)
+    torch.testing.assert_close(
+        squashed_gaussian_log_prob(noise, log_std, pre_tanh), expected, rtol=1e-5, atol=1e-4
+    )
+
+
+def test_squashed_log_prob_is_finite_where_naive_formula_is_not() -> None:
+    pre_tanh = torch.tensor([[30.0, -30.0]])
+    naive = torch.log(1 - torch.tanh(pre_tanh).pow(2)).sum()
+    assert not torch.isfinite(naive)
+    out = squashed_gaussian_log_prob(torch.zeros(1, 2), torch.zeros(1, 2), pre_tanh)
+    # log(1 - tanh(u)^2) ~ log 4 - 2|u| for large |u|
+    expected = 2 * (-0.5 * math.log(2 * math.pi)) - 2 * (math.log(4) - 60.0)
+    assert out.item() == pytest.approx(expected, rel=1e-5)
+
+
+def test_policy_sample_shapes_range_and_determinism() -> None:
+    policy = TanhGaussianPolicy(4, 3, [16], log_std_min=-5.0, log_std_max=1.0)
+    state = torch.randn(6, 4) * 100  # large inputs push the mean far into tanh's flat region
+    action, log_prob = policy.sample(state, torch.randn(6, 3))
+    assert action.shape == (6, 3) and log_prob.shape == (6,)
+    assert torch.all(action.abs() <= 1) and torch.all(torch.isfinite(log_prob))
+    mean, log_std = policy(state)
+    assert torch.all(log_std >= -5.0) and torch.all(log_std <= 1.0)
+    deterministic, _ = policy.sample(state, None)
+    torch.testing.assert_close(deterministic, torch.tanh(mean))
+
+
+def test_policy_rejects_inverted_log_std_bounds() -> None:
+    with pytest.raises(ValueError, match="log_std_min"):
+        TanhGaussianPolicy(2, 2, [4], log_std_min=2.0, log_std_max=-2.0)
+
+
+def test_vector_representation_concatenates_flattened_sensors() -> None:
+    rep = VectorRepresentation([SensorSpec("a", (2,)), SensorSpec("b", (2, 3))])
+    assert rep.state_dim == 8
+    a, b = torch.randn(5, 4, 2), torch.randn(5, 4, 2, 3)
+    torch.testing.assert_close(rep([a, b]), torch.cat([a, b.reshape(5, 4, 6)], -1))
+    with pytest.raises(ValueError, match="expected 2 sensors"):
+        rep([a])
+
+
+def test_images_and_discrete_actions_are_not_built_yet() -> None:
+    image = SensorSpec("camera", (8, 8, 3), np.dtype(np.uint8))
+    with pytest.raises(NotImplementedError, match="camera"):
+        VectorRepresentation([image])
+    spec = EnvSpec((SensorSpec("obs", (3,)),), ActionSpec((4,), 0))
+    with pytest.raises(NotImplementedError, match="discrete"):
+        build_models(spec, SacConfig(), NNConfig())
+
+
+def test_build_models_uses_config_sizes() -> None:
+    spec = EnvSpec(
+        (SensorSpec("obs", (3,)), SensorSpec("vel", (2,))), ActionSpec((), 2, (-1.0,) * 2, (1.0,) * 2)
+    )
+    models = build_models(
+        spec,
+        SacConfig(ensemble_q_num=5, ensemble_q_sample=2),
+        NNConfig(hidden_units=[32, 16], activation="tanh"),
+    )
+    assert models.q.layers[0].weight.shape == (5, 32, 5 + 2)
+    assert models.q.layers[-1].weight.shape == (5, 1, 16)
+    assert isinstance(models.q.act, torch.nn.Tanh)
+    assert models.policy.head.out_features == 4
+
+
+def test_unknown_activation_names_the_key() -> None:
+    with pytest.raises(ValueError, match="nn_config.activation"):
+        activation("gelu")

@@ -1,0 +1,17 @@
+"""Test-wide settings: one torch thread and a passive OpenMP wait policy.
+
+With OpenMP's default (active) waiting, a 2-thread torch update slowed ~200x whenever another
+process held a core on the 2-core CI machine (measured while writing bench/learner.py); tests run
+beside each other and beside subprocesses, so they pin torch to one passive thread.
+"""
+
+from __future__ import annotations
+
+import os
+
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+os.environ.setdefault("MUJOCO_GL", "egl")
+
+import torch
+
+torch.set_num_threads(1)
