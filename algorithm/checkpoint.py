@@ -8,15 +8,15 @@ checkpoint intact and never a half-written ``<step>.pt``.
 
 from __future__ import annotations
 
-import os
 import random
 import re
-import tempfile
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch
+
+from algorithm.files import atomic_write
 
 FORMAT_VERSION = 1
 _NAME = re.compile(r"^(\d+)\.pt$")
@@ -24,26 +24,6 @@ _NAME = re.compile(r"^(\d+)\.pt$")
 
 class CheckpointError(RuntimeError):
     """A checkpoint is missing, unreadable, or not one of ours; the message names the file."""
-
-
-def atomic_write(path: Path, write: Any) -> None:
-    """Call ``write(file_object)`` on a temp file next to ``path``, fsync, then rename over ``path``."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            write(f)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    dir_fd = os.open(path.parent, os.O_RDONLY)
-    try:
-        os.fsync(dir_fd)
-    finally:
-        os.close(dir_fd)
 
 
 def list_checkpoints(model_dir: Path) -> list[int]:
@@ -90,7 +70,7 @@ def load_checkpoint(path: Path) -> dict[str, Any]:
 
 def capture_rng() -> dict[str, Any]:
     """Global RNG states (python, numpy legacy, torch) for exact resumption."""
-    np_state = np.random.get_state()
+    np_state = np.random.get_state()  # noqa: NPY002 - the legacy global state is what we must capture
     return {
         "python": random.getstate(),
         "numpy": [np_state[0], torch.from_numpy(np_state[1].astype(np.int64)), *np_state[2:]],
@@ -101,5 +81,5 @@ def capture_rng() -> dict[str, Any]:
 def restore_rng(state: dict[str, Any]) -> None:
     random.setstate(state["python"])
     name, keys, *rest = state["numpy"]
-    np.random.set_state((name, keys.numpy().astype(np.uint32), *rest))
+    np.random.set_state((name, keys.numpy().astype(np.uint32), *rest))  # noqa: NPY002
     torch.set_rng_state(state["torch"])

@@ -42,8 +42,10 @@ class ReplayConfig(Section):
     beta_increment_per_sampling: float = Field(0.001, ge=0.0, description="Added to beta per update, up to 1.")
     td_error_min: float = Field(0.01, gt=0.0, description="Floor of |TD| before ** alpha.")
     td_error_max: float = Field(1.0, gt=0.0, description="Ceiling of |TD| before ** alpha.")
-    samples_per_insert: float = Field(
-        256.0, gt=0.0, description="Sampled windows per inserted step; batch_size / this = env steps per update."
+    samples_per_insert: float | None = Field(
+        None, gt=0.0,
+        description="Sampled windows per inserted step (samples_per_insert / batch_size updates per env step); "
+                    "null = batch_size, one update per env step.",
     )
     samples_per_insert_tolerance: float = Field(
         0.0, ge=0.0, description="How many windows the learner may run ahead/behind before blocking (distributed)."
@@ -56,6 +58,11 @@ class ReplayConfig(Section):
         if self.td_error_min > self.td_error_max:
             raise ValueError("td_error_min must be <= td_error_max")
         return self
+
+    @property
+    def updates_per_step(self) -> float:
+        """Gradient updates owed per env step: the explicit update-to-data ratio."""
+        return (self.samples_per_insert or self.batch_size) / self.batch_size
 
 
 class SacConfig(Section):

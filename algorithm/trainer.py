@@ -123,7 +123,7 @@ class EmbeddedTrainer:
             reset_on_iteration=base.reset_on_iteration,
             seed=seed,
         )
-        self.updates_per_step = replay_cfg.samples_per_insert / replay_cfg.batch_size
+        self.updates_per_step = replay_cfg.updates_per_step
         self.env_steps = 0
         self.updates = 0
         self.episodes = 0
@@ -133,6 +133,7 @@ class EmbeddedTrainer:
         self.next_eval = config.eval_config.eval_per_step
         self.next_save = sac_cfg.save_model_per_step
         self.last_eval_mean: float | None = None
+        self.evaluations = 0
         self.recent_returns: deque[float] = deque(maxlen=10)
         self.timers = Timers()
         self.progress = progress
@@ -227,7 +228,9 @@ class EmbeddedTrainer:
 
     def _evaluate(self) -> None:
         assert self.eval_env is not None
-        result = evaluate(self.eval_env, self.sac, self.config.eval_config.eval_episodes, self.eval_seed)
+        seed = self.eval_seed if not self.evaluations else None  # one seeded stream per process
+        result = evaluate(self.eval_env, self.sac, self.config.eval_config.eval_episodes, seed)
+        self.evaluations += 1
         self.last_eval_mean = result.mean
         append_evaluation(self.paths.evaluations, self.env_steps, self.updates, self.wall_seconds, result)
         self.writer.write({"eval/return_mean": result.mean, "eval/return_std": result.std,

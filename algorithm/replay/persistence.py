@@ -9,13 +9,13 @@ shape and dtype before returning; any problem is a ``ValueError`` that names the
 from __future__ import annotations
 
 import json
-import os
-import threading
 import zipfile
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+from algorithm.files import atomic_write
 
 FORMAT = "asac-replay-v1"
 
@@ -23,20 +23,7 @@ FORMAT = "asac-replay-v1"
 def write_atomic(path: Path, arrays: dict[str, np.ndarray], meta: dict[str, Any]) -> None:
     """Write ``arrays`` and JSON ``meta`` to ``path`` atomically (temp file, fsync, rename)."""
     contents: dict[str, Any] = {**arrays, "meta": np.array(json.dumps({"format": FORMAT, **meta}))}
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.{threading.get_ident()}.tmp")
-    try:
-        with open(tmp, "wb") as f:
-            np.savez(f, **contents)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
-    dir_fd = os.open(path.parent, os.O_RDONLY)
-    try:
-        os.fsync(dir_fd)  # make the rename itself durable
-    finally:
-        os.close(dir_fd)
+    atomic_write(path, lambda f: np.savez(f, **contents))
 
 
 def read_checked(

@@ -48,7 +48,8 @@ class ReplayConfigLike(Protocol):
     alpha: float
     td_error_min: float
     td_error_max: float
-    samples_per_insert: float
+    samples_per_insert: float | None
+    batch_size: int
     samples_per_insert_tolerance: float
     min_size_to_sample: int
 
@@ -164,7 +165,7 @@ class PrioritizedTable:
         also wait to keep ``samples_per_insert`` within ``samples_per_insert_tolerance``.
         """
         limiter = RateLimiter(
-            samples_per_insert=replay_config.samples_per_insert,
+            samples_per_insert=replay_config.samples_per_insert or replay_config.batch_size,
             min_size_to_sample=replay_config.min_size_to_sample,
             tolerance=replay_config.samples_per_insert_tolerance,
             enforce_ratio=enforce_ratio,

@@ -10,6 +10,7 @@ import pytest
 import torch
 
 from algorithm import checkpoint as ck
+from algorithm.files import atomic_write
 
 
 def test_keep_last_k_and_latest(tmp_path: Path) -> None:
@@ -29,7 +30,7 @@ def test_failed_write_keeps_previous_checkpoint(tmp_path: Path) -> None:
         raise OSError("disk full")
 
     with pytest.raises(OSError, match="disk full"):
-        ck.atomic_write(tmp_path / "5.pt", explode)
+        atomic_write(tmp_path / "5.pt", explode)
     assert (tmp_path / "5.pt").read_bytes() == before
     assert not list(tmp_path.glob(".*.tmp"))
 
@@ -71,6 +72,6 @@ def test_pickled_code_is_not_executed(tmp_path: Path) -> None:
 
 def test_rng_round_trip_through_a_checkpoint(tmp_path: Path) -> None:
     ck.save_checkpoint(tmp_path, 1, {"rng": ck.capture_rng()}, keep=1)
-    expected = (random.random(), np.random.rand(), torch.rand(1).item())
+    expected = (random.random(), np.random.rand(), torch.rand(1).item())  # noqa: NPY002
     ck.restore_rng(ck.load_checkpoint(tmp_path / "1.pt")["rng"])
-    assert (random.random(), np.random.rand(), torch.rand(1).item()) == expected
+    assert (random.random(), np.random.rand(), torch.rand(1).item()) == expected  # noqa: NPY002
