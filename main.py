@@ -217,15 +217,16 @@ def _play_rendered(config: Config, state: dict, run_dir: Path, step: str, episod
             total += float(reward)
             done = bool(terminated or truncated)
             if headless:
-                frames.append(env.render())
+                frames.append(np.asarray(env.render()))
         returns.append(total)
     env.close()
-    print(f"{run_dir} checkpoint {step}: return {np.mean(returns):.1f} +- {np.std(returns):.1f} over {episodes} episodes")
+    mean, std = float(np.mean(returns)), float(np.std(returns))
+    print(f"{run_dir} checkpoint {step}: return {mean:.1f} +- {std:.1f} over {episodes} episodes")
     if headless and frames:
         import imageio.v2 as imageio
 
         video = run_dir / f"play_{step}.mp4"
-        imageio.mimwrite(video, frames, fps=int(env.metadata.get("render_fps", 30)))
+        imageio.mimwrite(video, list(frames), fps=int(env.metadata.get("render_fps", 30)))
         print(f"no display: frames saved to {video}")
     return 0
 

@@ -70,7 +70,7 @@ def load_checkpoint(path: Path) -> dict[str, Any]:
 
 def capture_rng() -> dict[str, Any]:
     """Global RNG states (python, numpy legacy, torch) for exact resumption."""
-    np_state = np.random.get_state()  # noqa: NPY002 - the legacy global state is what we must capture
+    np_state: Any = np.random.get_state()  # noqa: NPY002 - the legacy global state is what we capture
     return {
         "python": random.getstate(),
         "numpy": [np_state[0], torch.from_numpy(np_state[1].astype(np.int64)), *np_state[2:]],

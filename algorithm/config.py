@@ -142,9 +142,11 @@ def _format_errors(err: ValidationError, sources: dict[str, str]) -> str:
         if e["type"] == "extra_forbidden":
             model: Any = Config
             for part in loc[:-1]:
-                field = model.model_fields.get(part) if isinstance(model, type) else None
+                is_model = isinstance(model, type) and issubclass(model, BaseModel)
+                field = model.model_fields.get(part) if is_model else None
                 model = field.annotation if field is not None else None
-            known = list(model.model_fields) if isinstance(model, type) and issubclass(model, BaseModel) else []
+            is_model = isinstance(model, type) and issubclass(model, BaseModel)
+            known = list(model.model_fields) if is_model else []
             close = difflib.get_close_matches(loc[-1], known, n=1)
             msg = "unknown key" + (f" (did you mean {close[0]!r}?)" if close else "")
         elif e["type"] == "value_error":
@@ -214,7 +216,9 @@ def apply_overrides(config: Config, overrides: list[str] | tuple[str, ...]) -> C
     return _validate(config.model_dump(mode="json"), {}, overrides).config
 
 
-def _validate(merged: dict[str, Any], sources: dict[str, str], overrides: list[str] | tuple[str, ...]) -> ResolvedConfig:
+def _validate(
+    merged: dict[str, Any], sources: dict[str, str], overrides: list[str] | tuple[str, ...]
+) -> ResolvedConfig:
     for text in overrides:
         parts, value = parse_override(text)
         section = merged.setdefault(parts[0], {})

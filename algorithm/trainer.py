@@ -82,7 +82,7 @@ class TrainSummary:
 
 def seed_everything(seed: int) -> None:
     random.seed(seed)
-    np.random.seed(seed % 2**32)
+    np.random.seed(seed % 2**32)  # noqa: NPY002 - user code and libraries may use the global RNG
     torch.manual_seed(seed)
 
 

@@ -1,0 +1,96 @@
+"""The single-process CLI as a user runs it: a real subprocess per command."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+TINY = ["--override", "sac.seed=3", "--override", "nn.hidden_units=[16,16]", "--override", "replay.batch_size=16",
+        "--override", "replay.min_size_to_sample=64", "--override", "base.max_step=250",
+        "--override", "eval.eval_per_step=0", "--override", "eval.eval_episodes=2", "--override", "eval.eval_envs=2",
+        "--no_progress"]
+
+
+def run_main(*args: str, cwd: Path, timeout: float = 180) -> subprocess.CompletedProcess[str]:
+    env = {**os.environ, "OMP_WAIT_POLICY": "PASSIVE", "OMP_NUM_THREADS": "1", "MUJOCO_GL": "egl"}
+    env.pop("DISPLAY", None)
+    return subprocess.run([sys.executable, str(ROOT / "main.py"), *args], cwd=cwd, env=env, text=True,
+                          capture_output=True, timeout=timeout)
+
+
+@pytest.fixture(scope="module")
+def trained(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    cwd = tmp_path_factory.mktemp("cli")
+    done = run_main("gym/pendulum", "-n", "tiny", *TINY, cwd=cwd)
+    assert done.returncode == 0, done.stderr
+    return cwd
+
+
+def test_training_writes_the_run_directory(trained: Path) -> None:
+    run = trained / "models/gym/pendulum/tiny"
+    assert (run / "config.yaml").is_file()
+    assert (run / "model/250.pt").is_file()
+    assert any((run / "log").iterdir())
+
+
+def test_run_plays_the_checkpoint_and_reports_a_return(trained: Path) -> None:
+    done = run_main("gym/pendulum", "-n", "tiny", "--run", "--episodes", "2", cwd=trained)
+    assert done.returncode == 0, done.stderr
+    assert "checkpoint 250: return" in done.stdout and "over 2 episodes" in done.stdout
+
+
+def test_run_render_headless_writes_a_video(trained: Path) -> None:
+    done = run_main("gym/pendulum", "-n", "tiny", "--run", "--render", "--episodes", "1",
+                    "--override", "base.max_step_each_iter=20", cwd=trained)
+    assert done.returncode == 0, done.stderr
+    video = trained / "models/gym/pendulum/tiny/play_250.mp4"
+    assert video.is_file() and video.stat().st_size > 1000
+
+
+def test_same_name_resumes(trained: Path) -> None:
+    done = run_main("gym/pendulum", "-n", "tiny", *TINY, "--override", "base.max_step=300", cwd=trained)
+    assert done.returncode == 0, done.stderr
+    assert "resumed at 250 env steps" in done.stderr
+    assert (trained / "models/gym/pendulum/tiny/model/300.pt").is_file()
+
+
+def test_bad_task_name_is_a_clear_error(tmp_path: Path) -> None:
+    done = run_main("gym/pendlum", cwd=tmp_path)
+    assert done.returncode == 2
+    assert "unknown task 'gym/pendlum'" in done.stderr and "gym/pendulum" in done.stderr
+    assert "Traceback" not in done.stderr
+
+
+def test_bad_override_is_a_clear_error(tmp_path: Path) -> None:
+    done = run_main("gym/pendulum", "--override", "sac.gama=0.5", cwd=tmp_path)
+    assert done.returncode == 2
+    assert "sac_config.gama" in done.stderr and "did you mean 'gamma'" in done.stderr
+
+
+def test_bad_checkpoint_is_a_clear_error(trained: Path) -> None:
+    bad = trained / "models/gym/pendulum/tiny/model/999.pt"
+    bad.write_bytes(b"this is not a checkpoint")
+    try:
+        done = run_main("gym/pendulum", "-n", "tiny", "--run", "--ckpt", "999", cwd=trained)
+    finally:
+        bad.unlink()
+    assert done.returncode == 2
+    assert "999.pt" in done.stderr and "not an ASAC checkpoint" in done.stderr
+    assert "Traceback" not in done.stderr
+
+
+def test_missing_checkpoint_step_lists_available(trained: Path) -> None:
+    done = run_main("gym/pendulum", "-n", "tiny", "--run", "--ckpt", "12345", cwd=trained)
+    assert done.returncode == 2
+    assert "no checkpoint for step 12345" in done.stderr
+
+
+def test_run_without_training_is_a_clear_error(tmp_path: Path) -> None:
+    done = run_main("gym/pendulum", "--run", cwd=tmp_path)
+    assert done.returncode == 2
+    assert "no trained runs" in done.stderr
