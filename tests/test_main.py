@@ -94,3 +94,32 @@ def test_run_without_training_is_a_clear_error(tmp_path: Path) -> None:
     done = run_main("gym/pendulum", "--run", cwd=tmp_path)
     assert done.returncode == 2
     assert "no trained runs" in done.stderr
+
+
+@pytest.mark.fault
+def test_sigint_saves_and_the_same_command_resumes(tmp_path: Path) -> None:
+    import signal
+    import time
+
+    args = [sys.executable, str(ROOT / "main.py"), "gym/pendulum", "-n", "stopped", *TINY,
+            "--override", "base.max_step=-1", "--override", "replay.save_replay=true"]
+    env = {**os.environ, "OMP_WAIT_POLICY": "PASSIVE", "OMP_NUM_THREADS": "1"}
+    proc = subprocess.Popen(args, cwd=tmp_path, env=env, text=True, stderr=subprocess.PIPE)
+    log_dir = tmp_path / "models/gym/pendulum/stopped/log"
+    deadline = time.monotonic() + 120
+    while time.monotonic() < deadline and not (log_dir.exists() and any(log_dir.iterdir())):
+        time.sleep(0.2)
+    time.sleep(3)  # let it train for a while
+    proc.send_signal(signal.SIGINT)
+    _, stderr = proc.communicate(timeout=60)
+    assert proc.returncode == 130, stderr
+    model = tmp_path / "models/gym/pendulum/stopped/model"
+    steps = [int(p.stem) for p in model.glob("*.pt")]
+    assert steps and max(steps) > 0
+    assert (tmp_path / "models/gym/pendulum/stopped/replay/replay.npz").is_file()
+
+    done = run_main("gym/pendulum", "-n", "stopped", *TINY, "--override", f"base.max_step={max(steps) + 50}",
+                    cwd=tmp_path)
+    assert done.returncode == 0, done.stderr
+    assert f"resumed at {max(steps)} env steps" in done.stderr
+    assert (model / f"{max(steps) + 50}.pt").is_file()
