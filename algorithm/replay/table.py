@@ -228,9 +228,12 @@ class PrioritizedTable:
             else:
                 self._max_priority = max(self._max_priority, float(new_p.max()))
             self._tree.set(rows, np.append(new_p, 0.0))
+            # Each observation counts once: a chunk cut mid-episode hands its last observation on
+            # as the next chunk's first, so it is only counted here when the episode ended.
+            ended = bool(chunk.terminated[-1] or chunk.truncated[-1])
             for spec, data in zip(self.sensors, chunk.obs, strict=True):
                 if spec.name in self._normalizers:
-                    self._normalizers[spec.name].update(data)
+                    self._normalizers[spec.name].update(data if ended else data[:-1])
 
             self._next_key = first + t + 1
             self._counters["inserted_chunks"] += 1

@@ -241,15 +241,17 @@ def test_normalizer_sees_every_inserted_observation_of_vector_sensors() -> None:
     tab = table(sensors=(VECTOR, IMAGE, two), capacity=20)
     rng = np.random.default_rng(0)
     seen: list[np.ndarray] = []
-    for t in (3, 9, 15):  # the last chunk wraps and evicts: statistics still cover everything
-        chunk = make_chunk(t, 0, tab.sensors)
+    # The last chunk wraps and evicts: statistics still cover everything. A chunk cut mid-episode
+    # (the first two) passes its final observation on to the next chunk, so it is counted once.
+    for t, ended in ((3, False), (9, False), (15, True)):
+        chunk = make_chunk(t, 0, tab.sensors, truncated=ended)
         chunk.obs[2] = rng.normal(3.0, 2.0, (t + 1, 2, 2)).astype(np.float32)
-        seen.append(chunk.obs[2])
+        seen.append(chunk.obs[2] if ended else chunk.obs[2][:-1])
         tab.insert(chunk)
     stats = tab.info()["normalizer"]
     assert set(stats) == {"state", "two_d"}  # images are not normalized
     data = np.concatenate(seen).astype(np.float64)
-    assert stats["two_d"]["count"] == data.shape[0] == 3 + 9 + 15 + 3
+    assert stats["two_d"]["count"] == data.shape[0] == 3 + 9 + 15 + 1
     np.testing.assert_allclose(stats["two_d"]["mean"], data.mean(axis=0), rtol=1e-12)
     np.testing.assert_allclose(stats["two_d"]["var"], data.var(axis=0), rtol=1e-12)
     rms = RunningMeanStd((2, 2))
