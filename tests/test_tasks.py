@@ -1,0 +1,51 @@
+"""Every task folder under envs/ resolves its config and trains a few steps with real envs."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+import yaml
+
+from algorithm.config import load_config
+from algorithm.trainer import EmbeddedTrainer
+from envs.make import make_vector_env
+
+ROOT = Path(__file__).resolve().parents[1]
+TASKS = sorted(str(p.parent.relative_to(ROOT / "envs")) for p in (ROOT / "envs").glob("*/*/config.yaml"))
+TINY = ["sac.seed=0", "nn.hidden_units=[8]", "replay.batch_size=8", "replay.capacity=1000",
+        "replay.min_size_to_sample=20", "actor.random_steps=10", "actor.chunk_length=8", "base.max_step=40",
+        "eval.eval_per_step=40", "eval.eval_episodes=1", "eval.eval_envs=1", "base.max_step_each_iter=15"]
+
+
+def test_the_documented_tasks_exist() -> None:
+    expected = {"gym/pendulum", "gym/mountain_car", "mujoco/half_cheetah", "mujoco/hopper", "mujoco/walker2d",
+                "mujoco/ant", "mujoco/humanoid", "mujoco/inverted_pendulum"}
+    assert expected <= set(TASKS)
+
+
+@pytest.mark.parametrize("task", TASKS)
+def test_task_trains_a_few_steps(task: str, tmp_path: Path) -> None:
+    sections = [k for k in yaml.safe_load((ROOT / "envs" / task / "config.yaml").read_text()) if k != "default"]
+    for section in [None, *sections]:
+        config = load_config(ROOT / "envs" / task, section, TINY).config
+        base = config.base_config
+        trainer = EmbeddedTrainer(
+            config, tmp_path / str(section),
+            lambda s, b=base: make_vector_env(b.build_path, b.n_agents, seed=s, max_episode_steps=15),
+            lambda s, b=base: make_vector_env(b.build_path, 1, seed=s, max_episode_steps=15),
+            progress=False,
+        )
+        summary = trainer.run()
+        assert summary.env_steps == 40 and summary.updates > 0
+        assert summary.last_eval_mean is not None
+
+
+@pytest.mark.parametrize("task", [t for t in TASKS if t.startswith("mujoco/")])
+def test_mujoco_tasks_use_the_published_sac_setup(task: str) -> None:
+    c = load_config(ROOT / "envs" / task).config
+    assert c.nn_config.hidden_units == [256, 256]
+    assert (c.replay_config.batch_size, c.sac_config.learning_rate, c.sac_config.gamma, c.sac_config.tau) == (
+        256, 3e-4, 0.99, 0.005)
+    assert c.sac_config.use_auto_alpha and c.replay_config.updates_per_step == 1.0
+    assert c.replay_config.alpha == 0.0 and not c.sac_config.use_priority  # uniform replay
