@@ -4,7 +4,7 @@
         env steps/s training HalfCheetah-v5 with one update per env step (after a random warm-up);
         rounds alternate ours/SB3 so machine noise hits both. Goal: ours >= 1.5x SB3.
     python -m bench.vs_sb3 pendulum [--seeds 0 1 2] [--max-steps 20000]
-        env steps and wall seconds until the mean deterministic return (10 episodes, every 500
+        env steps and wall seconds until the mean deterministic return (10 episodes, every 250
         steps) first reaches -200. Goal: fewer steps than SB3 and < 60 s.
     python -m bench.vs_sb3 half_cheetah [--seeds 0 1] [--steps 100000] [--which ours|sb3|both]
         deterministic return (10 episodes) after 100k env steps. Goal: ours >= SB3's mean.
@@ -227,7 +227,7 @@ def main() -> None:
     pe = sub.add_parser("pendulum")
     pe.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
     pe.add_argument("--max-steps", type=int, default=20000)
-    pe.add_argument("--every", type=int, default=500)
+    pe.add_argument("--every", type=int, default=250)
     pe.add_argument("--threads", type=int, default=2)
     hc = sub.add_parser("half_cheetah")
     hc.add_argument("--seeds", type=int, nargs="+", default=[0, 1])
