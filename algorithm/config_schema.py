@@ -100,6 +100,7 @@ class SacConfig(Section):
     rnd_n_sample: int = Field(10, ge=1)
     use_normalization: bool = False
     max_nonfinite_steps: int = Field(100, ge=1, description="Consecutive skipped (non-finite) updates before stopping.")
+    compile: bool = Field(False, description="torch.compile the losses; 5-10% slower on CPU (bench/learner.py).")
 
     @model_validator(mode="after")
     def _check_ensemble(self) -> SacConfig:

@@ -113,7 +113,7 @@ class EmbeddedTrainer:
         self.eval_env = make_eval_env(seed + EVAL_SEED_OFFSET) if make_eval_env else None
         self.eval_seed = seed + EVAL_SEED_OFFSET
         spec = self.env.spec
-        self.sac = SAC(spec, sac_cfg, config.nn_config, replay_cfg, device=device)
+        self.sac = SAC(spec, sac_cfg, config.nn_config, replay_cfg, device=device, compile=sac_cfg.compile)
         window = sac_cfg.burn_in_step + sac_cfg.n_step
         self.table = PrioritizedTable.from_config(replay_cfg, spec.sensors, spec.action.size, window, seed=seed)
         self.actor = ActorLoop(
