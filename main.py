@@ -128,12 +128,13 @@ def train(args: argparse.Namespace) -> int:
         if args.repeat > 1:
             name = f"{name}_{repeat}"
         run_dir = Path(args.model_root) / args.env / name
-        if RunDir(run_dir).config.exists():
-            # Resuming: the run's own resolved config wins; command-line overrides still apply.
-            saved = config_from_yaml(RunDir(run_dir).config.read_text(), str(RunDir(run_dir).config))
-            run_config = apply_overrides(saved, cli_overrides(args))
-        if run_config.sac_config.seed is None:
-            run_config.sac_config.seed = random.SystemRandom().randrange(2**31)
+        saved_config = RunDir(run_dir).config
+        if saved_config.exists():
+            # Resuming: the run's own resolved config (seed included) wins; command-line overrides still apply.
+            run_config = apply_overrides(config_from_yaml(saved_config.read_text(), str(saved_config)),
+                                         cli_overrides(args))
+        elif run_config.sac_config.seed is None:
+            run_config.sac_config.seed = random.SystemRandom().randrange(2**31)  # recorded in config.yaml
         elif args.repeat > 1:
             run_config.sac_config.seed = int(run_config.sac_config.seed) + repeat
         run_config.base_config.name = name
