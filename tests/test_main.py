@@ -10,10 +10,12 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
-TINY = ["--override", "sac.seed=3", "--override", "nn.hidden_units=[16,16]", "--override", "replay.batch_size=16",
-        "--override", "replay.min_size_to_sample=64", "--override", "base.max_step=250",
-        "--override", "eval.eval_per_step=0", "--override", "eval.eval_episodes=2", "--override", "eval.eval_envs=2",
-        "--no_progress"]
+TINY_OVERRIDES = [
+    "sac.seed=3", "replay.samples_per_insert=null", "nn.hidden_units=[16,16]", "replay.batch_size=16",
+    "replay.min_size_to_sample=64", "base.max_step=250", "eval.eval_per_step=0", "eval.eval_episodes=2",
+    "eval.eval_envs=2",
+]
+TINY = [arg for override in TINY_OVERRIDES for arg in ("--override", override)] + ["--no_progress"]
 
 
 def run_main(*args: str, cwd: Path, timeout: float = 180) -> subprocess.CompletedProcess[str]:

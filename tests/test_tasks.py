@@ -13,7 +13,8 @@ from envs.make import make_vector_env
 
 ROOT = Path(__file__).resolve().parents[1]
 TASKS = sorted(str(p.parent.relative_to(ROOT / "envs")) for p in (ROOT / "envs").glob("*/*/config.yaml"))
-TINY = ["sac.seed=0", "nn.hidden_units=[8]", "replay.batch_size=8", "replay.capacity=1000",
+TINY = ["sac.seed=0", "nn.hidden_units=[8]", "replay.batch_size=8", "replay.samples_per_insert=null",
+        "replay.capacity=1000",
         "replay.min_size_to_sample=20", "actor.random_steps=10", "actor.chunk_length=8", "base.max_step=40",
         "eval.eval_per_step=40", "eval.eval_episodes=1", "eval.eval_envs=1", "base.max_step_each_iter=15"]
 

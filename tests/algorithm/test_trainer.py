@@ -16,7 +16,8 @@ from envs.make import make_vector_env
 
 ROOT = Path(__file__).resolve().parents[2]
 SMALL = [
-    "sac.seed=7", "nn.hidden_units=[32, 32]", "replay.batch_size=32", "replay.min_size_to_sample=100",
+    "sac.seed=7", "nn.hidden_units=[32, 32]", "replay.batch_size=32", "replay.samples_per_insert=null",
+    "replay.min_size_to_sample=100",
     "replay.capacity=5000", "actor.chunk_length=16", "eval.eval_per_step=200", "eval.eval_episodes=2",
     "eval.eval_envs=2", "sac.write_summary_per_step=20", "base.max_step=400", "base.max_step_each_iter=50",
 ]
@@ -160,3 +161,13 @@ def test_run_directory_contents(tmp_path: Path) -> None:
     returns = [e.value for e in acc.Scalars("actor/episode_return")]
     assert len(returns) == 400 // 50 and all(-50 * 16.3 <= r <= 0 for r in returns)  # Pendulum: r in [-16.3, 0]
     assert "config/text_summary" in acc.Tags()["tensors"]
+
+
+def test_resume_from_an_earlier_checkpoint(tmp_path: Path) -> None:
+    config = small_config("sac.save_model_per_step=100", "base.max_step=300", "eval.eval_per_step=0")
+    make_trainer(config, tmp_path / "run", with_eval=False).run()
+    assert sorted(int(p.stem) for p in (tmp_path / "run/model").glob("*.pt")) == [100, 200, 300]
+    earlier = EmbeddedTrainer(config, tmp_path / "run",
+                              lambda s: make_vector_env("Pendulum-v1", 1, seed=s, max_episode_steps=50), None,
+                              progress=False, ckpt_step=200)
+    assert (earlier.env_steps, earlier.updates) == (200, 101)
