@@ -29,5 +29,6 @@ lint: install
 
 bench: install
 	$(PY) -m pip install --quiet -e '.[test,bench]'
+	bash bench/torchrl_setup.sh $(VENV)
 	$(PY) -m bench.learner
 	$(PY) -m bench.replay
