@@ -16,6 +16,7 @@ import logging
 import random
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -26,7 +27,7 @@ from algorithm.config_schema import Config
 from algorithm.evaluation import evaluate
 from algorithm.sac import SAC
 from algorithm.trainer import EmbeddedTrainer, RunDir, seed_everything
-from envs.make import make_env, make_vector_env
+from envs.make import VectorEnv, make_env, vector_env_factory
 
 ROOT = Path(__file__).resolve().parent
 ENVS_DIR = ROOT / "envs"
@@ -92,19 +93,11 @@ def check_nn_file(task: Path, config: Config) -> None:
                          "models are built from nn_config")
 
 
-def env_factories(config: Config):  # noqa: ANN201 - returns two closures
-    base, ev = config.base_config, config.eval_config
+def env_factory(config: Config) -> Callable[[int, int | None], VectorEnv]:
+    """``factory(num_envs, seed)`` for the task's envs, with the config's kwargs and time limit."""
+    base = config.base_config
     limit = base.max_step_each_iter if base.max_step_each_iter > 0 else None
-
-    def train_env(seed: int):  # noqa: ANN202
-        return make_vector_env(base.build_path, base.n_agents, seed=seed, env_kwargs=base.env_kwargs,
-                               max_episode_steps=limit)
-
-    def eval_env(seed: int):  # noqa: ANN202
-        return make_vector_env(base.build_path, ev.eval_envs, seed=seed, env_kwargs=base.env_kwargs,
-                               max_episode_steps=limit)
-
-    return train_env, eval_env
+    return vector_env_factory(base.build_path, env_kwargs=base.env_kwargs, max_episode_steps=limit)
 
 
 def setup_logging(run_dir: Path | None, in_file: bool) -> None:
@@ -140,8 +133,7 @@ def train(args: argparse.Namespace) -> int:
         run_config.base_config.name = name
         setup_logging(run_dir, args.logger_in_file)
         log.info("run %s (seed %s)", run_dir, run_config.sac_config.seed)
-        train_env, eval_env = env_factories(run_config)
-        trainer = EmbeddedTrainer(run_config, run_dir, train_env, eval_env, device=args.device,
+        trainer = EmbeddedTrainer(run_config, run_dir, env_factory(run_config), device=args.device,
                                   progress=not args.no_progress, ckpt_step=args.ckpt)
         if trainer.env_steps:
             log.info("resumed at %d env steps, %d updates", trainer.env_steps, trainer.updates)
@@ -178,8 +170,7 @@ def play(args: argparse.Namespace) -> int:
     limit = base.max_step_each_iter if base.max_step_each_iter > 0 else None
     if args.render:
         return _play_rendered(config, state, run_dir, ckpt.stem, episodes, limit, args.device)
-    env = make_vector_env(base.build_path, min(episodes, config.eval_config.eval_envs), seed=seed,
-                          env_kwargs=base.env_kwargs, max_episode_steps=limit)
+    env = env_factory(config)(min(episodes, config.eval_config.eval_envs), seed)
     sac = SAC(env.spec, config.sac_config, config.nn_config, config.replay_config, device=args.device)
     _load_policy(sac, state, ckpt)
     result = evaluate(env, sac, episodes, seed)

@@ -2,7 +2,7 @@
 
 Usage (``main.py`` does exactly this)::
 
-    trainer = EmbeddedTrainer(config, run_dir, make_train_env, make_eval_env)
+    trainer = EmbeddedTrainer(config, run_dir, make_env)  # make_env(num_envs, seed) -> vector env
     summary = trainer.run()        # trains until max_step / max_iter; Ctrl-C saves and returns
 
 The update-to-data ratio is explicit (SPEC.md A): once replay holds ``min_size_to_sample`` steps,
@@ -91,13 +91,15 @@ class EmbeddedTrainer:
         self,
         config: Config,
         run_dir: Path,
-        make_train_env: Callable[[int], VectorEnvLike],
-        make_eval_env: Callable[[int], VectorEnvLike] | None,
+        make_env: Callable[[int, int], VectorEnvLike],
+        evaluate: bool = True,
         device: str = "cpu",
         progress: bool = True,
         ckpt_step: int | None = None,
     ) -> None:
-        """``make_*_env(seed)`` build vector envs; ``config.sac_config.seed`` must be resolved (not None)."""
+        """``make_env(num_envs, seed)`` builds the training envs (``n_agents``) and, with ``evaluate``
+        and ``eval_per_step > 0``, separate evaluation envs (``eval_envs``); ``config.sac_config.seed``
+        must be resolved (not None)."""
         if config.sac_config.seed is None:
             raise ValueError("EmbeddedTrainer needs a resolved sac_config.seed (main.py picks one)")
         self.config = config
@@ -109,8 +111,9 @@ class EmbeddedTrainer:
             torch.set_num_threads(base.torch_threads)
         seed_everything(seed)
 
-        self.env = make_train_env(seed)
-        self.eval_env = make_eval_env(seed + EVAL_SEED_OFFSET) if make_eval_env else None
+        self.env = make_env(base.n_agents, seed)
+        evaluating = evaluate and config.eval_config.eval_per_step > 0
+        self.eval_env = make_env(config.eval_config.eval_envs, seed + EVAL_SEED_OFFSET) if evaluating else None
         self.eval_seed = seed + EVAL_SEED_OFFSET
         spec = self.env.spec
         self.sac = SAC(spec, sac_cfg, config.nn_config, replay_cfg, device=device, compile=sac_cfg.compile)
@@ -183,7 +186,7 @@ class EmbeddedTrainer:
                     if with_metrics:
                         self._write_summary(result.metrics, update_rate.mark(self.updates))
                 self.wall_seconds = time.perf_counter() - started
-                if self.eval_env is not None and cfg.eval_config.eval_per_step and self.env_steps >= self.next_eval:
+                if self.eval_env is not None and self.env_steps >= self.next_eval:
                     with self.timers.phase("eval"):
                         self._evaluate()
                     self.next_eval += cfg.eval_config.eval_per_step * math.ceil(

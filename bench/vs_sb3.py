@@ -33,7 +33,7 @@ from algorithm.config import load_config
 from algorithm.config_schema import Config
 from algorithm.evaluation import evaluate
 from algorithm.trainer import EmbeddedTrainer
-from envs.make import make_vector_env
+from envs.make import make_vector_env, vector_env_factory
 
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "bench" / "results"
@@ -45,15 +45,9 @@ def our_config(task: str, overrides: list[str]) -> Config:
 
 
 def our_trainer(config: Config, run_dir: Path, with_eval: bool = False) -> EmbeddedTrainer:
-    base, ev = config.base_config, config.eval_config
-
-    def train_env(seed: int):  # noqa: ANN202
-        return make_vector_env(base.build_path, base.n_agents, seed=seed, env_kwargs=base.env_kwargs)
-
-    def eval_env(seed: int):  # noqa: ANN202
-        return make_vector_env(base.build_path, ev.eval_envs, seed=seed, env_kwargs=base.env_kwargs)
-
-    return EmbeddedTrainer(config, run_dir, train_env, eval_env if with_eval else None, progress=False)
+    base = config.base_config
+    return EmbeddedTrainer(config, run_dir, vector_env_factory(base.build_path, env_kwargs=base.env_kwargs),
+                           evaluate=with_eval, progress=False)
 
 
 # -- SB3 ----------------------------------------------------------------------------------------

@@ -117,6 +117,19 @@ def make_vector_env(
     )
 
 
+def vector_env_factory(
+    build_path: str, *, env_kwargs: dict[str, Any] | None = None, max_episode_steps: int | None = None
+) -> Callable[[int, int | None], VectorEnv]:
+    """:func:`make_vector_env` with everything but the env count and the seed fixed: what a trainer
+    takes to build its training and evaluation envs, ``factory(num_envs, seed)``."""
+
+    def factory(num_envs: int, seed: int | None) -> VectorEnv:
+        return make_vector_env(build_path, num_envs, seed=seed, env_kwargs=env_kwargs,
+                               max_episode_steps=max_episode_steps)
+
+    return factory
+
+
 @dataclass
 class StepResult:
     """What :meth:`VectorEnv.step` returns; every array is freshly allocated.

@@ -10,7 +10,7 @@ import pytest
 from algorithm.config import load_config
 from algorithm.evaluation import read_evaluations
 from algorithm.trainer import EmbeddedTrainer
-from envs.make import make_vector_env
+from envs.make import vector_env_factory
 
 ROOT = Path(__file__).resolve().parents[1]
 THRESHOLD = -250.0
@@ -23,13 +23,7 @@ BUDGET = 10_000
 def test_pendulum_learns_within_10k_steps(seed: int, tmp_path: Path) -> None:
     config = load_config(ROOT / "envs/gym/pendulum", None,
                          [f"sac.seed={seed}", f"base.max_step={BUDGET}", "eval.eval_per_step=500"]).config
-    base, ev = config.base_config, config.eval_config
-    trainer = EmbeddedTrainer(
-        config, tmp_path,
-        lambda s: make_vector_env(base.build_path, base.n_agents, seed=s),
-        lambda s: make_vector_env(base.build_path, ev.eval_envs, seed=s),
-        progress=False,
-    )
+    trainer = EmbeddedTrainer(config, tmp_path, vector_env_factory(config.base_config.build_path), progress=False)
     while trainer.env_steps < BUDGET:
         trainer.run(until_step=trainer.env_steps + 500)  # stop as soon as an evaluation passes
         if trainer.last_eval_mean is not None and trainer.last_eval_mean >= THRESHOLD:

@@ -9,7 +9,7 @@ import yaml
 
 from algorithm.config import load_config
 from algorithm.trainer import EmbeddedTrainer
-from envs.make import make_vector_env
+from envs.make import vector_env_factory
 
 ROOT = Path(__file__).resolve().parents[1]
 TASKS = sorted(str(p.parent.relative_to(ROOT / "envs")) for p in (ROOT / "envs").glob("*/*/config.yaml"))
@@ -30,13 +30,8 @@ def test_task_trains_a_few_steps(task: str, tmp_path: Path) -> None:
     sections = [k for k in yaml.safe_load((ROOT / "envs" / task / "config.yaml").read_text()) if k != "default"]
     for section in [None, *sections]:
         config = load_config(ROOT / "envs" / task, section, TINY).config
-        base = config.base_config
-        trainer = EmbeddedTrainer(
-            config, tmp_path / str(section),
-            lambda s, b=base: make_vector_env(b.build_path, b.n_agents, seed=s, max_episode_steps=15),
-            lambda s, b=base: make_vector_env(b.build_path, 1, seed=s, max_episode_steps=15),
-            progress=False,
-        )
+        factory = vector_env_factory(config.base_config.build_path, max_episode_steps=15)
+        trainer = EmbeddedTrainer(config, tmp_path / str(section), factory, progress=False)
         summary = trainer.run()
         assert summary.env_steps == 40 and summary.updates > 0
         assert summary.last_eval_mean is not None

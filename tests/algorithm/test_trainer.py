@@ -12,7 +12,7 @@ from algorithm.config import load_config
 from algorithm.config_schema import Config
 from algorithm.evaluation import CSV_FIELDS, read_evaluations
 from algorithm.trainer import EmbeddedTrainer
-from envs.make import make_vector_env
+from envs.make import vector_env_factory
 
 ROOT = Path(__file__).resolve().parents[2]
 SMALL = [
@@ -28,16 +28,9 @@ def small_config(*extra: str) -> Config:
 
 
 def make_trainer(config: Config, run_dir: Path, with_eval: bool = True) -> EmbeddedTrainer:
-    base, ev = config.base_config, config.eval_config
-    limit = base.max_step_each_iter if base.max_step_each_iter > 0 else None
-
-    def train_env(seed: int):  # noqa: ANN202
-        return make_vector_env(base.build_path, base.n_agents, seed=seed, max_episode_steps=limit)
-
-    def eval_env(seed: int):  # noqa: ANN202
-        return make_vector_env(base.build_path, ev.eval_envs, seed=seed, max_episode_steps=limit)
-
-    return EmbeddedTrainer(config, run_dir, train_env, eval_env if with_eval else None, progress=False)
+    base = config.base_config
+    factory = vector_env_factory(base.build_path, max_episode_steps=base.max_step_each_iter)
+    return EmbeddedTrainer(config, run_dir, factory, evaluate=with_eval, progress=False)
 
 
 class Recorder:
@@ -167,7 +160,8 @@ def test_resume_from_an_earlier_checkpoint(tmp_path: Path) -> None:
     config = small_config("sac.save_model_per_step=100", "base.max_step=300", "eval.eval_per_step=0")
     make_trainer(config, tmp_path / "run", with_eval=False).run()
     assert sorted(int(p.stem) for p in (tmp_path / "run/model").glob("*.pt")) == [100, 200, 300]
-    earlier = EmbeddedTrainer(config, tmp_path / "run",
-                              lambda s: make_vector_env("Pendulum-v1", 1, seed=s, max_episode_steps=50), None,
-                              progress=False, ckpt_step=200)
+    earlier = make_trainer(config, tmp_path / "run", with_eval=False)  # resumes the latest: 300
+    assert earlier.env_steps == 300
+    earlier = EmbeddedTrainer(config, tmp_path / "run", vector_env_factory("Pendulum-v1", max_episode_steps=50),
+                              evaluate=False, progress=False, ckpt_step=200)
     assert (earlier.env_steps, earlier.updates) == (200, 101)
