@@ -157,7 +157,7 @@ class EmbeddedTrainer:
         bar = ProgressLine(base.max_step) if self.progress else None
         update_rate = RateMeter()
         priorities_matter = replay_cfg.alpha > 0
-        sampling = self.table.info()["size"] >= replay_cfg.min_size_to_sample
+        sampling = self.table.rate_limiter.size >= replay_cfg.min_size_to_sample
         started = time.perf_counter() - self.wall_seconds
         last_save_time = time.perf_counter()
         interrupted = False
@@ -169,7 +169,7 @@ class EmbeddedTrainer:
                 self._record_episodes(stats.finished)
                 self.iterations += stats.iteration_ended
                 if not sampling:
-                    sampling = self.table.info()["size"] >= replay_cfg.min_size_to_sample
+                    sampling = self.table.rate_limiter.size >= replay_cfg.min_size_to_sample
                 if sampling:
                     self.owed_updates += stats.env_steps * self.updates_per_step
                 while self.owed_updates >= 1.0:
