@@ -189,8 +189,14 @@ class ActorLoop:
             actions, logp = self.policy.act(self.obs, deterministic=False)
         result = self.env.step(actions)
         chunks = self.builder.add(
-            self.obs, actions, self.prev_actions, logp,
-            result.rewards, result.terminated, result.truncated, result.final_obs,
+            self.obs,
+            actions,
+            self.prev_actions,
+            logp,
+            result.rewards,
+            result.terminated,
+            result.truncated,
+            result.final_obs,
         )
         self.total_steps += n
         self.episode_return += result.rewards

@@ -87,8 +87,9 @@ class ProgressLine:
         self._last = 0.0
         self._steps = RateMeter()
 
-    def update(self, env_steps: int, updates: int, updates_per_s: float, recent_return: float | None,
-               force: bool = False) -> None:
+    def update(
+        self, env_steps: int, updates: int, updates_per_s: float, recent_return: float | None, force: bool = False
+    ) -> None:
         now = time.perf_counter()
         steps_per_s = self._steps.mark(env_steps)
         if not force and now - self._last < self.min_interval:
@@ -103,8 +104,9 @@ class ProgressLine:
             tail = f" | ETA {_fmt_seconds(eta)}"
         else:
             head, tail = f"{env_steps:>9,d} steps", ""
-        line = (f"{head} | {steps_per_s:7.1f} steps/s | {updates:>8,d} updates {updates_per_s:6.1f}/s"
-                f" | return {ret}{tail}")
+        line = (
+            f"{head} | {steps_per_s:7.1f} steps/s | {updates:>8,d} updates {updates_per_s:6.1f}/s | return {ret}{tail}"
+        )
         if self.stream.isatty():
             self.stream.write("\r" + line + "\033[K")
         else:

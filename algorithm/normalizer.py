@@ -87,9 +87,7 @@ class RunningMeanStd:
         mean = np.asarray(state["mean"], dtype=np.float64)
         var = np.asarray(state["var"], dtype=np.float64)
         if mean.shape != self.shape or var.shape != self.shape:
-            raise ValueError(
-                f"RunningMeanStd state: expected shape {self.shape}, got {mean.shape}/{var.shape}"
-            )
+            raise ValueError(f"RunningMeanStd state: expected shape {self.shape}, got {mean.shape}/{var.shape}")
         if count < 0 or not (np.isfinite(mean).all() and np.isfinite(var).all()) or (var < 0).any():
             raise ValueError("RunningMeanStd state: count must be >= 0 and mean/var finite, var >= 0")
         self.count = count

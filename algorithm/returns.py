@@ -41,9 +41,7 @@ def gather_positions(x: Tensor, index: Tensor) -> Tensor:
     return x[torch.arange(x.shape[0], device=x.device), index]
 
 
-def n_step_target(
-    rewards: Tensor, terminated: Tensor, valid: Tensor, next_value: Tensor, gamma: float
-) -> Tensor:
+def n_step_target(rewards: Tensor, terminated: Tensor, valid: Tensor, next_value: Tensor, gamma: float) -> Tensor:
     """``[B]`` n-step soft Q target for step 0 of each window (formula in the module docstring).
 
     ``rewards``/``terminated``/``valid`` are ``[B, L]``; ``next_value`` is ``[B]``, the soft value
@@ -55,7 +53,5 @@ def n_step_target(
     m = bootstrap_index(valid)
     discounted = torch.where(valid, rewards, 0.0) * powers[:window]
     terminal = (terminated & valid).any(dim=1)
-    bootstrap = torch.where(
-        terminal, 0.0, powers[m] * next_value
-    )  # where, not *: v of a terminal obs is never read
+    bootstrap = torch.where(terminal, 0.0, powers[m] * next_value)  # where, not *: v of a terminal obs is never read
     return discounted.sum(dim=1) + bootstrap

@@ -120,7 +120,9 @@ class EmbeddedTrainer:
         window = sac_cfg.burn_in_step + sac_cfg.n_step
         self.table = PrioritizedTable.from_config(replay_cfg, spec.sensors, spec.action.size, window, seed=seed)
         self.actor = ActorLoop(
-            self.env, self.sac, self.table.insert,
+            self.env,
+            self.sac,
+            self.table.insert,
             chunk_length=config.actor_config.chunk_length,
             random_steps=config.actor_config.random_steps,
             reset_on_iteration=base.reset_on_iteration,
@@ -190,7 +192,8 @@ class EmbeddedTrainer:
                     with self.timers.phase("eval"):
                         self._evaluate()
                     self.next_eval += cfg.eval_config.eval_per_step * math.ceil(
-                        (self.env_steps - self.next_eval + 1) / cfg.eval_config.eval_per_step)
+                        (self.env_steps - self.next_eval + 1) / cfg.eval_config.eval_per_step
+                    )
                 minutes = (time.perf_counter() - last_save_time) / 60
                 if self.env_steps >= self.next_save or minutes >= cfg.sac_config.save_model_per_minute:
                     self.save()
@@ -207,13 +210,15 @@ class EmbeddedTrainer:
             self.actor.flush()  # open chunks go to replay before the final save: nothing collected is lost
             self.save()
             self.writer.close()
-        return TrainSummary(self.env_steps, self.updates, self.episodes, self.wall_seconds,
-                            self.last_eval_mean, interrupted)
+        return TrainSummary(
+            self.env_steps, self.updates, self.episodes, self.wall_seconds, self.last_eval_mean, interrupted
+        )
 
     def _done(self) -> bool:
         base = self.config.base_config
         return (base.max_step >= 0 and self.env_steps >= base.max_step) or (
-            base.max_iter >= 0 and self.iterations >= base.max_iter)
+            base.max_iter >= 0 and self.iterations >= base.max_iter
+        )
 
     def _record_episodes(self, finished: list[tuple[float, int]]) -> None:
         for ret, length in finished:
@@ -224,9 +229,14 @@ class EmbeddedTrainer:
     def _write_summary(self, learner_metrics: dict[str, float], updates_per_s: float) -> None:
         info = self.table.info()
         replay = {f"replay/{k}": float(v) for k, v in info.items() if isinstance(v, int | float)}
-        metrics = {**learner_metrics, **replay, **self.timers.fractions(),
-                   "time/updates_per_second": updates_per_s, "time/wall_seconds": self.wall_seconds,
-                   "learner/updates": float(self.updates)}
+        metrics = {
+            **learner_metrics,
+            **replay,
+            **self.timers.fractions(),
+            "time/updates_per_second": updates_per_s,
+            "time/wall_seconds": self.wall_seconds,
+            "learner/updates": float(self.updates),
+        }
         self.writer.write(metrics, self.env_steps)
 
     def _evaluate(self) -> None:
@@ -236,14 +246,27 @@ class EmbeddedTrainer:
         self.evaluations += 1
         self.last_eval_mean = result.mean
         append_evaluation(self.paths.evaluations, self.env_steps, self.updates, self.wall_seconds, result)
-        self.writer.write({"eval/return_mean": result.mean, "eval/return_std": result.std,
-                           "eval/episode_length": float(result.lengths.mean())}, self.env_steps)
+        self.writer.write(
+            {
+                "eval/return_mean": result.mean,
+                "eval/return_std": result.std,
+                "eval/episode_length": float(result.lengths.mean()),
+            },
+            self.env_steps,
+        )
 
     # -- checkpoints ------------------------------------------------------------------------
     def counters(self) -> dict[str, Any]:
-        return {"env_steps": self.env_steps, "updates": self.updates, "episodes": self.episodes,
-                "iterations": self.iterations, "owed_updates": self.owed_updates,
-                "wall_seconds": self.wall_seconds, "next_eval": self.next_eval, "next_save": self.next_save}
+        return {
+            "env_steps": self.env_steps,
+            "updates": self.updates,
+            "episodes": self.episodes,
+            "iterations": self.iterations,
+            "owed_updates": self.owed_updates,
+            "wall_seconds": self.wall_seconds,
+            "next_eval": self.next_eval,
+            "next_save": self.next_save,
+        }
 
     def save(self) -> Path:
         """Checkpoint learner state, counters and RNGs (and replay first, when save_replay is on)."""
@@ -254,8 +277,13 @@ class EmbeddedTrainer:
             replay_inserted = int(self.table.info()["inserted_steps"])
         while self.next_save <= self.env_steps:
             self.next_save += cfg.save_model_per_step
-        state = {"sac": self.sac.state_dict(), "counters": self.counters(), "rng": capture_rng(),
-                 "actor_rng": self.actor.rng.bit_generator.state, "replay_inserted_steps": replay_inserted}
+        state = {
+            "sac": self.sac.state_dict(),
+            "counters": self.counters(),
+            "rng": capture_rng(),
+            "actor_rng": self.actor.rng.bit_generator.state,
+            "replay_inserted_steps": replay_inserted,
+        }
         return save_checkpoint(self.paths.model, self.env_steps, state, keep=cfg.keep_checkpoints)
 
     def restore(self, step: int | None = None) -> None:

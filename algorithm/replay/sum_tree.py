@@ -102,9 +102,7 @@ class SumTree:
         if idx.size == 0:
             return
         if idx.min() < 0 or idx.max() >= self.capacity:
-            raise IndexError(
-                f"SumTree.set: indices must be in [0, {self.capacity}), got {idx.min()}..{idx.max()}"
-            )
+            raise IndexError(f"SumTree.set: indices must be in [0, {self.capacity}), got {idx.min()}..{idx.max()}")
         if not np.isfinite(val).all() or val.min() < 0.0:
             raise ValueError("SumTree.set: values must be finite and >= 0")
         _set_leaves(self._tree, self._base, idx, val)

@@ -95,9 +95,7 @@ class PrioritizedTable:
         if not 0.0 <= alpha <= 1.0:
             raise ValueError(f"replay alpha must be in [0, 1], got {alpha}")
         if not 0.0 <= td_error_min <= td_error_max or not np.isfinite(td_error_max):
-            raise ValueError(
-                f"need 0 <= td_error_min <= td_error_max < inf, got {td_error_min}, {td_error_max}"
-            )
+            raise ValueError(f"need 0 <= td_error_min <= td_error_max < inf, got {td_error_min}, {td_error_max}")
         names = [s.name for s in sensors]
         if not sensors or len(set(names)) != len(names):
             raise ValueError(f"replay needs at least one sensor and unique sensor names, got {names}")
@@ -185,9 +183,7 @@ class PrioritizedTable:
 
     # ------------------------------------------------------------------ public interface
 
-    def insert(
-        self, chunk: Chunk, priorities: np.ndarray | None = None, timeout: float | None = None
-    ) -> np.ndarray:
+    def insert(self, chunk: Chunk, priorities: np.ndarray | None = None, timeout: float | None = None) -> np.ndarray:
         """Store ``chunk`` contiguously and return its ``T`` step keys (uint64, increasing).
 
         New rows get the highest priority seen so far unless raw ``priorities`` ``[T]`` are given.
@@ -196,9 +192,7 @@ class PrioritizedTable:
         A chunk that does not match the table's specs raises ``ValueError`` and stores nothing.
         """
         t = self._check_chunk(chunk)
-        new_p = (
-            None if priorities is None else self._transform(self._check_priorities(priorities, t, "insert"))
-        )
+        new_p = None if priorities is None else self._transform(self._check_priorities(priorities, t, "insert"))
         with self._lock:
             self.rate_limiter.await_insert(t, timeout)
             first = self._next_key
@@ -482,9 +476,7 @@ class PrioritizedTable:
         if t + 1 > self.capacity:
             raise ValueError(f"chunk of {t} steps needs {t + 1} rows but replay capacity is {self.capacity}")
         if len(chunk.obs) != len(self.sensors):
-            raise ValueError(
-                f"chunk has {len(chunk.obs)} observation sensors, the table expects {len(self.sensors)}"
-            )
+            raise ValueError(f"chunk has {len(chunk.obs)} observation sensors, the table expects {len(self.sensors)}")
         a = self.action_size
         fields: list[tuple[str, Any, tuple[int, ...], np.dtype]] = [
             (f"obs[{i}] ({s.name})", chunk.obs[i], (t + 1, *s.shape), np.dtype(s.dtype))
