@@ -43,9 +43,10 @@ class ReplayConfig(Section):
     td_error_min: float = Field(0.01, gt=0.0, description="Floor of |TD| before ** alpha.")
     td_error_max: float = Field(1.0, gt=0.0, description="Ceiling of |TD| before ** alpha.")
     samples_per_insert: float | None = Field(
-        None, gt=0.0,
+        None,
+        gt=0.0,
         description="Sampled windows per inserted step (samples_per_insert / batch_size updates per env step); "
-                    "null = batch_size, one update per env step.",
+        "null = batch_size, one update per env step.",
     )
     samples_per_insert_tolerance: float = Field(
         0.0, ge=0.0, description="How many windows the learner may run ahead/behind before blocking (distributed)."
@@ -101,6 +102,11 @@ class SacConfig(Section):
     use_normalization: bool = False
     max_nonfinite_steps: int = Field(100, ge=1, description="Consecutive skipped (non-finite) updates before stopping.")
     compile: bool = Field(False, description="torch.compile the losses; 5-10% slower on CPU (bench/learner.py).")
+    compute_dtype: Literal["float32", "bfloat16"] = Field(
+        "float32",
+        description="dtype of the hidden layers' matmuls in updates (torch.autocast); output layers, "
+        "parameters, optimizer states and losses stay float32. bfloat16 pays on CPUs with AVX512-BF16/AMX.",
+    )
 
     @model_validator(mode="after")
     def _check_ensemble(self) -> SacConfig:

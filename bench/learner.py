@@ -143,9 +143,7 @@ def rate(step: Callable[[Batch], object], batches: list[Batch], updates: int) ->
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="fewer rounds and updates (smoke run)")
-    parser.add_argument(
-        "--compile", action="store_true", help="also measure SAC(compile=True) (~20 s to compile)"
-    )
+    parser.add_argument("--compile", action="store_true", help="also measure SAC(compile=True) (~20 s to compile)")
     args = parser.parse_args()
     rounds, updates, warmup = (3, 20, 5) if args.quick else (7, 60, 20)
 
@@ -156,6 +154,7 @@ def main() -> None:
     torch.manual_seed(0)
     contenders: dict[str, Callable[[Batch], object]] = {
         "asac": SAC(spec, sac_cfg, nn_cfg, replay_cfg).update,
+        "asac+bf16": SAC(spec, sac_cfg.model_copy(update={"compute_dtype": "bfloat16"}), nn_cfg, replay_cfg).update,
         "baseline": BaselineSAC().update,
     }
     if args.compile:

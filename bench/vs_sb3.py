@@ -1,12 +1,14 @@
 """ASAC against Stable-Baselines3 SAC with identical hyper-parameters, measured in the same run.
 
     python -m bench.vs_sb3 throughput [--steps 3000] [--rounds 2] [--threads 1]
-        env steps/s training HalfCheetah-v5 with one update per env step (after a random warm-up);
-        rounds alternate ours/SB3 so machine noise hits both. Goal: ours >= 1.5x SB3.
+        env steps/s training HalfCheetah-v5 with one update per env step (after a random warm-up),
+        ASAC in float32 and with sac.compute_dtype=bfloat16; rounds alternate ASAC/SB3 so machine
+        noise hits all alike. Goal: ours >= 1.5x SB3.
     python -m bench.vs_sb3 pendulum [--seeds 0 1 2] [--max-steps 20000]
         env steps and wall seconds until the mean deterministic return (10 episodes, every 250
         steps) first reaches -200. Goal: fewer steps than SB3 and < 60 s.
     python -m bench.vs_sb3 half_cheetah [--seeds 0 1] [--steps 100000] [--which ours|sb3|both]
+                                        [--override sac.compute_dtype=bfloat16]
         deterministic return (10 episodes) after 100k env steps. Goal: ours >= SB3's mean.
         Results are appended to bench/results/half_cheetah.csv, so runs can go in the background
         one by one and `--report` prints the table afterwards.
@@ -46,8 +48,13 @@ def our_config(task: str, overrides: list[str]) -> Config:
 
 def our_trainer(config: Config, run_dir: Path, with_eval: bool = False) -> EmbeddedTrainer:
     base = config.base_config
-    return EmbeddedTrainer(config, run_dir, vector_env_factory(base.build_path, env_kwargs=base.env_kwargs),
-                           evaluate=with_eval, progress=False)
+    return EmbeddedTrainer(
+        config,
+        run_dir,
+        vector_env_factory(base.build_path, env_kwargs=base.env_kwargs),
+        evaluate=with_eval,
+        progress=False,
+    )
 
 
 # -- SB3 ----------------------------------------------------------------------------------------
@@ -57,9 +64,21 @@ def sb3_model(env_id: str, seed: int, learning_starts: int, buffer_size: int = 1
 
     env = gym.make(env_id)
     return SB3SAC(
-        "MlpPolicy", env, learning_rate=3e-4, buffer_size=buffer_size, learning_starts=learning_starts,
-        batch_size=256, tau=0.005, gamma=0.99, train_freq=1, gradient_steps=1, ent_coef="auto_1.0",
-        policy_kwargs={"net_arch": [256, 256]}, seed=seed, device="cpu", verbose=0,
+        "MlpPolicy",
+        env,
+        learning_rate=3e-4,
+        buffer_size=buffer_size,
+        learning_starts=learning_starts,
+        batch_size=256,
+        tau=0.005,
+        gamma=0.99,
+        train_freq=1,
+        gradient_steps=1,
+        ent_coef="auto_1.0",
+        policy_kwargs={"net_arch": [256, 256]},
+        seed=seed,
+        device="cpu",
+        verbose=0,
     )
 
 
@@ -81,29 +100,42 @@ class SB3Policy:
 def throughput(args: argparse.Namespace) -> None:
     torch.set_num_threads(args.threads)
     warmup = 1000
-    ours, theirs = [], []
+    variants = {"ASAC": [], "ASAC bf16": ["sac.compute_dtype=bfloat16"]}
+    rates: dict[str, list[float]] = {name: [] for name in [*variants, "SB3"]}
     for round_ in range(args.rounds):
-        config = our_config("mujoco/half_cheetah", [
-            f"sac.seed={round_}", f"actor.random_steps={warmup}", f"replay.min_size_to_sample={warmup}",
-            f"base.max_step={warmup + args.steps}", f"base.torch_threads={args.threads}", "eval.eval_per_step=0",
-            "sac.save_model_per_step=100000000", "sac.save_model_per_minute=1000",
-        ])
-        with tempfile.TemporaryDirectory() as tmp:
-            trainer = our_trainer(config, Path(tmp))
-            trainer.run(until_step=warmup + 64)  # random phase and the first updates
-            start_steps, start = trainer.env_steps, time.perf_counter()
-            trainer.run()
-            ours.append((trainer.env_steps - start_steps) / (time.perf_counter() - start))
+        for name, extra in variants.items():
+            config = our_config(
+                "mujoco/half_cheetah",
+                [
+                    f"sac.seed={round_}",
+                    f"actor.random_steps={warmup}",
+                    f"replay.min_size_to_sample={warmup}",
+                    f"base.max_step={warmup + args.steps}",
+                    f"base.torch_threads={args.threads}",
+                    "eval.eval_per_step=0",
+                    "sac.save_model_per_step=100000000",
+                    "sac.save_model_per_minute=1000",
+                    *extra,
+                ],
+            )
+            with tempfile.TemporaryDirectory() as tmp:
+                trainer = our_trainer(config, Path(tmp))
+                trainer.run(until_step=warmup + 64)  # random phase and the first updates
+                start_steps, start = trainer.env_steps, time.perf_counter()
+                trainer.run()
+                rates[name].append((trainer.env_steps - start_steps) / (time.perf_counter() - start))
 
         model = sb3_model("HalfCheetah-v5", round_, learning_starts=warmup)
         model.learn(total_timesteps=warmup + 64)
         start = time.perf_counter()
         model.learn(total_timesteps=args.steps - 64, reset_num_timesteps=False)
-        theirs.append((args.steps - 64) / (time.perf_counter() - start))
-        print(f"round {round_}: ours {ours[-1]:.1f} steps/s, SB3 {theirs[-1]:.1f} steps/s", flush=True)
-    o, t = statistics.median(ours), statistics.median(theirs)
+        rates["SB3"].append((args.steps - 64) / (time.perf_counter() - start))
+        print(f"round {round_}: " + ", ".join(f"{n} {r[-1]:.1f}" for n, r in rates.items()) + " steps/s", flush=True)
+    median = {name: statistics.median(r) for name, r in rates.items()}
     print(f"\nHalfCheetah-v5, 1 update/env step, {args.threads} thread(s), median of {args.rounds} rounds")
-    print(f"| ASAC | SB3 2.x | ratio |\n|---|---|---|\n| {o:.1f} steps/s | {t:.1f} steps/s | {o / t:.2f}x |")
+    print("| impl | env steps/s | / SB3 |\n|---|---|---|")
+    for name, value in median.items():
+        print(f"| {name} | {value:.1f} | {value / median['SB3']:.2f}x |")
 
 
 # -- pendulum -----------------------------------------------------------------------------------
@@ -115,8 +147,9 @@ def steps_to_threshold(rows: list[tuple[int, float, float]], threshold: float) -
 
 
 def pendulum_ours(seed: int, max_steps: int, every: int) -> list[tuple[int, float, float]]:
-    config = our_config("gym/pendulum", [f"sac.seed={seed}", f"base.max_step={max_steps}",
-                                         f"eval.eval_per_step={every}"])
+    config = our_config(
+        "gym/pendulum", [f"sac.seed={seed}", f"base.max_step={max_steps}", f"eval.eval_per_step={every}"]
+    )
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         trainer = our_trainer(config, Path(tmp), with_eval=True)
@@ -163,8 +196,10 @@ def pendulum(args: argparse.Namespace) -> None:
         steps = [r[2] for r in table if r[0] == name and r[2] is not None]
         walls = [r[3] for r in table if r[0] == name and r[3] is not None]
         if steps:
-            print(f"{name}: median {statistics.median(steps):.0f} steps, {statistics.median(walls):.1f} s"
-                  f" ({len(steps)}/{len(args.seeds)} seeds reached -200)")
+            print(
+                f"{name}: median {statistics.median(steps):.0f} steps, {statistics.median(walls):.1f} s"
+                f" ({len(steps)}/{len(args.seeds)} seeds reached -200)"
+            )
 
 
 def _fmt(x: float | None) -> str:
@@ -177,10 +212,11 @@ def half_cheetah(args: argparse.Namespace) -> None:
     out = RESULTS / "half_cheetah.csv"
     if not args.report:
         torch.set_num_threads(args.threads)
+        ours = "ASAC" + "".join(f" {o}" for o in args.override)  # the label names what differs
         for seed in args.seeds:
-            for name in (["ASAC", "SB3"] if args.which == "both" else [{"ours": "ASAC", "sb3": "SB3"}[args.which]]):
+            for name in {"both": [ours, "SB3"], "ours": [ours], "sb3": ["SB3"]}[args.which]:
                 start = time.perf_counter()
-                ret = (cheetah_ours if name == "ASAC" else cheetah_sb3)(seed, args.steps)
+                ret = cheetah_sb3(seed, args.steps) if name == "SB3" else cheetah_ours(seed, args.steps, args.override)
                 with out.open("a", newline="") as f:
                     csv.writer(f).writerow([name, seed, args.steps, f"{ret:.1f}", f"{time.perf_counter() - start:.0f}"])
                 print(f"{name} seed {seed}: return {ret:.1f} after {args.steps} steps", flush=True)
@@ -189,14 +225,18 @@ def half_cheetah(args: argparse.Namespace) -> None:
     print("| impl | seed | steps | return | wall s |\n|---|---|---|---|---|")
     for r in rows:
         print("| " + " | ".join(r) + " |")
-    for name in ("ASAC", "SB3"):
+    for name in dict.fromkeys(r[0] for r in rows):
         rets = [float(r[3]) for r in rows if r[0] == name]
-        if rets:
-            print(f"{name}: mean {np.mean(rets):.1f} over {len(rets)} runs")
+        print(
+            f"{name}: mean {np.mean(rets):.1f}, std {np.std(rets, ddof=1) if len(rets) > 1 else 0:.1f}"
+            f" over {len(rets)} runs"
+        )
 
 
-def cheetah_ours(seed: int, steps: int) -> float:
-    config = our_config("mujoco/half_cheetah", [f"sac.seed={seed}", f"base.max_step={steps}", "eval.eval_per_step=0"])
+def cheetah_ours(seed: int, steps: int, overrides: list[str]) -> float:
+    config = our_config(
+        "mujoco/half_cheetah", [f"sac.seed={seed}", f"base.max_step={steps}", "eval.eval_per_step=0", *overrides]
+    )
     with tempfile.TemporaryDirectory() as tmp:
         trainer = our_trainer(config, Path(tmp))
         trainer.run()
@@ -228,6 +268,13 @@ def main() -> None:
     hc.add_argument("--steps", type=int, default=100_000)
     hc.add_argument("--which", choices=["ours", "sb3", "both"], default="both")
     hc.add_argument("--threads", type=int, default=1)
+    hc.add_argument(
+        "--override",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="extra config override for ASAC (repeatable); runs are labelled with it",
+    )
     hc.add_argument("--report", action="store_true", help="only print the table of runs so far")
     args = p.parse_args()
     {"throughput": throughput, "pendulum": pendulum, "half_cheetah": half_cheetah}[args.what](args)

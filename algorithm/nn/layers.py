@@ -21,6 +21,19 @@ def activation(name: str) -> nn.Module:
         ) from None
 
 
+def in_float32(layer: nn.Module, x: Tensor, *args: object) -> Tensor:
+    """``layer(x, *args)`` in float32 even inside a lower-precision ``torch.autocast`` region.
+
+    Output layers run this way (``sac_config.compute_dtype``): a Q value of a few hundred has a
+    bfloat16 step of 1-2, as large as the TD errors it is trained on, while the hidden layers'
+    relative rounding (2^-8) is harmless. Outside autocast it is a plain call.
+    """
+    if not torch.is_autocast_enabled(x.device.type):
+        return layer(x, *args)
+    with torch.autocast(x.device.type, enabled=False):
+        return layer(x.float(), *args)
+
+
 def mlp(in_features: int, hidden_units: Sequence[int], activation_name: str) -> nn.Sequential:
     """``Linear -> activation`` for each hidden width; the caller adds its own output layer."""
     layers: list[nn.Module] = []
@@ -78,7 +91,4 @@ class EnsembleLinear(nn.Module):
         return torch.baddbmm(bias, x, weight.mT)
 
     def extra_repr(self) -> str:
-        return (
-            f"ensemble_size={self.ensemble_size}, in_features={self.in_features}, "
-            f"out_features={self.out_features}"
-        )
+        return f"ensemble_size={self.ensemble_size}, in_features={self.in_features}, out_features={self.out_features}"

@@ -15,7 +15,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from algorithm.nn.layers import EnsembleLinear, activation, mlp
+from algorithm.nn.layers import EnsembleLinear, activation, in_float32, mlp
 from algorithm.spaces import SensorSpec
 
 _LOG2 = math.log(2.0)
@@ -44,9 +44,7 @@ class VectorRepresentation(Representation):
             raise ValueError("VectorRepresentation needs at least one sensor")
         for s in sensors:
             if s.is_image:
-                raise NotImplementedError(
-                    f"image sensor {s.name!r} {s.shape}: conv encoders are not built yet"
-                )
+                raise NotImplementedError(f"image sensor {s.name!r} {s.shape}: conv encoders are not built yet")
         self.sensor_ranks = [len(s.shape) for s in sensors]
         self.state_dim = sum(math.prod(s.shape) for s in sensors)
 
@@ -84,12 +82,9 @@ class QEnsemble(nn.Module):
         self, state: Tensor, action: Tensor, heads: Tensor | None = None, detach_params: bool = False
     ) -> Tensor:
         h = torch.cat([state, action], dim=-1)
-        last = len(self.layers) - 1
-        for i, layer in enumerate(self.layers):
-            h = layer(h, heads, detach_params)
-            if i < last:
-                h = self.act(h)
-        return h.squeeze(-1)
+        for layer in self.layers[:-1]:
+            h = self.act(layer(h, heads, detach_params))
+        return in_float32(self.layers[-1], h, heads, detach_params).squeeze(-1)
 
 
 def squashed_gaussian_log_prob(noise: Tensor, log_std: Tensor, pre_tanh: Tensor) -> Tensor:
@@ -132,7 +127,7 @@ class TanhGaussianPolicy(nn.Module):
 
     def forward(self, state: Tensor) -> tuple[Tensor, Tensor]:
         """``(mean, log_std)`` of the pre-tanh Gaussian, each ``[N, A]``."""
-        mean, log_std = self.head(self.trunk(state)).chunk(2, dim=-1)
+        mean, log_std = in_float32(self.head, self.trunk(state)).chunk(2, dim=-1)
         return mean, log_std.clamp(self.log_std_min, self.log_std_max)
 
     def sample(self, state: Tensor, noise: Tensor | None) -> tuple[Tensor, Tensor]:

@@ -449,3 +449,36 @@ def test_q_learns_a_constant_reward(
     assert q.shape == (2, 64)
     assert torch.all((q.mean(1) - expected).abs() < mean_tol), q.mean(1)
     assert torch.all((q - expected).abs() < max_tol), q
+
+
+def test_bfloat16_compute_keeps_outputs_parameters_and_losses_float32() -> None:
+    full, low = make_sac(), make_sac(compute_dtype="bfloat16")
+    batch = make_batch(b=64)
+    a = full.update(batch, with_metrics=True).metrics
+    b = low.update(batch, with_metrics=True).metrics
+    # Same seed, same batch: the losses agree to bfloat16's rounding but not exactly (it really ran in bf16).
+    for key in ("learner/q_loss", "learner/policy_loss", "learner/q_mean"):
+        assert b[key] == pytest.approx(a[key], rel=0.05, abs=0.02), key
+    assert a["learner/q_loss"] != b["learner/q_loss"]
+    assert all(p.dtype == torch.float32 for p in low.models.parameters())
+    state = torch.randn(5, OBS)
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        q = low.models.q(state, torch.zeros(5, ACT))
+        mean, log_std = low.models.policy(state)
+        hidden = low.models.q.layers[0](torch.cat([state, torch.zeros(5, ACT)], -1))
+    assert hidden.dtype == torch.bfloat16  # hidden layers do run in bf16 under autocast
+    assert q.dtype == mean.dtype == log_std.dtype == torch.float32  # output layers do not
+
+
+def test_bfloat16_updates_still_fit_a_regression_target() -> None:
+    """With gamma 0 the target is the reward: 100 bf16 updates fit it as float32 updates do."""
+    losses = {}
+    for dtype in ("float32", "bfloat16"):
+        sac = make_sac(compute_dtype=dtype, learning_rate=3e-3, gamma=0.0)
+        batch = make_batch(b=64, rewards=np.full((64, 1), 2.0, np.float32))
+        first = sac.update(batch, with_metrics=True).metrics["learner/q_loss"]
+        for _ in range(100):
+            last = sac.update(batch, with_metrics=True).metrics["learner/q_loss"]
+        losses[dtype] = (first, last)
+    for dtype, (first, last) in losses.items():
+        assert last < 0.05 * first, (dtype, first, last)
