@@ -9,9 +9,19 @@ where ``m`` is the number of valid steps: the prefix of the window that is insid
 (``mask``) and not past an episode end. ``terminated`` stops bootstrapping; ``truncated`` and a
 masked tail bootstrap from the real next observation ``o_m`` (ARCHITECTURE.md 3-4).
 
-V-trace (``sac.use_n_step_is``) belongs here as a sibling of :func:`n_step_target`: it will take
-per-step soft values ``v(o_1..o_m)`` and truncated ratios ``min(rho_bar, pi/mu)`` for steps
-``1..m-1`` (the first action is never importance-weighted) instead of one bootstrap value.
+V-trace (``sac.use_n_step_is``) is :func:`vtrace_target`, a sibling of :func:`n_step_target` that
+takes per-step soft values ``v(o_1..o_m)`` and ``log pi - log mu`` of steps ``1..m-1`` instead of
+one bootstrap value. Step 0 is the action ``Q`` evaluates and is never importance-weighted; the
+rest of the window becomes the V-trace estimate at ``o_1`` (Espeholt et al. 2018, 1802.01561,
+eq. 1) with truncated ratios ``rho_t = min(rho_bar, pi_t/mu_t)`` and traces
+``c_t = lambda min(c_bar, pi_t/mu_t)`` (lambda as in the remarks of 1802.01561 section 4.1):
+
+    y = r_0 + gamma (1 - terminated_0) v_1
+    v_1 = v(o_1) + sum_{t=1}^{m-1} gamma^{t-1} (prod_{i=1}^{t-1} c_i) rho_t
+                   (r_t + gamma (1 - terminated_t) v(o_{t+1}) - v(o_t))
+
+With every ratio 1, ``lambda = 1`` and ``rho_bar, c_bar >= 1`` the sum telescopes to the n-step
+target above (the on-policy case below 1802.01561 eq. 1).
 """
 
 from __future__ import annotations
@@ -55,3 +65,51 @@ def n_step_target(rewards: Tensor, terminated: Tensor, valid: Tensor, next_value
     terminal = (terminated & valid).any(dim=1)
     bootstrap = torch.where(terminal, 0.0, powers[m] * next_value)  # where, not *: v of a terminal obs is never read
     return discounted.sum(dim=1) + bootstrap
+
+
+def vtrace_target(
+    rewards: Tensor,
+    terminated: Tensor,
+    valid: Tensor,
+    values: Tensor,
+    log_ratios: Tensor,
+    gamma: float,
+    lambda_: float,
+    rho_bar: float,
+    c_bar: float,
+) -> tuple[Tensor, Tensor]:
+    """V-trace soft Q target for step 0 of each window (formula in the module docstring).
+
+    ``rewards``/``terminated``/``valid``/``log_ratios`` are ``[B, L]``, ``log_ratios[:, t] =
+    log pi(a_t|o_t) - log mu(a_t|o_t)``; ``values`` is ``[B, L + 1]``, ``v(o_t)`` at positions
+    ``0..L`` (position 0 is never read). ``valid`` is as from :func:`valid_steps`, with step 0 valid
+    (every window starts at a stored step); only its prefix up to the first invalid or terminated
+    step is used, so ``m`` is :func:`bootstrap_index` of it. Unused entries (step 0 of
+    ``log_ratios``, steps past ``m``, positions past ``m`` of ``values``, and ``v(o_m)`` after a
+    termination) may hold anything, NaN and inf included: they are only read under ``torch.where``.
+
+    Returns ``(y [B], rho [B, L])``: ``rho`` holds the truncated ratios ``min(rho_bar, pi_t/mu_t)``
+    of steps ``1..m-1`` and 0 elsewhere, for logging. The sum is the backward recursion of
+    1802.01561 remark 1, ``v_t - v(o_t) = delta_t + gamma c_t (v_{t+1} - v(o_{t+1}))`` with
+    ``v_m = v(o_m)``, run over ``t = L-1..1`` on ``[B]`` tensors (``L`` is small).
+    """
+    window = rewards.shape[1]
+    prefix = valid.long().cumprod(dim=1) > 0
+    used = valid_steps(prefix, terminated, torch.zeros_like(terminated))
+    weighted = used & (torch.arange(window, device=used.device) > 0)  # step 0 is never importance-weighted
+    ratio = log_ratios.exp()
+    rho_all = ratio.clamp(max=rho_bar)
+    c_all = lambda_ * ratio.clamp(max=c_bar)
+
+    # correction[b] = v_{t+1} - v(o_{t+1}); 0 at t + 1 = m (bootstrap) and wherever step t + 1 is unused
+    correction = torch.zeros_like(values[:, 0])
+    for t in range(window - 1, 0, -1):
+        next_value = torch.where(terminated[:, t], 0.0, values[:, t + 1])  # where, not *: see n_step_target
+        delta = rho_all[:, t] * (rewards[:, t] + gamma * next_value - values[:, t])
+        # a used, terminated step t has no used step t + 1, so correction is already 0 there
+        correction = torch.where(used[:, t], delta + gamma * c_all[:, t] * correction, 0.0)
+
+    v_1 = values[:, 1] + correction
+    y = rewards[:, 0] + gamma * torch.where(terminated[:, 0], 0.0, v_1)
+    rho = torch.where(weighted, rho_all, 0.0)
+    return y, rho
