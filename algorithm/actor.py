@@ -126,14 +126,29 @@ class ChunkBuilder:
         )
 
 
-def uniform_random_actions(spec: ActionSpec, n: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
-    """Uniform exploration actions in model space with their exact behaviour log-density."""
+def uniform_random_actions(
+    spec: ActionSpec, n: int, rng: np.random.Generator, mask: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """Uniform exploration actions in model space with their exact behaviour log-density.
+
+    ``mask [n, sum(branches)]`` (the ``action_mask`` sensor, nonzero = allowed) restricts each
+    discrete branch to its allowed actions, uniformly."""
     parts = []
     logp = np.zeros(n, dtype=np.float64)
+    start = 0
     for branch in spec.discrete_branches:
-        choice = rng.integers(branch, size=n)
+        if mask is None:
+            choice = rng.integers(branch, size=n)
+            logp -= np.log(branch)
+        else:
+            allowed = mask[:, start : start + branch] > 0.5
+            counts = allowed.sum(axis=1)
+            # the k-th allowed action, k uniform in [0, count): first index whose running count exceeds k
+            k = (rng.random(n) * counts).astype(np.int64)
+            choice = (allowed.cumsum(axis=1) > k[:, None]).argmax(axis=1)
+            logp -= np.log(counts)
         parts.append(np.eye(branch, dtype=np.float32)[choice])
-        logp -= np.log(branch)
+        start += branch
     if spec.continuous_dim:
         parts.append(rng.uniform(-1.0, 1.0, size=(n, spec.continuous_dim)).astype(np.float32))
         logp -= spec.continuous_dim * np.log(2.0)  # density of U[-1, 1]^d
@@ -184,7 +199,9 @@ class ActorLoop:
     def step(self) -> StepStats:
         n = self.env.num_envs
         if self.total_steps < self.random_steps:
-            actions, logp = uniform_random_actions(self.spec.action, n, self.rng)
+            mask_index = self.spec.action_mask_index
+            mask = None if mask_index is None else self.obs[mask_index]
+            actions, logp = uniform_random_actions(self.spec.action, n, self.rng, mask)
         else:
             actions, logp = self.policy.act(self.obs, deterministic=False)
         result = self.env.step(actions)

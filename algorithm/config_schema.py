@@ -89,7 +89,11 @@ class SacConfig(Section):
     clip_epsilon: float | None = Field(
         None, gt=0.0, description="Value clipping around the target head; null = off (the original used 0.2)."
     )
-    discrete_dqn_like: bool = False
+    discrete_dqn_like: bool = Field(False, description="Learn the discrete part as double DQN, epsilon-greedy.")
+    discrete_dqn_epsilon: float = Field(0.2, ge=0.0, le=1.0, description="Exploration rate of discrete_dqn_like.")
+    discrete_target_entropy_ratio: float = Field(
+        0.98, gt=0.0, le=1.0, description="Discrete target entropy per branch, as a fraction of log|A_b|."
+    )
     use_priority: bool = Field(True, description="Weight the Q loss by PER importance weights.")
     use_n_step_is: bool = Field(False, description="V-trace correction of n-step targets.")
     use_prediction: bool = False

@@ -1,9 +1,8 @@
-"""Soft Actor-Critic: the losses as pure functions, and :class:`SAC`, which owns the update.
+"""Soft Actor-Critic: :class:`SAC` owns the models, optimizers and the update step.
 
-Equations are from Haarnoja et al. 2018, "Soft Actor-Critic Algorithms and Applications"
-(arXiv:1812.05905). The losses take modules and tensors and return ``(loss, ..., metrics)``;
-metrics are *unreduced* detached tensors, reduced only when a caller asks for them, so the hot
-path never syncs per metric.
+The losses are pure functions in :mod:`algorithm.losses`; targets over windows in
+:mod:`algorithm.returns`. Actions may be continuous, discrete (several branches, optional
+action masks, ``discrete_dqn_like``) or both (ARCHITECTURE.md 3-4).
 
 Usage, in a learner loop::
 
@@ -21,6 +20,8 @@ and on the acting side ``actions, behaviour_logp = sac.act(obs, deterministic=Fa
 from __future__ import annotations
 
 import copy
+import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -29,105 +30,22 @@ import torch
 from torch import Tensor
 
 from algorithm.config_schema import NNConfig, ReplayConfig, SacConfig
+from algorithm.losses import (
+    Metrics,
+    PolicySample,
+    alpha_loss,
+    branch_matrix,
+    critic_loss,
+    expected_log_prob,
+    importance_weights,
+    policy_loss,
+    soft_value,
+)
 from algorithm.nn.builder import build_models
-from algorithm.nn.models import QEnsemble, TanhGaussianPolicy
+from algorithm.nn.models import masked_branch_one_hot_argmax
 from algorithm.returns import bootstrap_index, gather_positions, n_step_target, valid_steps
 from algorithm.spaces import EnvSpec
 from algorithm.types import Batch
-
-Metrics = dict[str, Tensor]
-
-
-# ----------------------------------------------------------------------------------------------
-# Losses: pure functions
-# ----------------------------------------------------------------------------------------------
-
-
-def importance_weights(probabilities: Tensor, table_size: int, beta: float) -> Tensor:
-    """PER weights ``(table_size * p) ** -beta`` divided by the batch maximum (Schaul et al. 2016,
-    section 3.4), computed in float64 and returned as float32 ``[B]``."""
-    w = (table_size * probabilities.double()).pow(-beta)
-    return (w / w.max()).float()
-
-
-def soft_value(
-    q_target: QEnsemble,
-    policy: TanhGaussianPolicy,
-    target_state: Tensor,
-    policy_state: Tensor,
-    alpha: Tensor,
-    noise: Tensor,
-    heads: Tensor | None,
-) -> tuple[Tensor, Metrics]:
-    """``V(s) = min_{i in heads} Q_target_i(s, a) - alpha log pi(a|s)``, ``a ~ pi(.|s)`` (eq. 3, one
-    reparameterised sample). ``target_state`` comes from the target representation and feeds the
-    target heads; ``policy_state`` from the online one feeds the policy. Returns ``[B]``."""
-    action, log_prob = policy.sample(policy_state, noise)
-    q = q_target(target_state, action, heads).min(dim=0).values
-    return q - alpha * log_prob, {"learner/next_entropy": -log_prob}
-
-
-def critic_loss(
-    q: QEnsemble,
-    state: Tensor,
-    action: Tensor,
-    target: Tensor,
-    weights: Tensor | None,
-    clip_epsilon: float | None = None,
-    old_q: Tensor | None = None,
-) -> tuple[Tensor, Tensor, Metrics]:
-    """``J_Q = sum_i mean_b w_b 1/2 (Q_i(s_b, a_b) - y_b)^2`` (eq. 5, PER-weighted per sample).
-
-    Heads are summed, so every head's error reaches ``state`` (and the representation behind it)
-    with full weight. With ``clip_epsilon``, each head's squared error is the max of the plain one
-    and the one of ``old_q + clip(Q - old_q, -eps, eps)``, ``old_q`` being the *target* head's value
-    at ``(s, a)`` (PPO-style value clipping, as the revived system did). Returns ``(loss, td_abs,
-    metrics)`` where ``td_abs [B]`` is ``|Q_i - y|`` averaged over heads from this same forward pass.
-    """
-    q_values = q(state, action)  # [E, B]
-    td = q_values - target
-    squared = td.pow(2)
-    if clip_epsilon is not None:
-        if old_q is None:
-            raise ValueError("critic_loss: clip_epsilon needs old_q, the target heads' Q(s, a)")
-        clipped = old_q + (q_values - old_q).clamp(-clip_epsilon, clip_epsilon)
-        squared = torch.maximum(squared, (clipped - target).pow(2))
-    per_sample = 0.5 * squared.sum(dim=0)
-    loss = (per_sample * weights).mean() if weights is not None else per_sample.mean()
-    td_abs = td.detach().abs().mean(dim=0)
-    return loss, td_abs, {"learner/q_mean": q_values.detach(), "learner/target_mean": target}
-
-
-def policy_loss(
-    policy: TanhGaussianPolicy,
-    q: QEnsemble,
-    state: Tensor,
-    alpha: Tensor,
-    noise: Tensor,
-    heads: Tensor | None,
-) -> tuple[Tensor, Tensor, Metrics]:
-    """``J_pi = mean_b [alpha log pi(a_b|s_b) - min_{i in heads} Q_i(s_b, a_b)]``, ``a = f(noise; s)``
-    (eq. 7 with the reparameterisation of section 4.2).
-
-    ``state`` is detached here and the heads run with detached parameters, so this loss moves the
-    policy only: no gradient reaches the critic or the representation. Returns ``(loss,
-    log_prob [B], metrics)``; the alpha loss reuses ``log_prob``.
-    """
-    action, log_prob = policy.sample(state.detach(), noise)
-    q_pi = q(state.detach(), action, heads, detach_params=True).min(dim=0).values
-    loss = (alpha * log_prob - q_pi).mean()
-    return loss, log_prob, {"learner/entropy": -log_prob.detach()}
-
-
-def alpha_loss(log_alpha: Tensor, log_prob: Tensor, target_entropy: float) -> tuple[Tensor, Metrics]:
-    """``J(alpha) = mean_b [-alpha (log pi(a_b|s_b) + H_target)]`` (eq. 18), written in ``log alpha``
-    as SB3 does (ARCHITECTURE.md 4): entropy above the target lowers alpha, below raises it."""
-    return -(log_alpha * (log_prob.detach() + target_entropy).mean()), {}
-
-
-# ----------------------------------------------------------------------------------------------
-# The update step
-# ----------------------------------------------------------------------------------------------
 
 
 @dataclass
@@ -140,8 +58,7 @@ class UpdateResult:
     skipped: bool = False
 
 
-_NOT_BUILT = ("use_rnn", "use_n_step_is", "use_prediction", "use_curiosity", "use_rnd", "use_normalization",
-              "discrete_dqn_like")  # fmt: skip
+_NOT_BUILT = ("use_rnn", "use_n_step_is", "use_prediction", "use_curiosity", "use_rnd", "use_normalization")
 
 
 def check_supported(spec: EnvSpec, sac: SacConfig) -> None:
@@ -151,8 +68,6 @@ def check_supported(spec: EnvSpec, sac: SacConfig) -> None:
             raise NotImplementedError(f"sac_config.{key}=true is not implemented yet")
     if sac.burn_in_step:
         raise NotImplementedError("sac_config.burn_in_step > 0 needs use_rnn, which is not implemented yet")
-    if spec.action.discrete_branches:
-        raise NotImplementedError("discrete actions are not implemented yet")
     for s in spec.sensors:
         if s.is_image:
             raise NotImplementedError(f"image sensor {s.name!r} is not implemented yet")
@@ -190,7 +105,14 @@ class SAC:
         self.device = torch.device(device)
         self.beta = float(replay.beta)
         self.beta_increment = float(replay.beta_increment_per_sampling)
-        self.target_entropy = -float(spec.action.continuous_dim)
+        act = spec.action
+        self.target_entropy = -float(act.continuous_dim)
+        # Discrete: a fraction of each branch's maximum entropy log|A_b| (Christodoulou 2019 used 0.98).
+        self.discrete_target_entropy = torch.tensor(
+            [sac.discrete_target_entropy_ratio * math.log(n) for n in act.discrete_branches], device=self.device
+        )
+        self._branches = branch_matrix(act.discrete_branches, self.device) if act.discrete_branches else None
+        self._mask_index = spec.action_mask_index
 
         if sac.seed is None:
             init_seed, act_seed, learn_seed = (int(s) for s in torch.randint(0, 2**62, (3,)))
@@ -206,22 +128,37 @@ class SAC:
         self._learn_rng = torch.Generator(device=self.device)
         self._learn_rng.manual_seed(learn_seed)
 
+        # One temperature for the continuous part, one per discrete branch (none when greedy).
         self.log_alpha = torch.nn.Parameter(
             torch.tensor(float(sac.init_log_alpha), device=self.device), requires_grad=sac.use_auto_alpha
+        )
+        n_discrete_alphas = len(act.discrete_branches) if self.models.discrete_policy is not None else 0
+        self.log_alpha_discrete = torch.nn.Parameter(
+            torch.full((n_discrete_alphas,), float(sac.init_log_alpha), device=self.device),
+            requires_grad=sac.use_auto_alpha,
         )
         self._critic_params: list[Tensor] = [
             *self.models.representation.parameters(),
             *self.models.q.parameters(),
         ]
-        self._policy_params: list[Tensor] = list(self.models.policy.parameters())
+        acting: dict[str, torch.nn.Module] = {"representation": self.models.representation}
+        for name in ("policy", "discrete_policy"):
+            module = getattr(self.models, name)
+            if module is not None:
+                acting[name] = module
+        self._policy_params: list[Tensor] = [p for m in list(acting.values())[1:] for p in m.parameters()]
+        if self._branches is not None and self.models.discrete_policy is None:
+            acting["q"] = self.models.q  # dqn_like: the Q heads pick the discrete actions
+        self._acting = torch.nn.ModuleDict(acting)
+        alpha_params = [p for p, used in ((self.log_alpha, act.continuous_dim > 0),
+                                          (self.log_alpha_discrete, n_discrete_alphas > 0)) if used]  # fmt: skip
         self.critic_optimizer = self._adam(self._critic_params)
-        self.policy_optimizer = self._adam(self._policy_params)
-        self.alpha_optimizer = self._adam([self.log_alpha]) if sac.use_auto_alpha else None
+        self.policy_optimizer = self._adam(self._policy_params) if self._policy_params else None
+        self.alpha_optimizer = self._adam(alpha_params) if sac.use_auto_alpha and alpha_params else None
         self._target_params: list[Tensor] = [
             *self.target_representation.parameters(),
             *self.target_q.parameters(),
         ]
-        self._acting = torch.nn.ModuleDict({"representation": self.models.representation, "policy": self.models.policy})
 
         # torch.compile of the loss computation (forward and, through AOTAutograd, backward);
         # its first update compiles for ~20 s on CPU. See bench/learner.py for what it gains.
@@ -233,16 +170,21 @@ class SAC:
         self.nonfinite_skipped = 0
         self._consecutive_nonfinite = 0
 
-    def _adam(self, params: list[Tensor]) -> torch.optim.Adam:
+    def _adam(self, params: Sequence[Tensor]) -> torch.optim.Adam:
         return torch.optim.Adam(params, lr=self.sac.learning_rate, fused=True)
 
     # -- acting ---------------------------------------------------------------------------------
 
     @torch.inference_mode()
     def act(self, obs: list[np.ndarray], deterministic: bool = False) -> tuple[np.ndarray, np.ndarray]:
-        """Actions ``[N, A]`` float32 in ``[-1, 1]`` and their log-probability ``[N]`` under the
-        current policy, for ``N`` observations given as one ``[N, *sensor_shape]`` array per sensor.
-        ``deterministic`` acts with ``tanh(mean)`` (its log-prob is the density at that point)."""
+        """Actions ``[N, A]`` float32 (``[one-hot per branch | continuous in [-1, 1]]``) and their
+        behaviour log-probability ``[N]`` under the current policy, exploration included, for ``N``
+        observations given as one ``[N, *sensor_shape]`` array per sensor.
+
+        ``deterministic`` acts with ``tanh(mean)`` and each branch's most probable (or, dqn-like,
+        greedy) allowed action; the log-prob is then the density at that point. Stochastic acting
+        samples the policy, or with ``discrete_dqn_like`` acts epsilon-greedily among allowed actions
+        (``discrete_dqn_epsilon``), and reports the true probability of the mixture."""
         sensors = self.spec.sensors
         if len(obs) != len(sensors):
             raise ValueError(f"act: expected {len(sensors)} sensors {[s.name for s in sensors]}, got {len(obs)}")
@@ -252,13 +194,70 @@ class SAC:
                 raise ValueError(f"act: sensor {s.name!r} must be [N, {', '.join(map(str, s.shape))}], got {o.shape}")
             tensors.append(torch.as_tensor(o, dtype=torch.float32, device=self.device))
         state = self.models.representation(tensors)
-        noise = None
-        if not deterministic:
-            noise = torch.randn(
-                state.shape[0], self.spec.action.continuous_dim, generator=self._act_rng, device=self.device
-            )
-        action, log_prob = self.models.policy.sample(state, noise)
+        n, spec = state.shape[0], self.spec.action
+        log_prob = torch.zeros(n, device=self.device)
+        continuous = None
+        if self.models.policy is not None:
+            noise = None
+            if not deterministic:
+                noise = torch.randn(n, spec.continuous_dim, generator=self._act_rng, device=self.device)
+            continuous, log_prob = self.models.policy.sample(state, noise)
+        parts = []
+        if self._branches is not None:
+            mask = self._mask(tensors)
+            if self.models.discrete_policy is not None:
+                probs = self.models.discrete_policy(state, mask).exp()
+            else:
+                greedy = self._greedy(state, continuous, mask)
+                probs = greedy
+                if not deterministic:
+                    allowed = torch.ones_like(greedy) if mask is None else mask.float()
+                    uniform = allowed / (allowed @ self._branches @ self._branches.T)
+                    eps = self.sac.discrete_dqn_epsilon
+                    probs = (1.0 - eps) * greedy + eps * uniform
+            for branch_probs in probs.split(list(spec.discrete_branches), dim=-1):
+                if deterministic:
+                    choice = branch_probs.argmax(dim=-1)
+                else:
+                    choice = torch.multinomial(branch_probs, 1, generator=self._act_rng).squeeze(-1)
+                log_prob = log_prob + branch_probs.gather(-1, choice[:, None]).squeeze(-1).log()
+                parts.append(torch.nn.functional.one_hot(choice, branch_probs.shape[-1]).float())
+        if continuous is not None:
+            parts.append(continuous)
+        action = parts[0] if len(parts) == 1 else torch.cat(parts, dim=-1)
         return action.cpu().numpy(), log_prob.cpu().numpy()
+
+    def _mask(self, obs: list[Tensor]) -> Tensor | None:
+        """The ``action_mask`` sensor as bool (True = allowed), or None when the task has none."""
+        return None if self._mask_index is None else obs[self._mask_index] > 0.5
+
+    def _greedy(self, state: Tensor, continuous: Tensor | None, mask: Tensor | None) -> Tensor:
+        """``discrete_dqn_like``: one-hot of each branch's allowed argmax of ``min_i Q_i`` (online heads)."""
+        assert self._branches is not None
+        with torch.no_grad():
+            q = self.models.q(state, continuous).min(dim=0).values
+        return masked_branch_one_hot_argmax(q, self.spec.action.discrete_branches, mask)
+
+    def _policy(self, state: Tensor, noise: Tensor, mask: Tensor | None) -> PolicySample:
+        """The policy at ``state``: a reparameterised continuous sample from ``noise`` and each
+        discrete branch's full distribution (greedy one-hots with ``discrete_dqn_like``)."""
+        pi = PolicySample()
+        if self.models.policy is not None:
+            pi.continuous, pi.continuous_log_prob = self.models.policy.sample(state, noise)
+        if self.models.discrete_policy is not None:
+            pi.log_probs = self.models.discrete_policy(state, mask)
+            pi.probs = pi.log_probs.exp()
+        elif self._branches is not None:
+            pi.probs = self._greedy(state, pi.continuous, mask)
+        return pi
+
+    def _q_taken(self, q: torch.nn.Module, state: Tensor, action: Tensor, heads: Tensor | None = None) -> Tensor:
+        """Each head's value of the stored ``action``: ``[E, B]``, or ``[E, B, K]`` per discrete branch."""
+        d = self.spec.action.discrete_size
+        values = q(state, action[..., d:] if self.models.policy is not None else None, heads)
+        if self._branches is None:
+            return values
+        return (values * action[..., :d]) @ self._branches
 
     # -- learning -------------------------------------------------------------------------------
 
@@ -285,37 +284,41 @@ class SAC:
         """The SAC losses from the current parameters: ``(q_loss, policy_loss, alpha_loss, td_abs,
         metrics)``. Batch tensors are ``[B, L(+1), ...]``; ``noise [2, B, A]`` feeds the target's
         and the policy loss's action samples. Pure tensor code, so ``compile=True`` can compile it."""
-        sac, dev = self.sac, self.device
-        rep, q, policy = self.models.representation, self.models.q, self.models.policy
+        sac, dev, branches = self.sac, self.device, self._branches
+        rep, q = self.models.representation, self.models.q
         alpha = self.log_alpha.detach().exp()
+        alpha_d = self.log_alpha_discrete.detach().exp()
+        metrics: Metrics = {"learner/alpha": alpha}
+        if alpha_d.numel():
+            metrics["learner/alpha_discrete"] = alpha_d
 
         # 1. Target y for step 0 of each window: n-step return + gamma^m V(o_m)  (eq. 2, 3, 5).
         with torch.no_grad():
             valid = valid_steps(mask, terminated, truncated)
             next_obs = [gather_positions(o, bootstrap_index(valid)) for o in obs]
-            v, v_metrics = soft_value(
-                self.target_q,
-                policy,
-                self.target_representation(next_obs),
-                rep(next_obs),
-                alpha,
-                noise[0],
-                target_heads,
-            )
+            next_pi = self._policy(rep(next_obs), noise[0], self._mask(next_obs))
+            next_q = self.target_q(self.target_representation(next_obs), next_pi.continuous, target_heads)
+            v = soft_value(next_q.min(dim=0).values, next_pi, alpha, alpha_d, branches)
             y = n_step_target(rewards, terminated, valid, v, sac.gamma)
             obs0, action0 = [o[:, 0] for o in obs], actions[:, 0]
             old_q = None
             if sac.clip_epsilon is not None:
-                old_q = self.target_q(self.target_representation(obs0), action0)
+                old_q = self._q_taken(self.target_q, self.target_representation(obs0), action0)
 
-        # 2. Critic, policy and alpha losses.
+        # 2. Critic loss; the policy and alpha losses on the detached state.
         state = rep(obs0)
-        q_loss, td_abs, q_metrics = critic_loss(q, state, action0, y, weights, sac.clip_epsilon, old_q)
-        pi_loss, log_prob, pi_metrics = policy_loss(policy, q, state, alpha, noise[1], policy_heads)
+        q_loss, td_abs, q_metrics = critic_loss(self._q_taken(q, state, action0), y, weights, sac.clip_epsilon, old_q)
+        pi = self._policy(state.detach(), noise[1], self._mask(obs0))
+        q_pi = q(state.detach(), pi.continuous, policy_heads, detach_params=True).min(dim=0).values
+        pi_loss, pi_metrics = policy_loss(q_pi, pi, alpha, alpha_d, branches)
         a_loss = torch.zeros((), device=dev)
         if self.alpha_optimizer is not None:
-            a_loss, _ = alpha_loss(self.log_alpha, log_prob, self.target_entropy)
-        metrics = {**v_metrics, **q_metrics, **pi_metrics, "learner/alpha": alpha}
+            if pi.continuous_log_prob is not None:
+                a_loss = a_loss + alpha_loss(self.log_alpha, pi.continuous_log_prob, self.target_entropy)[0]
+            if pi.log_probs is not None and branches is not None:
+                expected = expected_log_prob(pi, branches)
+                a_loss = a_loss + alpha_loss(self.log_alpha_discrete, expected, self.discrete_target_entropy)[0]
+        metrics.update({**q_metrics, **pi_metrics, "learner/next_value": v})
         return q_loss, pi_loss, a_loss, td_abs, metrics
 
     def update(self, batch: Batch, with_metrics: bool = False) -> UpdateResult:
@@ -452,6 +455,7 @@ class SAC:
             "target_representation": self.target_representation.state_dict(),
             "target_q": self.target_q.state_dict(),
             "log_alpha": self.log_alpha.detach().clone(),
+            "log_alpha_discrete": self.log_alpha_discrete.detach().clone(),
             "optimizers": {name: opt.state_dict() for name, opt in self._named_optimizers().items()},
             "beta": self.beta,
             "updates": self.updates,
@@ -476,6 +480,7 @@ class SAC:
         self.target_q.load_state_dict(state["target_q"])
         with torch.no_grad():
             self.log_alpha.copy_(state["log_alpha"])
+            self.log_alpha_discrete.copy_(state["log_alpha_discrete"])
         for name, opt in optimizers.items():
             opt.load_state_dict(state["optimizers"][name])
         self.beta = float(state["beta"])
@@ -486,10 +491,9 @@ class SAC:
         self._learn_rng.set_state(state["rng"]["learn"])
 
     def _named_optimizers(self) -> dict[str, torch.optim.Optimizer]:
-        named: dict[str, torch.optim.Optimizer] = {
-            "critic": self.critic_optimizer,
-            "policy": self.policy_optimizer,
-        }
+        named: dict[str, torch.optim.Optimizer] = {"critic": self.critic_optimizer}
+        if self.policy_optimizer is not None:
+            named["policy"] = self.policy_optimizer
         if self.alpha_optimizer is not None:
             named["alpha"] = self.alpha_optimizer
         return named

@@ -51,10 +51,36 @@ class ActionSpec:
         return self.discrete_size + self.continuous_dim
 
 
+ACTION_MASK_SENSOR = "action_mask"
+
+
 @dataclass(frozen=True)
 class EnvSpec:
+    """Sensors and action layout of a task.
+
+    A sensor named ``action_mask`` (``[sum(discrete_branches)]``, 1 = allowed) masks the discrete
+    actions: they get probability 0 when acting, in targets and in the policy loss (rl_games'
+    action masks). It stays an ordinary sensor too, so replay stores it and the networks see it.
+    """
+
     sensors: tuple[SensorSpec, ...]
     action: ActionSpec
+
+    def __post_init__(self) -> None:
+        index = self.action_mask_index
+        if index is None:
+            return
+        shape, expected = self.sensors[index].shape, (self.action.discrete_size,)
+        if shape != expected:
+            raise ValueError(
+                f"sensor {ACTION_MASK_SENSOR!r} has shape {shape}, expected {expected}: one entry per discrete "
+                f"action of the branches {self.action.discrete_branches}"
+            )
+
+    @property
+    def action_mask_index(self) -> int | None:
+        """Index of the ``action_mask`` sensor, or None when the task has no action mask."""
+        return next((i for i, s in enumerate(self.sensors) if s.name == ACTION_MASK_SENSOR), None)
 
 
 def sensor_specs(space: gym.Space) -> tuple[SensorSpec, ...]:

@@ -3,29 +3,25 @@
 from __future__ import annotations
 
 from algorithm.config_schema import NNConfig, SacConfig
-from algorithm.nn.models import QEnsemble, SacModels, TanhGaussianPolicy, VectorRepresentation
+from algorithm.nn.models import DiscretePolicy, QEnsemble, SacModels, TanhGaussianPolicy, VectorRepresentation
 from algorithm.spaces import EnvSpec
 
 
 def build_models(spec: EnvSpec, sac: SacConfig, nn: NNConfig) -> SacModels:
-    """Representation (concatenated vector sensors), ``sac.ensemble_q_num`` Q heads and a
-    tanh-Gaussian policy, all with ``nn.hidden_units`` and ``nn.activation``.
-
-    Raises NotImplementedError naming what is not built yet (images, discrete actions)."""
-    if spec.action.discrete_branches:
-        raise NotImplementedError(
-            f"discrete action branches {spec.action.discrete_branches}: only continuous actions are built yet"
-        )
-    if spec.action.continuous_dim < 1:
-        raise ValueError("the action spec has no continuous dimensions")
+    """Representation (concatenated vector sensors), ``sac.ensemble_q_num`` Q heads, a tanh-Gaussian
+    policy for the continuous part and a categorical one per discrete branch (none with
+    ``discrete_dqn_like``), all with ``nn.hidden_units`` and ``nn.activation``."""
+    act = spec.action
     rep = VectorRepresentation(spec.sensors)
-    q = QEnsemble(rep.state_dim, spec.action.size, nn.hidden_units, sac.ensemble_q_num, nn.activation)
-    policy = TanhGaussianPolicy(
-        rep.state_dim,
-        spec.action.continuous_dim,
-        nn.hidden_units,
-        nn.activation,
-        nn.log_std_min,
-        nn.log_std_max,
+    q = QEnsemble(
+        rep.state_dim, act.continuous_dim, nn.hidden_units, sac.ensemble_q_num, nn.activation, act.discrete_size
     )
-    return SacModels(rep, q, policy)
+    policy = None
+    if act.continuous_dim:
+        policy = TanhGaussianPolicy(
+            rep.state_dim, act.continuous_dim, nn.hidden_units, nn.activation, nn.log_std_min, nn.log_std_max
+        )
+    discrete_policy = None
+    if act.discrete_branches and not sac.discrete_dqn_like:
+        discrete_policy = DiscretePolicy(rep.state_dim, act.discrete_branches, nn.hidden_units, nn.activation)
+    return SacModels(rep, q, policy, discrete_policy)

@@ -56,12 +56,15 @@ class VectorRepresentation(Representation):
 
 
 class QEnsemble(nn.Module):
-    """``E`` independent Q heads ``Q_i(state, action) -> scalar`` as one batched MLP.
+    """``E`` independent Q heads as one batched MLP over ``[state | continuous action]``.
 
     Every layer is an :class:`EnsembleLinear`, so each layer is one batched matmul for all heads.
-    ``forward`` returns ``[E, N]`` (or ``[len(heads), N]`` when ``heads`` selects a subset);
-    ``detach_params=True`` lets gradients reach ``state``/``action`` but not the heads' weights
-    (the policy loss uses it to leave the critic's gradients untouched).
+    With ``discrete_size == 0`` (continuous actions) each head outputs the scalar ``Q(s, a)`` and
+    ``forward`` returns ``[E, N]``; with discrete branches each head outputs one value per discrete
+    action of every branch, ``Q_b(s, a_b[, a_c])``, and ``forward`` returns ``[E, N, discrete_size]``
+    (``action`` is then only the continuous part, or None when there is none). ``heads`` selects a
+    subset; ``detach_params=True`` lets gradients reach ``state``/``action`` but not the heads'
+    weights (the policy loss uses it to leave the critic's gradients untouched).
     """
 
     def __init__(
@@ -71,20 +74,23 @@ class QEnsemble(nn.Module):
         hidden_units: Sequence[int],
         ensemble_size: int,
         activation_name: str = "relu",
+        discrete_size: int = 0,
     ) -> None:
         super().__init__()
-        sizes = [state_dim + action_dim, *hidden_units, 1]
+        sizes = [state_dim + action_dim, *hidden_units, max(discrete_size, 1)]
         self.ensemble_size = ensemble_size
+        self.discrete_size = discrete_size
         self.layers = nn.ModuleList(EnsembleLinear(ensemble_size, i, o) for i, o in itertools.pairwise(sizes))
         self.act = activation(activation_name)
 
     def forward(
-        self, state: Tensor, action: Tensor, heads: Tensor | None = None, detach_params: bool = False
+        self, state: Tensor, action: Tensor | None, heads: Tensor | None = None, detach_params: bool = False
     ) -> Tensor:
-        h = torch.cat([state, action], dim=-1)
+        h = state if action is None else torch.cat([state, action], dim=-1)
         for layer in self.layers[:-1]:
             h = self.act(layer(h, heads, detach_params))
-        return in_float32(self.layers[-1], h, heads, detach_params).squeeze(-1)
+        out = in_float32(self.layers[-1], h, heads, detach_params)
+        return out if self.discrete_size else out.squeeze(-1)
 
 
 def squashed_gaussian_log_prob(noise: Tensor, log_std: Tensor, pre_tanh: Tensor) -> Tensor:
@@ -145,11 +151,60 @@ class TanhGaussianPolicy(nn.Module):
         return torch.tanh(pre_tanh), squashed_gaussian_log_prob(noise, log_std, pre_tanh)
 
 
-class SacModels(nn.Module):
-    """Container of the online models; the learner derives target copies from it."""
+MASKED_LOG_PROB = -1e9  # finite: exp() of it is exactly 0 in float32, and 0 * it is 0
 
-    def __init__(self, representation: Representation, q: QEnsemble, policy: TanhGaussianPolicy) -> None:
+
+def masked_branch_log_softmax(logits: Tensor, branches: Sequence[int], mask: Tensor | None) -> Tensor:
+    """Per-branch ``log_softmax`` of ``logits [..., D]`` (``D = sum(branches)``), with masked
+    actions (``mask`` False) at ``log p = MASKED_LOG_PROB``: their probability is exactly 0 and
+    ``p * log p`` stays 0 (no ``-inf * 0 = nan``). Every branch needs one allowed action."""
+    if mask is not None:
+        logits = logits.masked_fill(~mask, MASKED_LOG_PROB)
+    return torch.cat([part.log_softmax(-1) for part in logits.split(list(branches), dim=-1)], dim=-1)
+
+
+def masked_branch_one_hot_argmax(values: Tensor, branches: Sequence[int], mask: Tensor | None) -> Tensor:
+    """``[..., D]`` one-hot of each branch's largest *allowed* entry of ``values [..., D]``."""
+    if mask is not None:
+        values = values.masked_fill(~mask, float("-inf"))
+    parts = [F.one_hot(part.argmax(-1), part.shape[-1]) for part in values.split(list(branches), dim=-1)]
+    return torch.cat(parts, dim=-1).to(values.dtype if values.is_floating_point() else torch.float32)
+
+
+class DiscretePolicy(nn.Module):
+    """``pi_b(a | s)``: one categorical distribution per discrete branch, from one MLP whose head
+    outputs the logits of every branch side by side (``[N, sum(branches)]``)."""
+
+    def __init__(
+        self, state_dim: int, branches: Sequence[int], hidden_units: Sequence[int], activation_name: str = "relu"
+    ) -> None:
+        super().__init__()
+        self.branches = tuple(branches)
+        self.trunk = mlp(state_dim, hidden_units, activation_name)
+        last = hidden_units[-1] if hidden_units else state_dim
+        self.head = nn.Linear(last, sum(self.branches))
+
+    def forward(self, state: Tensor, mask: Tensor | None = None) -> Tensor:
+        """``log pi [N, D]``, normalised within each branch; masked actions get probability 0."""
+        return masked_branch_log_softmax(in_float32(self.head, self.trunk(state)), self.branches, mask)
+
+
+class SacModels(nn.Module):
+    """Container of the online models; the learner derives target copies from it.
+
+    ``policy`` acts on the continuous part, ``discrete_policy`` on the discrete branches; either is
+    None when the action space has no such part (``discrete_policy`` also with
+    ``discrete_dqn_like``, where the Q heads choose the discrete actions)."""
+
+    def __init__(
+        self,
+        representation: Representation,
+        q: QEnsemble,
+        policy: TanhGaussianPolicy | None,
+        discrete_policy: DiscretePolicy | None = None,
+    ) -> None:
         super().__init__()
         self.representation = representation
         self.q = q
         self.policy = policy
+        self.discrete_policy = discrete_policy

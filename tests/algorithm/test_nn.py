@@ -91,9 +91,7 @@ def test_squashed_log_prob_matches_a_transformed_distribution() -> None:
     reference = TransformedDistribution(Normal(mean, log_std.exp()), [TanhTransform(cache_size=1)])
     action = reference.transforms[0](pre_tanh)  # caches pre_tanh, so log_prob does not invert tanh
     expected = reference.log_prob(action).sum(-1)
-    torch.testing.assert_close(
-        squashed_gaussian_log_prob(noise, log_std, pre_tanh), expected, rtol=1e-5, atol=1e-4
-    )
+    torch.testing.assert_close(squashed_gaussian_log_prob(noise, log_std, pre_tanh), expected, rtol=1e-5, atol=1e-4)
 
 
 def test_squashed_log_prob_is_finite_where_naive_formula_is_not() -> None:
@@ -132,19 +130,32 @@ def test_vector_representation_concatenates_flattened_sensors() -> None:
         rep([a])
 
 
-def test_images_and_discrete_actions_are_not_built_yet() -> None:
+def test_vector_representation_refuses_images() -> None:
     image = SensorSpec("camera", (8, 8, 3), np.dtype(np.uint8))
     with pytest.raises(NotImplementedError, match="camera"):
         VectorRepresentation([image])
-    spec = EnvSpec((SensorSpec("obs", (3,)),), ActionSpec((4,), 0))
-    with pytest.raises(NotImplementedError, match="discrete"):
-        build_models(spec, SacConfig(), NNConfig())
+
+
+@pytest.mark.parametrize(
+    ("branches", "continuous", "dqn_like", "has_policy", "has_discrete_policy"),
+    [((4,), 0, False, False, True), ((4,), 0, True, False, False), ((2, 3), 1, False, True, True),
+     ((3,), 2, True, True, False), ((), 2, False, True, False)],
+)  # fmt: skip
+def test_build_models_builds_a_policy_per_action_part(
+    branches: tuple[int, ...], continuous: int, dqn_like: bool, has_policy: bool, has_discrete_policy: bool
+) -> None:
+    spec = EnvSpec(
+        (SensorSpec("obs", (3,)),), ActionSpec(branches, continuous, (-1.0,) * continuous, (1.0,) * continuous)
+    )
+    models = build_models(spec, SacConfig(discrete_dqn_like=dqn_like), NNConfig(hidden_units=[8]))
+    assert (models.policy is not None) == has_policy
+    assert (models.discrete_policy is not None) == has_discrete_policy
+    q = models.q(torch.zeros(5, 3), torch.zeros(5, continuous) if continuous else None)
+    assert q.shape == ((2, 5, sum(branches)) if branches else (2, 5))
 
 
 def test_build_models_uses_config_sizes() -> None:
-    spec = EnvSpec(
-        (SensorSpec("obs", (3,)), SensorSpec("vel", (2,))), ActionSpec((), 2, (-1.0,) * 2, (1.0,) * 2)
-    )
+    spec = EnvSpec((SensorSpec("obs", (3,)), SensorSpec("vel", (2,))), ActionSpec((), 2, (-1.0,) * 2, (1.0,) * 2))
     models = build_models(
         spec,
         SacConfig(ensemble_q_num=5, ensemble_q_sample=2),

@@ -14,8 +14,9 @@ import torch
 from torch import Tensor, nn
 
 from algorithm.config_schema import NNConfig, ReplayConfig, SacConfig
+from algorithm.losses import PolicySample, alpha_loss, critic_loss, importance_weights, policy_loss
 from algorithm.nn.models import QEnsemble, Representation, TanhGaussianPolicy
-from algorithm.sac import SAC, alpha_loss, critic_loss, importance_weights, policy_loss
+from algorithm.sac import SAC
 from algorithm.spaces import ActionSpec, EnvSpec, SensorSpec
 from algorithm.types import Batch
 
@@ -104,7 +105,10 @@ def grads(module: nn.Module) -> list[Tensor | None]:
 def test_policy_loss_leaves_critic_and_representation_grads_untouched() -> None:
     rep, q, policy = parts()
     state = rep([torch.randn(5, OBS)])
-    loss, _, _ = policy_loss(policy, q, state, torch.tensor(0.2), torch.randn(5, ACT), torch.tensor([0, 2]))
+    # composed as SAC.update does: detached state, heads run with detached parameters
+    action, log_prob = policy.sample(state.detach(), torch.randn(5, ACT))
+    q_min = q(state.detach(), action, torch.tensor([0, 2]), detach_params=True).min(dim=0).values
+    loss, _ = policy_loss(q_min, PolicySample(action, log_prob), torch.tensor(0.2), None, None)
     loss.backward()
     assert all(g is None for g in grads(q)) and all(g is None for g in grads(rep))
     assert all(g is not None and g.abs().sum() > 0 for g in grads(policy))
@@ -116,7 +120,7 @@ def test_critic_loss_leaves_policy_grads_untouched_and_trains_the_representation
     state = rep([obs])
     with torch.no_grad():
         policy.sample(state, torch.randn(5, ACT))  # a target computed from the policy, as in update()
-    loss, td_abs, _ = critic_loss(q, state, torch.rand(5, ACT), torch.randn(5), None)
+    loss, td_abs, _ = critic_loss(q(state, torch.rand(5, ACT)), torch.randn(5), None)
     loss.backward()
     assert all(g is None for g in grads(policy))
     assert all(g is not None and g.abs().sum() > 0 for g in grads(q))
@@ -138,7 +142,7 @@ def test_every_head_trains_the_representation() -> None:
 def test_critic_loss_is_half_squared_error_summed_over_heads_with_td_from_the_same_pass() -> None:
     _, q, _ = parts()
     state, action, y = torch.randn(5, 4), torch.rand(5, ACT), torch.randn(5)
-    loss, td_abs, _ = critic_loss(q, state, action, y, None)
+    loss, td_abs, _ = critic_loss(q(state, action), y, None)
     q_values = q(state, action)
     torch.testing.assert_close(loss, 0.5 * (q_values - y).pow(2).sum(0).mean())
     torch.testing.assert_close(td_abs, (q_values - y).abs().mean(0).detach())
@@ -152,7 +156,7 @@ class FixedQ(QEnsemble):
         self.values = nn.Parameter(torch.tensor(values))
 
     def forward(
-        self, state: Tensor, action: Tensor, heads: Tensor | None = None, detach_params: bool = False
+        self, state: Tensor, action: Tensor | None, heads: Tensor | None = None, detach_params: bool = False
     ) -> Tensor:
         return self.values
 
@@ -163,35 +167,33 @@ def test_clip_epsilon_takes_the_larger_of_clipped_and_unclipped_errors() -> None
     # plain error 0.5^2 beats the clipped (0.2 - 0.5)^2, so loss and gradient are the plain ones.
     q = FixedQ([[1.0], [1.0]])
     old_q, y = torch.tensor([[0.0], [0.0]]), torch.tensor([2.0])
-    loss, _, _ = critic_loss(q, torch.zeros(1, 1), torch.zeros(1, 1), y, None, clip_epsilon=0.2, old_q=old_q)
+    loss, _, _ = critic_loss(q(torch.zeros(1, 1), torch.zeros(1, 1)), y, None, clip_epsilon=0.2, old_q=old_q)
     assert loss.item() == pytest.approx(0.5 * (1.8**2 + 1.8**2))
     loss.backward()
     assert q.values.grad is not None and torch.all(q.values.grad == 0)
 
     q = FixedQ([[1.0], [1.0]])
     y = torch.tensor([0.5])
-    loss, _, _ = critic_loss(q, torch.zeros(1, 1), torch.zeros(1, 1), y, None, clip_epsilon=0.2, old_q=old_q)
+    loss, _, _ = critic_loss(q(torch.zeros(1, 1), torch.zeros(1, 1)), y, None, clip_epsilon=0.2, old_q=old_q)
     assert loss.item() == pytest.approx(0.5 * (0.5**2 + 0.5**2))
     loss.backward()
     assert q.values.grad is not None
     torch.testing.assert_close(q.values.grad, torch.tensor([[0.5], [0.5]]))
 
-    plain, _, _ = critic_loss(
-        FixedQ([[1.0], [1.0]]), torch.zeros(1, 1), torch.zeros(1, 1), torch.tensor([2.0]), None
-    )
+    plain, _, _ = critic_loss(FixedQ([[1.0], [1.0]])(torch.zeros(1, 1), None), torch.tensor([2.0]), None)
     assert plain.item() == pytest.approx(0.5 * (1.0 + 1.0))
     with pytest.raises(ValueError, match="old_q"):
-        critic_loss(q, torch.zeros(1, 1), torch.zeros(1, 1), y, None, clip_epsilon=0.2)
+        critic_loss(q(torch.zeros(1, 1), torch.zeros(1, 1)), y, None, clip_epsilon=0.2)
 
 
 def test_per_weights_scale_each_samples_loss() -> None:
     q = FixedQ([[1.0, 3.0]])
     y = torch.zeros(2)
-    unweighted, _, _ = critic_loss(q, torch.zeros(2, 1), torch.zeros(2, 1), y, None)
+    unweighted, _, _ = critic_loss(q(torch.zeros(2, 1), None), y, None)
     assert unweighted.item() == pytest.approx(0.5 * (1 + 9) / 2)
-    only_first, _, _ = critic_loss(q, torch.zeros(2, 1), torch.zeros(2, 1), y, torch.tensor([1.0, 0.0]))
+    only_first, _, _ = critic_loss(q(torch.zeros(2, 1), None), y, torch.tensor([1.0, 0.0]))
     assert only_first.item() == pytest.approx(0.5 * 1 / 2)
-    only_second, td_abs, _ = critic_loss(q, torch.zeros(2, 1), torch.zeros(2, 1), y, torch.tensor([0.0, 0.5]))
+    only_second, td_abs, _ = critic_loss(q(torch.zeros(2, 1), None), y, torch.tensor([0.0, 0.5]))
     assert only_second.item() == pytest.approx(0.5 * 0.5 * 9 / 2)
     torch.testing.assert_close(td_abs, torch.tensor([1.0, 3.0]))  # priorities are not weighted
 
@@ -417,7 +419,6 @@ def test_bad_batches_get_clear_errors() -> None:
         "use_curiosity",
         "use_rnd",
         "use_normalization",
-        "discrete_dqn_like",
     ],
 )
 def test_features_not_built_yet_name_their_key(key: str) -> None:
