@@ -124,6 +124,12 @@ class NNConfig(Section):
     activation: Literal["relu", "tanh", "elu", "silu"] = "relu"
     log_std_min: float = -20.0
     log_std_max: float = 2.0
+    conv_features: int | None = Field(
+        50, ge=1, description="Width of each image encoder's Linear+LayerNorm+tanh head; null = raw conv features."
+    )
+    critic_only: list[str] = Field(
+        default_factory=list, description="Sensors only the critic sees (privileged state, asymmetric critic)."
+    )
 
 
 class ActorConfig(Section):

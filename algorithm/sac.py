@@ -68,9 +68,6 @@ def check_supported(spec: EnvSpec, sac: SacConfig) -> None:
             raise NotImplementedError(f"sac_config.{key}=true is not implemented yet")
     if sac.burn_in_step:
         raise NotImplementedError("sac_config.burn_in_step > 0 needs use_rnn, which is not implemented yet")
-    for s in spec.sensors:
-        if s.is_image:
-            raise NotImplementedError(f"image sensor {s.name!r} is not implemented yet")
 
 
 class SAC:
@@ -193,7 +190,8 @@ class SAC:
             if o.ndim != len(s.shape) + 1 or tuple(o.shape[1:]) != s.shape:
                 raise ValueError(f"act: sensor {s.name!r} must be [N, {', '.join(map(str, s.shape))}], got {o.shape}")
             tensors.append(torch.as_tensor(o, dtype=torch.float32, device=self.device))
-        state = self.models.representation(tensors)
+        full_state = self.models.representation(tensors)
+        state = self.models.representation.policy_state(full_state)
         n, spec = state.shape[0], self.spec.action
         log_prob = torch.zeros(n, device=self.device)
         continuous = None
@@ -208,7 +206,7 @@ class SAC:
             if self.models.discrete_policy is not None:
                 probs = self.models.discrete_policy(state, mask).exp()
             else:
-                greedy = self._greedy(state, continuous, mask)
+                greedy = self._greedy(full_state, continuous, mask)
                 probs = greedy
                 if not deterministic:
                     allowed = torch.ones_like(greedy) if mask is None else mask.float()
@@ -242,10 +240,11 @@ class SAC:
         """The policy at ``state``: a reparameterised continuous sample from ``noise`` and each
         discrete branch's full distribution (greedy one-hots with ``discrete_dqn_like``)."""
         pi = PolicySample()
+        policy_state = self.models.representation.policy_state(state)
         if self.models.policy is not None:
-            pi.continuous, pi.continuous_log_prob = self.models.policy.sample(state, noise)
+            pi.continuous, pi.continuous_log_prob = self.models.policy.sample(policy_state, noise)
         if self.models.discrete_policy is not None:
-            pi.log_probs = self.models.discrete_policy(state, mask)
+            pi.log_probs = self.models.discrete_policy(policy_state, mask)
             pi.probs = pi.log_probs.exp()
         elif self._branches is not None:
             pi.probs = self._greedy(state, pi.continuous, mask)

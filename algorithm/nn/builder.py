@@ -3,25 +3,38 @@
 from __future__ import annotations
 
 from algorithm.config_schema import NNConfig, SacConfig
-from algorithm.nn.models import DiscretePolicy, QEnsemble, SacModels, TanhGaussianPolicy, VectorRepresentation
+from algorithm.nn.encoders import MultiSensorRepresentation
+from algorithm.nn.models import (
+    DiscretePolicy,
+    QEnsemble,
+    Representation,
+    SacModels,
+    TanhGaussianPolicy,
+    VectorRepresentation,
+)
 from algorithm.spaces import EnvSpec
 
 
 def build_models(spec: EnvSpec, sac: SacConfig, nn: NNConfig) -> SacModels:
-    """Representation (concatenated vector sensors), ``sac.ensemble_q_num`` Q heads, a tanh-Gaussian
+    """Representation (concatenated vector sensors; a conv encoder per image sensor and critic-only
+    sensors last when there are any), ``sac.ensemble_q_num`` Q heads, a tanh-Gaussian
     policy for the continuous part and a categorical one per discrete branch (none with
     ``discrete_dqn_like``), all with ``nn.hidden_units`` and ``nn.activation``."""
     act = spec.action
-    rep = VectorRepresentation(spec.sensors)
+    rep: Representation
+    if any(s.is_image for s in spec.sensors) or nn.critic_only:
+        rep = MultiSensorRepresentation(spec.sensors, nn.conv_features, nn.critic_only, nn.activation)
+    else:
+        rep = VectorRepresentation(spec.sensors)
     q = QEnsemble(
         rep.state_dim, act.continuous_dim, nn.hidden_units, sac.ensemble_q_num, nn.activation, act.discrete_size
     )
     policy = None
     if act.continuous_dim:
         policy = TanhGaussianPolicy(
-            rep.state_dim, act.continuous_dim, nn.hidden_units, nn.activation, nn.log_std_min, nn.log_std_max
+            rep.policy_state_dim, act.continuous_dim, nn.hidden_units, nn.activation, nn.log_std_min, nn.log_std_max
         )
     discrete_policy = None
     if act.discrete_branches and not sac.discrete_dqn_like:
-        discrete_policy = DiscretePolicy(rep.state_dim, act.discrete_branches, nn.hidden_units, nn.activation)
+        discrete_policy = DiscretePolicy(rep.policy_state_dim, act.discrete_branches, nn.hidden_units, nn.activation)
     return SacModels(rep, q, policy, discrete_policy)

@@ -230,10 +230,6 @@ class MultiSensorRepresentation(Representation):
         self._check(obs, order)
         return self._features(obs, order)
 
-    def policy_state(self, state: Tensor) -> Tensor:
-        """The policy's part ``[*lead, policy_state_dim]`` of a state from :meth:`forward` (a view)."""
-        return state[..., : self.policy_state_dim]
-
     def forward_policy(self, obs: list[Tensor]) -> Tensor:
         """``policy_state(forward(obs))`` without running the critic-only encoders.
 

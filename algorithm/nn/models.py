@@ -30,9 +30,14 @@ class Representation(nn.Module):
     """
 
     state_dim: int
+    policy_state_dim: int  # the leading part of the state the policy sees (all of it but critic-only sensors)
 
     def forward(self, obs: list[Tensor]) -> Tensor:  # pragma: no cover - interface
         raise NotImplementedError
+
+    def policy_state(self, state: Tensor) -> Tensor:
+        """The policy's part of a state from :meth:`forward`: its first ``policy_state_dim`` features."""
+        return state if self.policy_state_dim == self.state_dim else state[..., : self.policy_state_dim]
 
 
 class VectorRepresentation(Representation):
@@ -46,7 +51,7 @@ class VectorRepresentation(Representation):
             if s.is_image:
                 raise NotImplementedError(f"image sensor {s.name!r} {s.shape}: conv encoders are not built yet")
         self.sensor_ranks = [len(s.shape) for s in sensors]
-        self.state_dim = sum(math.prod(s.shape) for s in sensors)
+        self.state_dim = self.policy_state_dim = sum(math.prod(s.shape) for s in sensors)
 
     def forward(self, obs: list[Tensor]) -> Tensor:
         if len(obs) != len(self.sensor_ranks):
