@@ -42,8 +42,8 @@ from algorithm.losses import (
     soft_value,
 )
 from algorithm.nn.builder import build_models
-from algorithm.nn.models import masked_branch_one_hot_argmax
-from algorithm.returns import bootstrap_index, gather_positions, n_step_target, valid_steps
+from algorithm.nn.models import MASKED_LOG_PROB, masked_branch_one_hot_argmax
+from algorithm.returns import bootstrap_index, gather_positions, n_step_target, valid_steps, vtrace_target
 from algorithm.spaces import EnvSpec
 from algorithm.types import Batch
 
@@ -58,7 +58,7 @@ class UpdateResult:
     skipped: bool = False
 
 
-_NOT_BUILT = ("use_rnn", "use_n_step_is", "use_prediction", "use_curiosity", "use_rnd", "use_normalization")
+_NOT_BUILT = ("use_rnn", "use_prediction", "use_curiosity", "use_rnd", "use_normalization")
 
 
 def check_supported(spec: EnvSpec, sac: SacConfig) -> None:
@@ -267,6 +267,43 @@ class SAC:
             return None
         return torch.randperm(n, generator=self._learn_rng, device=self.device)[:k]
 
+    def _window_values(
+        self,
+        obs: list[Tensor],
+        actions: Tensor,
+        noise: Tensor,
+        alpha: Tensor,
+        alpha_d: Tensor,
+        heads: Tensor | None,
+    ) -> tuple[Tensor, Tensor]:
+        """For V-trace: soft values ``V(o_t) [B, L + 1]`` at every window position and the current
+        policy's ``log pi(a_t|o_t) [B, L]`` of the stored actions (greedy dqn-like branches: 0 for the
+        greedy action, ``MASKED_LOG_PROB`` otherwise, so the trace is cut where behaviour left it)."""
+        b, positions = actions.shape[0], actions.shape[1] + 1
+        flat = [o.flatten(0, 1) for o in obs]
+        state, mask = self.models.representation(flat), self._mask(flat)
+        pi = self._policy(state, noise.flatten(0, 1), mask)
+        q = self.target_q(self.target_representation(flat), pi.continuous, heads).min(dim=0).values
+        values = soft_value(q, pi, alpha, alpha_d, self._branches).view(b, positions)
+
+        taken = actions.flatten(0, 1)
+        steps = torch.arange(b * positions, device=actions.device).view(b, positions)[:, :-1].flatten()
+        log_pi = torch.zeros(steps.shape[0], device=actions.device)
+        policy_state = self.models.representation.policy_state(state[steps])
+        if self.models.policy is not None:
+            d = self.spec.action.discrete_size
+            log_pi = log_pi + self.models.policy.log_prob(policy_state, taken[:, d:])
+        if self._branches is not None:
+            assert pi.probs is not None
+            d = self.spec.action.discrete_size
+            chosen = taken[:, :d] > 0.5
+            if pi.log_probs is not None:
+                per_action = pi.log_probs[steps]
+            else:
+                per_action = torch.where(pi.probs[steps] > 0.5, 0.0, MASKED_LOG_PROB)
+            log_pi = log_pi + torch.where(chosen, per_action, 0.0).sum(dim=-1)
+        return values, log_pi.view(b, positions - 1)
+
     def _losses(
         self,
         obs: list[Tensor],
@@ -275,14 +312,16 @@ class SAC:
         terminated: Tensor,
         truncated: Tensor,
         mask: Tensor,
+        behaviour_logp: Tensor,
         weights: Tensor | None,
         noise: Tensor,
         target_heads: Tensor | None,
         policy_heads: Tensor | None,
     ) -> tuple[Tensor, Tensor, Tensor, Tensor, Metrics]:
         """The SAC losses from the current parameters: ``(q_loss, policy_loss, alpha_loss, td_abs,
-        metrics)``. Batch tensors are ``[B, L(+1), ...]``; ``noise [2, B, A]`` feeds the target's
-        and the policy loss's action samples. Pure tensor code, so ``compile=True`` can compile it."""
+        metrics)``. Batch tensors are ``[B, L(+1), ...]``; ``noise [B, L + 2, A]`` feeds the action
+        samples: position 0 the policy loss's, 1.. the target's (only ``noise[:, 1]`` without V-trace,
+        the value at the bootstrap observation). Pure tensor code, so ``compile=True`` can compile it."""
         sac, dev, branches = self.sac, self.device, self._branches
         rep, q = self.models.representation, self.models.q
         alpha = self.log_alpha.detach().exp()
@@ -291,14 +330,25 @@ class SAC:
         if alpha_d.numel():
             metrics["learner/alpha_discrete"] = alpha_d
 
-        # 1. Target y for step 0 of each window: n-step return + gamma^m V(o_m)  (eq. 2, 3, 5).
+        # 1. Target y for step 0 of each window: n-step return + gamma^m V(o_m)  (eq. 2, 3, 5), or the
+        #    V-trace estimate over the window (returns.vtrace_target).
         with torch.no_grad():
             valid = valid_steps(mask, terminated, truncated)
-            next_obs = [gather_positions(o, bootstrap_index(valid)) for o in obs]
-            next_pi = self._policy(rep(next_obs), noise[0], self._mask(next_obs))
-            next_q = self.target_q(self.target_representation(next_obs), next_pi.continuous, target_heads)
-            v = soft_value(next_q.min(dim=0).values, next_pi, alpha, alpha_d, branches)
-            y = n_step_target(rewards, terminated, valid, v, sac.gamma)
+            if sac.use_n_step_is:
+                values, log_pi = self._window_values(obs, actions, noise[:, 1:], alpha, alpha_d, target_heads)
+                y, rho = vtrace_target(
+                    rewards, terminated, valid, values, log_pi - behaviour_logp,
+                    sac.gamma, sac.v_lambda, sac.v_rho, sac.v_c,
+                )  # fmt: skip
+                weighted = rho > 0
+                metrics["learner/vtrace_rho"] = rho[weighted] if weighted.any() else torch.ones(1, device=dev)
+                v = values[:, 1]
+            else:
+                next_obs = [gather_positions(o, bootstrap_index(valid)) for o in obs]
+                next_pi = self._policy(rep(next_obs), noise[:, 1], self._mask(next_obs))
+                next_q = self.target_q(self.target_representation(next_obs), next_pi.continuous, target_heads)
+                v = soft_value(next_q.min(dim=0).values, next_pi, alpha, alpha_d, branches)
+                y = n_step_target(rewards, terminated, valid, v, sac.gamma)
             obs0, action0 = [o[:, 0] for o in obs], actions[:, 0]
             old_q = None
             if sac.clip_epsilon is not None:
@@ -307,7 +357,7 @@ class SAC:
         # 2. Critic loss; the policy and alpha losses on the detached state.
         state = rep(obs0)
         q_loss, td_abs, q_metrics = critic_loss(self._q_taken(q, state, action0), y, weights, sac.clip_epsilon, old_q)
-        pi = self._policy(state.detach(), noise[1], self._mask(obs0))
+        pi = self._policy(state.detach(), noise[:, 0], self._mask(obs0))
         q_pi = q(state.detach(), pi.continuous, policy_heads, detach_params=True).min(dim=0).values
         pi_loss, pi_metrics = policy_loss(q_pi, pi, alpha, alpha_d, branches)
         a_loss = torch.zeros((), device=dev)
@@ -337,7 +387,10 @@ class SAC:
             weights = weights.to(dev)
         beta_used = self.beta
         self.beta = min(1.0, self.beta + self.beta_increment)
-        noise = torch.randn(2, batch.batch_size, self.spec.action.continuous_dim, generator=self._learn_rng, device=dev)
+        samples = batch.window + 2 if sac.use_n_step_is else 2  # see _losses
+        noise = torch.randn(
+            batch.batch_size, samples, self.spec.action.continuous_dim, generator=self._learn_rng, device=dev
+        )
         with torch.autocast(dev.type, dtype=torch.bfloat16, enabled=self._low_precision):
             q_loss, pi_loss, a_loss, td_abs, metric_tensors = self._compute_losses(
                 [torch.from_numpy(o).to(dev) for o in batch.obs],
@@ -346,6 +399,7 @@ class SAC:
                 torch.from_numpy(batch.terminated).to(dev),
                 torch.from_numpy(batch.truncated).to(dev),
                 torch.from_numpy(batch.mask).to(dev),
+                torch.from_numpy(batch.behaviour_logp).to(dev),
                 weights,
                 noise,
                 self._subset(),

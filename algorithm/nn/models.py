@@ -19,6 +19,7 @@ from algorithm.nn.layers import EnsembleLinear, activation, in_float32, mlp
 from algorithm.spaces import SensorSpec
 
 _LOG2 = math.log(2.0)
+_ACTION_LIMIT = 1.0 - 1e-6  # float32 tanh reaches exactly +-1 from |u| > ~9
 _HALF_LOG_2PI = 0.5 * math.log(2.0 * math.pi)
 
 
@@ -140,6 +141,13 @@ class TanhGaussianPolicy(nn.Module):
         """``(mean, log_std)`` of the pre-tanh Gaussian, each ``[N, A]``."""
         mean, log_std = in_float32(self.head, self.trunk(state)).chunk(2, dim=-1)
         return mean, log_std.clamp(self.log_std_min, self.log_std_max)
+
+    def log_prob(self, state: Tensor, action: Tensor) -> Tensor:
+        """``log pi(action|state) [N]`` of given actions in ``[-1, 1]`` (V-trace needs it for stored
+        actions); ``|action|`` is clipped just below 1, where ``atanh`` is finite."""
+        mean, log_std = self(state)
+        pre_tanh = torch.atanh(action.clamp(-_ACTION_LIMIT, _ACTION_LIMIT))
+        return squashed_gaussian_log_prob((pre_tanh - mean) * torch.exp(-log_std), log_std, pre_tanh)
 
     def sample(self, state: Tensor, noise: Tensor | None) -> tuple[Tensor, Tensor]:
         """Reparameterised ``(action [N, A], log_prob [N])`` with ``u = mean + std * noise``.

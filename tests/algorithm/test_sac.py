@@ -414,7 +414,6 @@ def test_bad_batches_get_clear_errors() -> None:
     "key",
     [
         "use_rnn",
-        "use_n_step_is",
         "use_prediction",
         "use_curiosity",
         "use_rnd",

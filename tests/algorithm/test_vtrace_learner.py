@@ -1,0 +1,114 @@
+"""V-trace in the learner (``sac_config.use_n_step_is``): ratios from the stored behaviour
+log-probability, the on-policy case equal to the plain n-step target, and the ratios logged."""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from typing import Any
+
+import numpy as np
+import pytest
+import torch
+
+from algorithm.config_schema import NNConfig, ReplayConfig, SacConfig
+from algorithm.nn.models import TanhGaussianPolicy
+from algorithm.sac import SAC
+from algorithm.spaces import ActionSpec, EnvSpec, SensorSpec
+from algorithm.types import Batch
+
+OBS, N_STEP, B = 3, 4, 32
+
+
+@pytest.fixture(autouse=True)
+def _one_thread() -> Iterator[None]:
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
+def make_sac(spec: EnvSpec, **sac: Any) -> SAC:
+    cfg = SacConfig(**{"seed": 5, "n_step": N_STEP, "use_priority": False, **sac})
+    return SAC(spec, cfg, NNConfig(hidden_units=[16]), ReplayConfig())
+
+
+def make_batch(spec: EnvSpec, behaviour_logp: np.ndarray | None = None, seed: int = 0) -> Batch:
+    rng = np.random.default_rng(seed)
+    act = spec.action
+    parts = [np.eye(n, dtype=np.float32)[rng.integers(n, size=(B, N_STEP))] for n in act.discrete_branches]
+    if act.continuous_dim:
+        parts.append(rng.uniform(-0.9, 0.9, (B, N_STEP, act.continuous_dim)).astype(np.float32))
+    mask = np.ones((B, N_STEP), dtype=bool)
+    mask[: B // 2, 2:] = False  # short windows (chunk ends)
+    terminated = np.zeros((B, N_STEP), dtype=bool)
+    terminated[B // 2 : B // 2 + 4, 1] = True
+    mask[B // 2 : B // 2 + 4, 2:] = False
+    return Batch(
+        keys=np.arange(B, dtype=np.uint64),
+        probabilities=np.full(B, 0.01),
+        table_size=100,
+        obs=[rng.standard_normal((B, N_STEP + 1, OBS), dtype=np.float32)],
+        actions=np.concatenate(parts, axis=-1),
+        prev_actions=np.zeros((B, N_STEP, act.size), dtype=np.float32),
+        rewards=rng.standard_normal((B, N_STEP), dtype=np.float32),
+        terminated=terminated,
+        truncated=np.zeros((B, N_STEP), dtype=bool),
+        behaviour_logp=np.zeros((B, N_STEP), dtype=np.float32) if behaviour_logp is None else behaviour_logp,
+        mask=mask,
+    )
+
+
+def current_log_pi(sac: SAC, batch: Batch) -> np.ndarray:
+    obs = [torch.from_numpy(o) for o in batch.obs]
+    noise = torch.zeros(B, N_STEP + 1, sac.spec.action.continuous_dim)
+    with torch.no_grad():
+        _, log_pi = sac._window_values(obs, torch.from_numpy(batch.actions), noise, torch.tensor(0.1),
+                                       sac.log_alpha_discrete.exp(), None)  # fmt: skip
+    return log_pi.numpy()
+
+
+DISCRETE = EnvSpec((SensorSpec("obs", (OBS,)),), ActionSpec((3,), 0))
+
+
+def test_on_policy_vtrace_equals_the_n_step_target() -> None:
+    # Discrete SAC values are exact expectations (no sampling), and with mu = pi every ratio is 1:
+    # the V-trace sum telescopes to the n-step return, so both learners see the same targets.
+    plain, traced = make_sac(DISCRETE), make_sac(DISCRETE, use_n_step_is=True)
+    batch = make_batch(DISCRETE)
+    batch.behaviour_logp = current_log_pi(traced, batch)
+    a = plain.update(batch, with_metrics=True).metrics
+    b = traced.update(batch, with_metrics=True).metrics
+    assert b["learner/target_mean"] == pytest.approx(a["learner/target_mean"], rel=1e-5)
+    assert b["learner/q_loss"] == pytest.approx(a["learner/q_loss"], rel=1e-5)
+    assert b["learner/vtrace_rho"] == pytest.approx(1.0)
+
+
+def test_off_policy_data_changes_the_target_and_the_logged_ratios() -> None:
+    traced = make_sac(DISCRETE, use_n_step_is=True)
+    batch = make_batch(DISCRETE)
+    on_policy = current_log_pi(traced, batch)
+    batch.behaviour_logp = on_policy + np.log(4.0)  # behaviour 4x likelier than pi: rho = 1/4
+    off = traced.update(batch, with_metrics=True).metrics
+    assert off["learner/vtrace_rho"] == pytest.approx(0.25, rel=1e-4)
+    batch.behaviour_logp = on_policy
+    reference = make_sac(DISCRETE, use_n_step_is=True).update(batch, with_metrics=True).metrics
+    assert off["learner/target_mean"] != pytest.approx(reference["learner/target_mean"], rel=1e-4)
+
+
+@pytest.mark.parametrize("spec", [
+    EnvSpec((SensorSpec("obs", (OBS,)),), ActionSpec((), 2, (-1.0, -1.0), (1.0, 1.0))),
+    EnvSpec((SensorSpec("obs", (OBS,)),), ActionSpec((2, 3), 1, (-1.0,), (1.0,))),
+])  # fmt: skip
+def test_vtrace_updates_continuous_and_mixed_actions(spec: EnvSpec) -> None:
+    sac = make_sac(spec, use_n_step_is=True)
+    for seed in range(3):
+        result = sac.update(make_batch(spec, seed=seed), with_metrics=True)
+        assert not result.skipped and np.isfinite(result.metrics["learner/vtrace_rho"])
+
+
+def test_policy_log_prob_of_its_own_sample_matches_the_sampling_log_prob() -> None:
+    torch.manual_seed(0)
+    policy = TanhGaussianPolicy(OBS, 2, [16])
+    state = torch.randn(64, OBS)
+    action, log_prob = policy.sample(state, torch.randn(64, 2))
+    torch.testing.assert_close(policy.log_prob(state, action), log_prob, rtol=1e-3, atol=1e-3)
