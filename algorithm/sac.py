@@ -58,7 +58,7 @@ class UpdateResult:
     skipped: bool = False
 
 
-_NOT_BUILT = ("use_rnn", "use_prediction", "use_curiosity", "use_rnd", "use_normalization")
+_NOT_BUILT = ("use_rnn", "use_prediction", "use_curiosity", "use_rnd")
 
 
 def check_supported(spec: EnvSpec, sac: SacConfig) -> None:
@@ -139,11 +139,15 @@ class SAC:
             *self.models.q.parameters(),
         ]
         acting: dict[str, torch.nn.Module] = {"representation": self.models.representation}
+        if self.models.normalizer is not None:
+            acting["normalizer"] = self.models.normalizer
         for name in ("policy", "discrete_policy"):
             module = getattr(self.models, name)
             if module is not None:
                 acting[name] = module
-        self._policy_params: list[Tensor] = [p for m in list(acting.values())[1:] for p in m.parameters()]
+        self._policy_params: list[Tensor] = [
+            p for name, m in acting.items() if name.endswith("policy") for p in m.parameters()
+        ]
         if self._branches is not None and self.models.discrete_policy is None:
             acting["q"] = self.models.q  # dqn_like: the Q heads pick the discrete actions
         self._acting = torch.nn.ModuleDict(acting)
@@ -190,6 +194,7 @@ class SAC:
             if o.ndim != len(s.shape) + 1 or tuple(o.shape[1:]) != s.shape:
                 raise ValueError(f"act: sensor {s.name!r} must be [N, {', '.join(map(str, s.shape))}], got {o.shape}")
             tensors.append(torch.as_tensor(o, dtype=torch.float32, device=self.device))
+        tensors = self._normalize(tensors)
         full_state = self.models.representation(tensors)
         state = self.models.representation.policy_state(full_state)
         n, spec = state.shape[0], self.spec.action
@@ -224,6 +229,15 @@ class SAC:
             parts.append(continuous)
         action = parts[0] if len(parts) == 1 else torch.cat(parts, dim=-1)
         return action.cpu().numpy(), log_prob.cpu().numpy()
+
+    def _normalize(self, obs: list[Tensor]) -> list[Tensor]:
+        return obs if self.models.normalizer is None else self.models.normalizer(obs)
+
+    def load_normalizer_stats(self, stats: dict[str, dict[str, Any]]) -> None:
+        """With ``use_normalization``: take the replay's running statistics (``table.normalizer_stats()``)
+        for acting and learning from now on; a no-op otherwise."""
+        if self.models.normalizer is not None:
+            self.models.normalizer.load_stats(stats)
 
     def _mask(self, obs: list[Tensor]) -> Tensor | None:
         """The ``action_mask`` sensor as bool (True = allowed), or None when the task has none."""
@@ -393,7 +407,7 @@ class SAC:
         )
         with torch.autocast(dev.type, dtype=torch.bfloat16, enabled=self._low_precision):
             q_loss, pi_loss, a_loss, td_abs, metric_tensors = self._compute_losses(
-                [torch.from_numpy(o).to(dev) for o in batch.obs],
+                self._normalize([torch.from_numpy(o).to(dev) for o in batch.obs]),
                 torch.from_numpy(batch.actions).to(dev),
                 torch.from_numpy(batch.rewards).to(dev),
                 torch.from_numpy(batch.terminated).to(dev),

@@ -159,6 +159,7 @@ class EmbeddedTrainer:
         bar = ProgressLine(base.max_step) if self.progress else None
         update_rate = RateMeter()
         priorities_matter = replay_cfg.alpha > 0
+        normalize = cfg.sac_config.use_normalization
         sampling = self.table.rate_limiter.size >= replay_cfg.min_size_to_sample
         started = time.perf_counter() - self.wall_seconds
         last_save_time = time.perf_counter()
@@ -174,6 +175,8 @@ class EmbeddedTrainer:
                     sampling = self.table.rate_limiter.size >= replay_cfg.min_size_to_sample
                 if sampling:
                     self.owed_updates += stats.env_steps * self.updates_per_step
+                if normalize and stats.chunks:  # new rows in replay: its exact running stats moved
+                    self.sac.load_normalizer_stats(self.table.normalizer_stats())
                 while self.owed_updates >= 1.0:
                     with_metrics = self.updates % summary_every == 0
                     with self.timers.phase("sample"):

@@ -12,6 +12,7 @@ from algorithm.nn.models import (
     TanhGaussianPolicy,
     VectorRepresentation,
 )
+from algorithm.nn.normalization import ObservationNormalizer
 from algorithm.spaces import EnvSpec
 
 
@@ -37,4 +38,5 @@ def build_models(spec: EnvSpec, sac: SacConfig, nn: NNConfig) -> SacModels:
     discrete_policy = None
     if act.discrete_branches and not sac.discrete_dqn_like:
         discrete_policy = DiscretePolicy(rep.policy_state_dim, act.discrete_branches, nn.hidden_units, nn.activation)
-    return SacModels(rep, q, policy, discrete_policy)
+    normalizer = ObservationNormalizer(spec.sensors) if sac.use_normalization else None
+    return SacModels(rep, q, policy, discrete_policy, normalizer)

@@ -16,6 +16,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from algorithm.nn.layers import EnsembleLinear, activation, in_float32, mlp
+from algorithm.nn.normalization import ObservationNormalizer
 from algorithm.spaces import SensorSpec
 
 _LOG2 = math.log(2.0)
@@ -215,8 +216,10 @@ class SacModels(nn.Module):
         q: QEnsemble,
         policy: TanhGaussianPolicy | None,
         discrete_policy: DiscretePolicy | None = None,
+        normalizer: ObservationNormalizer | None = None,
     ) -> None:
         super().__init__()
+        self.normalizer = normalizer  # ObservationNormalizer with use_normalization, applied before representation
         self.representation = representation
         self.q = q
         self.policy = policy

@@ -132,9 +132,7 @@ def test_every_head_trains_the_representation() -> None:
     rep, q, _ = parts()
     state = rep([torch.randn(5, OBS)])
     q_values = q(state, torch.rand(5, ACT))
-    per_head = [
-        torch.autograd.grad(q_values[i].sum(), rep.linear.weight, retain_graph=True)[0] for i in range(3)
-    ]
+    per_head = [torch.autograd.grad(q_values[i].sum(), rep.linear.weight, retain_graph=True)[0] for i in range(3)]
     assert all(g.abs().sum() > 0 for g in per_head)
     assert not torch.allclose(per_head[0], per_head[1])
 
@@ -343,9 +341,7 @@ def test_load_state_dict_names_what_is_wrong() -> None:
 def test_the_same_seed_gives_the_same_run() -> None:
     a, b = make_sac(), make_sac()
     np.testing.assert_array_equal(a.update(make_batch()).td_abs, b.update(make_batch()).td_abs)
-    assert not np.array_equal(
-        make_sac(seed=2).update(make_batch()).td_abs, make_sac().update(make_batch()).td_abs
-    )
+    assert not np.array_equal(make_sac(seed=2).update(make_batch()).td_abs, make_sac().update(make_batch()).td_abs)
 
 
 def test_target_reads_the_obs_after_the_last_valid_step_only() -> None:
@@ -383,9 +379,7 @@ def test_acting_state_dict_carries_the_policy_to_another_instance() -> None:
     learner.update(make_batch())
     actor.load_acting_state_dict(learner.acting_state_dict())
     obs = [np.ones((3, OBS), dtype=np.float32)]
-    np.testing.assert_array_equal(
-        learner.act(obs, deterministic=True)[0], actor.act(obs, deterministic=True)[0]
-    )
+    np.testing.assert_array_equal(learner.act(obs, deterministic=True)[0], actor.act(obs, deterministic=True)[0])
     with pytest.raises(RuntimeError, match="critic.w"):
         actor.load_acting_state_dict({"critic.w": torch.zeros(1)})
 
@@ -417,7 +411,6 @@ def test_bad_batches_get_clear_errors() -> None:
         "use_prediction",
         "use_curiosity",
         "use_rnd",
-        "use_normalization",
     ],
 )
 def test_features_not_built_yet_name_their_key(key: str) -> None:
@@ -428,9 +421,7 @@ def test_features_not_built_yet_name_their_key(key: str) -> None:
 @pytest.mark.parametrize(
     ("terminated", "expected", "mean_tol", "max_tol"), [(True, 1.0, 0.02, 0.1), (False, 2.0, 0.2, 0.3)]
 )
-def test_q_learns_a_constant_reward(
-    terminated: bool, expected: float, mean_tol: float, max_tol: float
-) -> None:
+def test_q_learns_a_constant_reward(terminated: bool, expected: float, mean_tol: float, max_tol: float) -> None:
     # reward 1 at every step, alpha ~ 0. Terminal steps: Q = 1 exactly. Otherwise Q bootstraps to
     # 1 / (1 - gamma) = 2, a little above it because the policy picks actions where Q is high.
     sac = SAC(
@@ -439,9 +430,7 @@ def test_q_learns_a_constant_reward(
         NNConfig(hidden_units=[32, 32]),
         ReplayConfig(),
     )
-    batch = make_batch(
-        b=64, rewards=np.ones((64, 1), dtype=np.float32), terminated=np.full((64, 1), terminated)
-    )
+    batch = make_batch(b=64, rewards=np.ones((64, 1), dtype=np.float32), terminated=np.full((64, 1), terminated))
     for _ in range(300):
         sac.update(batch)
     with torch.no_grad():
