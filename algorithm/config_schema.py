@@ -127,6 +127,9 @@ class NNConfig(Section):
     conv_features: int | None = Field(
         50, ge=1, description="Width of each image encoder's Linear+LayerNorm+tanh head; null = raw conv features."
     )
+    noisy_q: bool = Field(False, description="Factorised-Gaussian noisy layers in every Q layer.")
+    noisy_policy: bool = Field(False, description="A factorised-Gaussian noisy output layer in the policies.")
+    noisy_sigma0: float = Field(0.5, gt=0.0, description="Initial noise scale sigma0 of noisy layers (1706.10295).")
     critic_only: list[str] = Field(
         default_factory=list, description="Sensors only the critic sees (privileged state, asymmetric critic)."
     )

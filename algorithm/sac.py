@@ -43,6 +43,7 @@ from algorithm.losses import (
 )
 from algorithm.nn.builder import build_models
 from algorithm.nn.models import MASKED_LOG_PROB, masked_branch_one_hot_argmax
+from algorithm.nn.noisy import NoisyLayer, reset_noise, set_noise
 from algorithm.returns import bootstrap_index, gather_positions, n_step_target, valid_steps, vtrace_target
 from algorithm.spaces import EnvSpec
 from algorithm.types import Batch
@@ -151,6 +152,9 @@ class SAC:
         if self._branches is not None and self.models.discrete_policy is None:
             acting["q"] = self.models.q  # dqn_like: the Q heads pick the discrete actions
         self._acting = torch.nn.ModuleDict(acting)
+        # Noisy layers (nn_config.noisy_q / noisy_policy) draw fresh noise for every update and every
+        # stochastic act() call, from this SAC's generators; deterministic acting uses the mean weights.
+        self._noisy = any(isinstance(m, NoisyLayer) for m in self.models.modules())
         alpha_params = [p for p, used in ((self.log_alpha, act.continuous_dim > 0),
                                           (self.log_alpha_discrete, n_discrete_alphas > 0)) if used]  # fmt: skip
         self.critic_optimizer = self._adam(self._critic_params)
@@ -195,6 +199,18 @@ class SAC:
                 raise ValueError(f"act: sensor {s.name!r} must be [N, {', '.join(map(str, s.shape))}], got {o.shape}")
             tensors.append(torch.as_tensor(o, dtype=torch.float32, device=self.device))
         tensors = self._normalize(tensors)
+        if self._noisy:
+            if deterministic:
+                set_noise(self._acting, False)
+            else:
+                reset_noise(self._acting, self._act_rng)
+        try:
+            return self._act(tensors, deterministic)
+        finally:
+            if self._noisy and deterministic:
+                set_noise(self._acting, True)
+
+    def _act(self, tensors: list[Tensor], deterministic: bool) -> tuple[np.ndarray, np.ndarray]:
         full_state = self.models.representation(tensors)
         state = self.models.representation.policy_state(full_state)
         n, spec = state.shape[0], self.spec.action
@@ -401,6 +417,9 @@ class SAC:
             weights = weights.to(dev)
         beta_used = self.beta
         self.beta = min(1.0, self.beta + self.beta_increment)
+        if self._noisy:
+            reset_noise(self.models, self._learn_rng)
+            reset_noise(self.target_q, self._learn_rng)
         samples = batch.window + 2 if sac.use_n_step_is else 2  # see _losses
         noise = torch.randn(
             batch.batch_size, samples, self.spec.action.continuous_dim, generator=self._learn_rng, device=dev

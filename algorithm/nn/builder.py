@@ -27,16 +27,32 @@ def build_models(spec: EnvSpec, sac: SacConfig, nn: NNConfig) -> SacModels:
         rep = MultiSensorRepresentation(spec.sensors, nn.conv_features, nn.critic_only, nn.activation)
     else:
         rep = VectorRepresentation(spec.sensors)
+    q_sigma = nn.noisy_sigma0 if nn.noisy_q else None
+    policy_sigma = nn.noisy_sigma0 if nn.noisy_policy else None
     q = QEnsemble(
-        rep.state_dim, act.continuous_dim, nn.hidden_units, sac.ensemble_q_num, nn.activation, act.discrete_size
+        rep.state_dim,
+        act.continuous_dim,
+        nn.hidden_units,
+        sac.ensemble_q_num,
+        nn.activation,
+        act.discrete_size,
+        q_sigma,
     )
     policy = None
     if act.continuous_dim:
         policy = TanhGaussianPolicy(
-            rep.policy_state_dim, act.continuous_dim, nn.hidden_units, nn.activation, nn.log_std_min, nn.log_std_max
+            rep.policy_state_dim,
+            act.continuous_dim,
+            nn.hidden_units,
+            nn.activation,
+            nn.log_std_min,
+            nn.log_std_max,
+            policy_sigma,
         )
     discrete_policy = None
     if act.discrete_branches and not sac.discrete_dqn_like:
-        discrete_policy = DiscretePolicy(rep.policy_state_dim, act.discrete_branches, nn.hidden_units, nn.activation)
+        discrete_policy = DiscretePolicy(
+            rep.policy_state_dim, act.discrete_branches, nn.hidden_units, nn.activation, policy_sigma
+        )
     normalizer = ObservationNormalizer(spec.sensors) if sac.use_normalization else None
     return SacModels(rep, q, policy, discrete_policy, normalizer)

@@ -16,6 +16,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from algorithm.nn.layers import EnsembleLinear, activation, in_float32, mlp
+from algorithm.nn.noisy import NoisyEnsembleLinear, NoisyLinear
 from algorithm.nn.normalization import ObservationNormalizer
 from algorithm.spaces import SensorSpec
 
@@ -82,12 +83,19 @@ class QEnsemble(nn.Module):
         ensemble_size: int,
         activation_name: str = "relu",
         discrete_size: int = 0,
+        noisy_sigma0: float | None = None,
     ) -> None:
         super().__init__()
         sizes = [state_dim + action_dim, *hidden_units, max(discrete_size, 1)]
         self.ensemble_size = ensemble_size
         self.discrete_size = discrete_size
-        self.layers = nn.ModuleList(EnsembleLinear(ensemble_size, i, o) for i, o in itertools.pairwise(sizes))
+        layers: list[nn.Module] = []
+        for i, o in itertools.pairwise(sizes):  # noisy nets replace every layer of the value head (1706.10295)
+            if noisy_sigma0 is None:
+                layers.append(EnsembleLinear(ensemble_size, i, o))
+            else:
+                layers.append(NoisyEnsembleLinear(ensemble_size, i, o, noisy_sigma0))
+        self.layers = nn.ModuleList(layers)
         self.act = activation(activation_name)
 
     def forward(
@@ -98,6 +106,14 @@ class QEnsemble(nn.Module):
             h = self.act(layer(h, heads, detach_params))
         out = in_float32(self.layers[-1], h, heads, detach_params)
         return out if self.discrete_size else out.squeeze(-1)
+
+
+def output_layer(in_features: int, out_features: int, noisy_sigma0: float | None) -> nn.Module:
+    """A policy's output layer: ``nn.Linear``, or a factorised-noise :class:`NoisyLinear` with
+    ``noisy_sigma0`` (state-dependent exploration from the weights, Fortunato et al. 2018)."""
+    if noisy_sigma0 is None:
+        return nn.Linear(in_features, out_features)
+    return NoisyLinear(in_features, out_features, noisy_sigma0)
 
 
 def squashed_gaussian_log_prob(noise: Tensor, log_std: Tensor, pre_tanh: Tensor) -> Tensor:
@@ -127,6 +143,7 @@ class TanhGaussianPolicy(nn.Module):
         activation_name: str = "relu",
         log_std_min: float = -20.0,
         log_std_max: float = 2.0,
+        noisy_sigma0: float | None = None,
     ) -> None:
         super().__init__()
         if log_std_min >= log_std_max:
@@ -136,7 +153,7 @@ class TanhGaussianPolicy(nn.Module):
         self.log_std_max = log_std_max
         self.trunk = mlp(state_dim, hidden_units, activation_name)
         last = hidden_units[-1] if hidden_units else state_dim
-        self.head = nn.Linear(last, 2 * action_dim)
+        self.head = output_layer(last, 2 * action_dim, noisy_sigma0)
 
     def forward(self, state: Tensor) -> tuple[Tensor, Tensor]:
         """``(mean, log_std)`` of the pre-tanh Gaussian, each ``[N, A]``."""
@@ -190,13 +207,18 @@ class DiscretePolicy(nn.Module):
     outputs the logits of every branch side by side (``[N, sum(branches)]``)."""
 
     def __init__(
-        self, state_dim: int, branches: Sequence[int], hidden_units: Sequence[int], activation_name: str = "relu"
+        self,
+        state_dim: int,
+        branches: Sequence[int],
+        hidden_units: Sequence[int],
+        activation_name: str = "relu",
+        noisy_sigma0: float | None = None,
     ) -> None:
         super().__init__()
         self.branches = tuple(branches)
         self.trunk = mlp(state_dim, hidden_units, activation_name)
         last = hidden_units[-1] if hidden_units else state_dim
-        self.head = nn.Linear(last, sum(self.branches))
+        self.head = output_layer(last, sum(self.branches), noisy_sigma0)
 
     def forward(self, state: Tensor, mask: Tensor | None = None) -> Tensor:
         """``log pi [N, D]``, normalised within each branch; masked actions get probability 0."""

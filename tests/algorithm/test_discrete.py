@@ -227,3 +227,35 @@ def test_acting_weights_include_the_q_heads_only_when_they_choose_actions() -> N
 def test_a_mask_sensor_of_the_wrong_size_is_refused() -> None:
     with pytest.raises(ValueError, match="action_mask"):
         EnvSpec((SensorSpec("action_mask", (3,)),), ActionSpec((4,), 0))
+
+
+# -- noisy layers in the learner ------------------------------------------------------------------
+
+
+def test_noisy_heads_explore_stochastically_act_deterministically_and_resume_exactly() -> None:
+    spec = masked_spec((3,), 2)
+    nn_cfg = NNConfig(hidden_units=[16], noisy_q=True, noisy_policy=True)
+
+    def make() -> SAC:
+        return SAC(spec, SacConfig(seed=4), nn_cfg, ReplayConfig())
+
+    sac = make()
+    obs = [np.ones((1, 3), dtype=np.float32), np.full((1, OBS), 0.5, dtype=np.float32)]
+    first, second = sac.act(obs, deterministic=True), sac.act(obs, deterministic=True)
+    np.testing.assert_array_equal(first[0], second[0])  # mean weights: no noise
+    assert sac.models.policy is not None
+    head = sac.models.policy.head
+    with torch.no_grad():  # tanh of the mean from the noise-free weights mu
+        state = sac.models.representation.policy_state(sac.models.representation([torch.from_numpy(o) for o in obs]))
+        mean = torch.nn.functional.linear(sac.models.policy.trunk(state), head.weight_mu, head.bias_mu).chunk(2, -1)[0]
+    np.testing.assert_allclose(first[0][:, 3:], torch.tanh(mean).numpy(), rtol=1e-5, atol=1e-6)
+    noisy_means = {tuple(np.round(sac._acting["policy"].head.effective_params()[1][:2].tolist(), 6))
+                   for _ in range(3) if sac.act(obs) is not None}  # fmt: skip
+    assert len(noisy_means) == 3  # every stochastic act draws fresh noise
+
+    other = make()
+    for seed in range(2):
+        sac.update(make_batch(spec, seed=seed))
+    other.load_state_dict(copy.deepcopy(sac.state_dict()))
+    a, b = sac.update(make_batch(spec, seed=5)), other.update(make_batch(spec, seed=5))
+    np.testing.assert_array_equal(a.td_abs, b.td_abs)
