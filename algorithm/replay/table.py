@@ -64,6 +64,11 @@ class PrioritizedTable:
             stay uint8). Vector (non-image) sensors get a running normalizer.
         action_size: width of the flat action vector.
         window: ``L = burn_in_step + n_step`` steps per sampled window.
+        burn_in: the first ``burn_in`` steps of a window look *back* from the sampled step: a
+            window for key ``k`` covers steps ``k - burn_in .. k + n_step - 1`` of ``k``'s chunk,
+            so step ``burn_in`` of the window is the sampled one. Look-back rows before the chunk's
+            first stored row are zeros with ``mask`` False (the zero rows prepended at episode
+            start, SPEC A), and ``rnn_state`` is the stored state at the window's first valid row.
         alpha, td_error_min, td_error_max: priority transform (``alpha == 0``: uniform).
         rnn_state_size: width of the stored recurrent state (0: none; chunks must then have
             ``rnn_state=None``).
@@ -83,11 +88,14 @@ class PrioritizedTable:
         rnn_state_size: int = 0,
         rate_limiter: RateLimiter | None = None,
         seed: int | None = None,
+        burn_in: int = 0,
     ) -> None:
         if int(capacity) < 2:
             raise ValueError(f"replay capacity must be >= 2 rows, got {capacity}")
         if int(window) < 1:
             raise ValueError(f"replay window (burn_in_step + n_step) must be >= 1, got {window}")
+        if not 0 <= int(burn_in) < int(window):
+            raise ValueError(f"replay burn_in must be in [0, window), got burn_in={burn_in}, window={window}")
         if int(action_size) < 1:
             raise ValueError(f"action_size must be >= 1, got {action_size}")
         if int(rnn_state_size) < 0:
@@ -103,6 +111,7 @@ class PrioritizedTable:
         self.sensors = tuple(sensors)
         self.action_size = int(action_size)
         self.window = int(window)
+        self.burn_in = int(burn_in)
         self.alpha = float(alpha)
         self.td_error_min = float(td_error_min)
         self.td_error_max = float(td_error_max)
@@ -129,6 +138,7 @@ class PrioritizedTable:
         self._rnn = np.zeros((cap, self.rnn_state_size), dtype=np.float32) if self.rnn_state_size else None
         self._row_key = np.full(cap, _EMPTY, dtype=np.int64)
         self._end_key = np.full(cap, _EMPTY, dtype=np.int64)
+        self._start_key = np.full(cap, _EMPTY, dtype=np.int64)  # key of the chunk's first row
         self._tree = SumTree(cap)
         self._normalizers = {s.name: RunningMeanStd(s.shape) for s in self.sensors if not s.is_image}
         self._next_key = 0
@@ -154,6 +164,7 @@ class PrioritizedTable:
         rnn_state_size: int = 0,
         enforce_ratio: bool = False,
         seed: int | None = None,
+        burn_in: int = 0,
     ) -> PrioritizedTable:
         """Build a table and its rate limiter from ``replay_config``.
 
@@ -179,6 +190,7 @@ class PrioritizedTable:
             rnn_state_size=rnn_state_size,
             rate_limiter=limiter,
             seed=seed,
+            burn_in=burn_in,
         )
 
     # ------------------------------------------------------------------ public interface
@@ -216,6 +228,7 @@ class PrioritizedTable:
                 self._rnn[steps] = chunk.rnn_state
             self._row_key[span] = keys
             self._end_key[span] = first + t
+            self._start_key[span] = first
 
             if new_p is None:
                 new_p = np.full(t, self._max_priority)
@@ -357,6 +370,7 @@ class PrioritizedTable:
         arrays.update(
             row_key=self._row_key,
             end_key=self._end_key,
+            start_key=self._start_key,
             priorities=self._tree.leaves,
         )
         if self._rnn is not None:
@@ -374,6 +388,7 @@ class PrioritizedTable:
         rate limiter's counters."""
         cap, next_key = self.capacity, int(meta["next_key"])
         row_key, end_key, leaves = data["row_key"], data["end_key"], data["priorities"]
+        start_key = data["start_key"]
         stored = row_key != _EMPTY
         rk, ek = row_key[stored], end_key[stored]
         if not (
@@ -383,6 +398,8 @@ class PrioritizedTable:
             and (ek < next_key).all()
             and (row_key[ek % cap] == ek).all()
             and (end_key[~stored] == _EMPTY).all()
+            and (start_key[stored] <= rk).all()
+            and (start_key[~stored] == _EMPTY).all()
         ):
             raise ValueError("row keys are not a ring of consecutive chunks")
         is_step = stored & (row_key != end_key)
@@ -417,6 +434,7 @@ class PrioritizedTable:
             "_rnn": data.get("rnn_state"),
             "_row_key": row_key,
             "_end_key": end_key,
+            "_start_key": start_key,
             "_tree": tree,
             "_normalizers": normalizers,
             "_next_key": next_key,
@@ -444,19 +462,39 @@ class PrioritizedTable:
         return picked[:n]
 
     def _gather(self, rows: np.ndarray, probabilities: np.ndarray, size: int) -> Batch:
-        starts = self._row_key[rows]
+        keys = self._row_key[rows]
         ends = self._end_key[rows][:, None]
-        pos = starts[:, None] + np.arange(self.window + 1, dtype=np.int64)
-        read = np.minimum(pos, ends) % self.capacity  # [B, L+1]; clamped to the bootstrap row
-        step = read[:, :-1]  # bootstrap rows hold zeros, so masked steps come out zero/False
+        pos = (keys - self.burn_in)[:, None] + np.arange(self.window + 1, dtype=np.int64)
+        if not self.burn_in:
+            read = np.minimum(pos, ends) % self.capacity  # [B, L+1]; clamped to the bootstrap row
+            step = read[:, :-1]  # bootstrap rows hold zeros, so masked steps come out zero/False
+            return Batch(
+                keys=keys.astype(np.uint64),
+                probabilities=probabilities,
+                table_size=int(size),
+                obs=[store[read] for store in self._obs],
+                mask=pos[:, :-1] < ends,
+                rnn_state=None if self._rnn is None else self._rnn[rows],
+                **{name: store[step] for name, store in self._steps.items()},
+            )
+        # Look-back: rows before the chunk's first live row (evicted ones included) read as zeros.
+        starts = np.maximum(self._start_key[rows], self._next_key - self.capacity)[:, None]
+        read = np.clip(pos, starts, ends) % self.capacity
+        before = pos < starts
+        step = read[:, :-1]
+        mask = ~before[:, :-1] & (pos[:, :-1] < ends)
+
+        def zero_before(x: np.ndarray, where: np.ndarray) -> np.ndarray:
+            return np.where(where.reshape(where.shape + (1,) * (x.ndim - 2)), np.zeros((), x.dtype), x)
+
         return Batch(
-            keys=starts.astype(np.uint64),
+            keys=keys.astype(np.uint64),
             probabilities=probabilities,
             table_size=int(size),
-            obs=[store[read] for store in self._obs],
-            mask=pos[:, :-1] < ends,
-            rnn_state=None if self._rnn is None else self._rnn[rows],
-            **{name: store[step] for name, store in self._steps.items()},
+            obs=[zero_before(store[read], before) for store in self._obs],
+            mask=mask,
+            rnn_state=None if self._rnn is None else self._rnn[read[:, 0]],
+            **{name: zero_before(store[step], before[:, :-1]) for name, store in self._steps.items()},
         )
 
     def _check_priorities(self, priorities: np.ndarray, n: int, where: str) -> np.ndarray:
