@@ -43,8 +43,8 @@ def build_parser(prog: str = "main.py") -> argparse.ArgumentParser:
         prog=prog,
         description="Train or play ASAC (Soft Actor-Critic) on a task from envs/.",
         epilog="examples:\n  python main.py gym/pendulum\n"
-               "  python main.py mujoco/half_cheetah -n 'test_{time}' --agents 2 --override sac.n_step=3\n"
-               "  python main.py gym/pendulum -n myrun --run --render",
+        "  python main.py mujoco/half_cheetah -n 'test_{time}' --agents 2 --override sac.n_step=3\n"
+        "  python main.py gym/pendulum -n myrun --run --render",
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     add_common_args(p)
@@ -63,8 +63,13 @@ def add_common_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--agents", type=int, help="parallel envs (base_config.n_agents)")
     p.add_argument("--repeat", type=int, default=1, help="train K runs one after another (seeds seed, seed+1, ...)")
     p.add_argument("--device", default="cpu", help="torch device for the learner, e.g. cpu or cuda")
-    p.add_argument("--override", action="append", default=[], metavar="SECTION.KEY=VALUE",
-                   help="set any config key, e.g. sac.n_step=5 (repeatable)")
+    p.add_argument(
+        "--override",
+        action="append",
+        default=[],
+        metavar="SECTION.KEY=VALUE",
+        help="set any config key, e.g. sac.n_step=5 (repeatable)",
+    )
     p.add_argument("--model_root", default="models", help="where run folders go (default ./models)")
     p.add_argument("--episodes", type=int, help="with --run: episodes to play (default eval_config.eval_episodes)")
     p.add_argument("--no_progress", action="store_true", help="no progress line")
@@ -89,8 +94,10 @@ def cli_overrides(args: argparse.Namespace) -> list[str]:
 
 def check_nn_file(task: Path, config: Config) -> None:
     if (task / f"{config.base_config.nn}.py").exists():
-        raise UsageError(f"{task / (config.base_config.nn + '.py')}: custom nn.py models are not supported yet; "
-                         "models are built from nn_config")
+        raise UsageError(
+            f"{task / (config.base_config.nn + '.py')}: custom nn.py models are not supported yet; "
+            "models are built from nn_config"
+        )
 
 
 def env_factory(config: Config) -> Callable[[int, int | None], VectorEnv]:
@@ -105,8 +112,9 @@ def setup_logging(run_dir: Path | None, in_file: bool) -> None:
     if in_file and run_dir is not None:
         run_dir.mkdir(parents=True, exist_ok=True)
         handlers.append(logging.FileHandler(run_dir / "log.txt"))
-    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s",
-                        handlers=handlers, force=True)
+    logging.basicConfig(
+        level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s", handlers=handlers, force=True
+    )
 
 
 def train(args: argparse.Namespace) -> int:
@@ -124,8 +132,9 @@ def train(args: argparse.Namespace) -> int:
         saved_config = RunDir(run_dir).config
         if saved_config.exists():
             # Resuming: the run's own resolved config (seed included) wins; command-line overrides still apply.
-            run_config = apply_overrides(config_from_yaml(saved_config.read_text(), str(saved_config)),
-                                         cli_overrides(args))
+            run_config = apply_overrides(
+                config_from_yaml(saved_config.read_text(), str(saved_config)), cli_overrides(args)
+            )
         elif run_config.sac_config.seed is None:
             run_config.sac_config.seed = random.SystemRandom().randrange(2**31)  # recorded in config.yaml
         elif args.repeat > 1:
@@ -133,14 +142,25 @@ def train(args: argparse.Namespace) -> int:
         run_config.base_config.name = name
         setup_logging(run_dir, args.logger_in_file)
         log.info("run %s (seed %s)", run_dir, run_config.sac_config.seed)
-        trainer = EmbeddedTrainer(run_config, run_dir, env_factory(run_config), device=args.device,
-                                  progress=not args.no_progress, ckpt_step=args.ckpt)
+        trainer = EmbeddedTrainer(
+            run_config,
+            run_dir,
+            env_factory(run_config),
+            device=args.device,
+            progress=not args.no_progress,
+            ckpt_step=args.ckpt,
+        )
         if trainer.env_steps:
             log.info("resumed at %d env steps, %d updates", trainer.env_steps, trainer.updates)
         summary = trainer.run()
-        log.info("%s after %d env steps, %d updates, %.0f s; last eval return %s",
-                 "interrupted" if summary.interrupted else "finished", summary.env_steps, summary.updates,
-                 summary.wall_seconds, "n/a" if summary.last_eval_mean is None else f"{summary.last_eval_mean:.1f}")
+        log.info(
+            "%s after %d env steps, %d updates, %.0f s; last eval return %s",
+            "interrupted" if summary.interrupted else "finished",
+            summary.env_steps,
+            summary.updates,
+            summary.wall_seconds,
+            "n/a" if summary.last_eval_mean is None else f"{summary.last_eval_mean:.1f}",
+        )
         if summary.interrupted:
             return 130
     return 0
@@ -185,29 +205,38 @@ def _load_policy(sac: SAC, state: dict, ckpt: Path) -> None:
         raise CheckpointError(f"checkpoint {ckpt} does not match this task's models: {e}") from None
 
 
-def _play_rendered(config: Config, state: dict, run_dir: Path, step: str, episodes: int, limit: int | None,
-                   device: str) -> int:
+def _play_rendered(
+    config: Config, state: dict, run_dir: Path, step: str, episodes: int, limit: int | None, device: str
+) -> int:
     base = config.base_config
     headless = not os.environ.get("DISPLAY")
-    env = make_env(base.build_path, seed=int(config.sac_config.seed or 0), env_kwargs=base.env_kwargs,
-                   max_episode_steps=limit, render_mode="rgb_array" if headless else "human")
-    from algorithm.spaces import env_spec, to_env_action
-
-    spec = env_spec(env.observation_space, env.action_space)
+    env = make_env(
+        base.build_path,
+        seed=int(config.sac_config.seed or 0),
+        env_kwargs=base.env_kwargs,
+        max_episode_steps=limit,
+        render_mode="rgb_array" if headless else "human",
+    )
+    venv = VectorEnv([env])  # sensors split and actions mapped exactly as in training
+    spec = venv.spec
     sac = SAC(spec, config.sac_config, config.nn_config, config.replay_config, device=device)
     _load_policy(sac, state, run_dir / "model" / f"{step}.pt")
     frames: list[np.ndarray] = []
     returns = []
     for ep in range(episodes):
-        obs, _ = env.reset(seed=int(config.sac_config.seed or 0) + ep)
+        obs = venv.reset(seed=int(config.sac_config.seed or 0) + ep)
+        prev_action = np.zeros((1, spec.action.size), dtype=np.float32)
+        rnn_state = sac.initial_rnn_state(1)
         total, done = 0.0, False
         while not done:
-            sensors = obs if isinstance(obs, list | tuple) else [obs]
-            batch = [np.asarray(o, dtype=s.dtype)[None] for o, s in zip(sensors, spec.sensors, strict=True)]
-            action, _ = sac.act(batch, deterministic=True)
-            obs, reward, terminated, truncated, _ = env.step(to_env_action(spec.action, action)[0])
-            total += float(reward)
-            done = bool(terminated or truncated)
+            if sac.rnn_state_size:
+                action, _, rnn_state = sac.act_recurrent(obs, prev_action, rnn_state, deterministic=True)
+            else:
+                action, _ = sac.act(obs, deterministic=True)
+            result = venv.step(action)
+            obs, prev_action = result.obs, action
+            total += float(result.rewards[0])
+            done = bool(result.terminated[0] or result.truncated[0])
             if headless:
                 frames.append(np.asarray(env.render()))
         returns.append(total)

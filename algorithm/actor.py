@@ -24,8 +24,19 @@ from algorithm.types import Chunk
 
 
 class Policy(Protocol):
+    """What acts: :class:`algorithm.sac.SAC` or anything shaped like it. A recurrent policy
+    (``rnn_state_size > 0``) acts through ``act_recurrent`` and the loop carries its state."""
+
+    rnn_state_size: int
+
     def act(self, obs: list[np.ndarray], deterministic: bool = False) -> tuple[np.ndarray, np.ndarray]:
         """Batched actions ``[N, A]`` in model space and their behaviour log-probabilities ``[N]``."""
+        ...
+
+    def act_recurrent(
+        self, obs: list[np.ndarray], prev_actions: np.ndarray, rnn_state: np.ndarray, deterministic: bool = False
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """:meth:`act` plus the previous actions and states in, and the next states out."""
         ...
 
 
@@ -51,10 +62,11 @@ class ChunkBuilder:
     assignment per field, so a step costs the same for 1 or 64 envs; only emitting a chunk copies.
     """
 
-    def __init__(self, num_envs: int, spec: EnvSpec, chunk_length: int) -> None:
+    def __init__(self, num_envs: int, spec: EnvSpec, chunk_length: int, rnn_state_size: int = 0) -> None:
         self.num_envs = num_envs
         self.chunk_length = chunk_length
         n, t, a = num_envs, chunk_length, spec.action.size
+        self._rnn = np.zeros((n, t, rnn_state_size), dtype=np.float32) if rnn_state_size else None
         self._obs = [np.zeros((n, t + 1, *s.shape), dtype=s.dtype) for s in spec.sensors]
         self._actions = np.zeros((n, t, a), dtype=np.float32)
         self._prev_actions = np.zeros((n, t, a), dtype=np.float32)
@@ -75,12 +87,15 @@ class ChunkBuilder:
         terminated: np.ndarray,
         truncated: np.ndarray,
         final_obs: list[np.ndarray],
+        rnn_state: np.ndarray | None = None,
     ) -> list[Chunk]:
         """Record one step of every env; returns the chunks completed by it (possibly none).
 
         ``obs`` is what the policy saw, ``final_obs`` the observation after the step (the true final
-        one where an episode ended)."""
+        one where an episode ended), ``rnn_state`` the recurrent state fed in with ``obs``."""
         e, t = self._envs, self._t
+        if self._rnn is not None:
+            self._rnn[e, t] = rnn_state
         for buf, o in zip(self._obs, obs, strict=True):
             buf[e, t] = o
         self._actions[e, t] = actions
@@ -123,6 +138,7 @@ class ChunkBuilder:
             terminated=self._terminated[i, :length].copy(),
             truncated=self._truncated[i, :length].copy(),
             behaviour_logp=self._logp[i, :length].copy(),
+            rnn_state=None if self._rnn is None else self._rnn[i, :length].copy(),
         )
 
 
@@ -189,20 +205,25 @@ class ActorLoop:
         self.rng = np.random.default_rng(seed)
         self.spec = env.spec
         n = env.num_envs
-        self.builder = ChunkBuilder(n, self.spec, chunk_length)
+        rnn_size = getattr(policy, "rnn_state_size", 0)
+        self.builder = ChunkBuilder(n, self.spec, chunk_length, rnn_size)
         self.obs = env.reset(seed=seed)
         self.prev_actions = np.zeros((n, self.spec.action.size), dtype=np.float32)
+        self.rnn_state = np.zeros((n, rnn_size), dtype=np.float32) if rnn_size else None
         self.episode_return = np.zeros(n, dtype=np.float64)
         self.episode_length = np.zeros(n, dtype=np.int64)
         self.total_steps = 0
 
     def step(self) -> StepStats:
         n = self.env.num_envs
+        next_rnn_state = None
+        if self.rnn_state is not None:  # the state advances during random warm-up too
+            actions, logp, next_rnn_state = self.policy.act_recurrent(self.obs, self.prev_actions, self.rnn_state)
         if self.total_steps < self.random_steps:
             mask_index = self.spec.action_mask_index
             mask = None if mask_index is None else self.obs[mask_index]
             actions, logp = uniform_random_actions(self.spec.action, n, self.rng, mask)
-        else:
+        elif self.rnn_state is None:
             actions, logp = self.policy.act(self.obs, deterministic=False)
         result = self.env.step(actions)
         chunks = self.builder.add(
@@ -214,6 +235,7 @@ class ActorLoop:
             result.terminated,
             result.truncated,
             result.final_obs,
+            self.rnn_state,
         )
         self.total_steps += n
         self.episode_return += result.rewards
@@ -221,6 +243,8 @@ class ActorLoop:
         done = result.terminated | result.truncated
         stats = StepStats(env_steps=n)
         self.prev_actions = np.where(done[:, None], 0.0, actions).astype(np.float32)
+        if next_rnn_state is not None:
+            self.rnn_state = np.where(done[:, None], 0.0, next_rnn_state).astype(np.float32)
         self.obs = result.obs
         for i in np.flatnonzero(done):
             stats.finished.append((float(self.episode_return[i]), int(self.episode_length[i])))
@@ -255,6 +279,8 @@ class ActorLoop:
             for o, f in zip(self.obs, fresh, strict=True):
                 o[i] = f
             self.prev_actions[i] = 0.0
+            if self.rnn_state is not None:
+                self.rnn_state[i] = 0.0
             self.episode_return[i] = 0.0
             self.episode_length[i] = 0
         return chunks

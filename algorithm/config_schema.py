@@ -74,9 +74,10 @@ class SacConfig(Section):
     keep_checkpoints: int = Field(3, ge=1, description="How many checkpoints model/ keeps.")
     ensemble_q_num: int = Field(2, ge=1, description="Q heads in the ensemble.")
     ensemble_q_sample: int = Field(2, ge=1, description="Heads in each random subset a minimum is taken over.")
-    burn_in_step: int = Field(0, ge=0)
+    burn_in_step: int = Field(0, ge=0, description="Steps before the trained one that warm up the recurrent state.")
+    burn_in_gradient: bool = Field(False, description="Let gradients flow through the burn-in steps.")
     n_step: int = Field(1, ge=1)
-    use_rnn: bool = False
+    use_rnn: bool = Field(False, description="Recurrent representation (nn_config.rnn_type, rnn_units).")
     tau: float = Field(0.005, gt=0.0, le=1.0)
     update_target_per_step: int = Field(1, ge=1)
     init_log_alpha: float = -2.3
@@ -116,6 +117,8 @@ class SacConfig(Section):
     def _check_ensemble(self) -> SacConfig:
         if self.ensemble_q_sample > self.ensemble_q_num:
             raise ValueError("ensemble_q_sample must be <= ensemble_q_num")
+        if self.burn_in_step and not self.use_rnn:
+            raise ValueError("burn_in_step > 0 needs use_rnn: true (burn-in warms up a recurrent state)")
         return self
 
 
@@ -127,6 +130,8 @@ class NNConfig(Section):
     conv_features: int | None = Field(
         50, ge=1, description="Width of each image encoder's Linear+LayerNorm+tanh head; null = raw conv features."
     )
+    rnn_type: Literal["gru", "lstm"] = Field("gru", description="Cell of the recurrent representation (use_rnn).")
+    rnn_units: int = Field(64, ge=1, description="Hidden size of the recurrent representation.")
     noisy_q: bool = Field(False, description="Factorised-Gaussian noisy layers in every Q layer.")
     noisy_policy: bool = Field(False, description="A factorised-Gaussian noisy output layer in the policies.")
     noisy_sigma0: float = Field(0.5, gt=0.0, description="Initial noise scale sigma0 of noisy layers (1706.10295).")

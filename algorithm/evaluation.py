@@ -49,9 +49,19 @@ def evaluate(env: VectorEnvLike, policy: Policy, episodes: int, seed: int | None
     ep_ret = np.zeros(n)
     ep_len = np.zeros(n, dtype=np.int64)
     done_count = np.zeros(n, dtype=np.int64)
+    rnn_size = getattr(policy, "rnn_state_size", 0)
+    rnn_state = np.zeros((n, rnn_size), dtype=np.float32)
+    prev_actions = np.zeros((n, env.spec.action.size), dtype=np.float32)
     while (done_count < quota).any():
-        actions, _ = policy.act(obs, deterministic=True)
+        if rnn_size:
+            actions, _, rnn_state = policy.act_recurrent(obs, prev_actions, rnn_state, deterministic=True)
+        else:
+            actions, _ = policy.act(obs, deterministic=True)
         result = env.step(actions)
+        done = result.terminated | result.truncated
+        if rnn_size:  # a recurrent policy starts each episode from zeros
+            rnn_state = np.where(done[:, None], 0.0, rnn_state).astype(np.float32)
+            prev_actions = np.where(done[:, None], 0.0, actions).astype(np.float32)
         ep_ret += result.rewards
         ep_len += 1
         for i in np.flatnonzero(result.terminated | result.truncated):

@@ -44,6 +44,7 @@ from algorithm.losses import (
 from algorithm.nn.builder import build_models
 from algorithm.nn.models import MASKED_LOG_PROB, masked_branch_one_hot_argmax
 from algorithm.nn.noisy import NoisyLayer, reset_noise, set_noise
+from algorithm.nn.recurrent import RecurrentRepresentation
 from algorithm.returns import bootstrap_index, gather_positions, n_step_target, valid_steps, vtrace_target
 from algorithm.spaces import EnvSpec
 from algorithm.types import Batch
@@ -59,7 +60,7 @@ class UpdateResult:
     skipped: bool = False
 
 
-_NOT_BUILT = ("use_rnn", "use_prediction", "use_curiosity", "use_rnd")
+_NOT_BUILT = ("use_prediction", "use_curiosity", "use_rnd")
 
 
 def check_supported(spec: EnvSpec, sac: SacConfig) -> None:
@@ -67,8 +68,6 @@ def check_supported(spec: EnvSpec, sac: SacConfig) -> None:
     for key in _NOT_BUILT:
         if getattr(sac, key):
             raise NotImplementedError(f"sac_config.{key}=true is not implemented yet")
-    if sac.burn_in_step:
-        raise NotImplementedError("sac_config.burn_in_step > 0 needs use_rnn, which is not implemented yet")
 
 
 class SAC:
@@ -155,6 +154,8 @@ class SAC:
         # Noisy layers (nn_config.noisy_q / noisy_policy) draw fresh noise for every update and every
         # stochastic act() call, from this SAC's generators; deterministic acting uses the mean weights.
         self._noisy = any(isinstance(m, NoisyLayer) for m in self.models.modules())
+        rep = self.models.representation
+        self.rnn_state_size = rep.rnn_state_size if isinstance(rep, RecurrentRepresentation) else 0
         alpha_params = [p for p, used in ((self.log_alpha, act.continuous_dim > 0),
                                           (self.log_alpha_discrete, n_discrete_alphas > 0)) if used]  # fmt: skip
         self.critic_optimizer = self._adam(self._critic_params)
@@ -190,6 +191,38 @@ class SAC:
         greedy) allowed action; the log-prob is then the density at that point. Stochastic acting
         samples the policy, or with ``discrete_dqn_like`` acts epsilon-greedily among allowed actions
         (``discrete_dqn_epsilon``), and reports the true probability of the mixture."""
+        if self.rnn_state_size:
+            raise TypeError("a recurrent policy (use_rnn) acts with act_recurrent(obs, prev_actions, rnn_state)")
+        return self._act_with_noise(self._obs_tensors(obs), deterministic, None)
+
+    @torch.inference_mode()
+    def act_recurrent(
+        self, obs: list[np.ndarray], prev_actions: np.ndarray, rnn_state: np.ndarray, deterministic: bool = False
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """:meth:`act` for ``use_rnn``: also takes each env's previous action ``[N, A]`` (zeros at
+        episode start) and recurrent state ``[N, rnn_state_size]`` (zeros at episode start), and
+        returns the next state as a third array. The next state does not depend on the action
+        chosen now (the cell reads ``a_{t-1}``), so an actor may replace the action (random warm-up)."""
+        n = prev_actions.shape[0]
+        if prev_actions.shape != (n, self.spec.action.size) or rnn_state.shape != (n, self.rnn_state_size):
+            raise ValueError(
+                f"act_recurrent: prev_actions must be [N, {self.spec.action.size}] and rnn_state "
+                f"[N, {self.rnn_state_size}], got {prev_actions.shape} and {rnn_state.shape}"
+            )
+        tensors = self._obs_tensors(obs)
+        prev = torch.as_tensor(prev_actions, dtype=torch.float32, device=self.device)
+        state = torch.as_tensor(rnn_state, dtype=torch.float32, device=self.device)
+        rep = self.models.representation
+        assert isinstance(rep, RecurrentRepresentation)
+        full_state, next_state = rep.step(tensors, prev, state)
+        actions, log_prob = self._act_with_noise(tensors, deterministic, full_state)
+        return actions, log_prob, next_state.cpu().numpy()
+
+    def initial_rnn_state(self, n: int) -> np.ndarray:
+        """The recurrent state an episode starts from (zeros ``[n, rnn_state_size]``)."""
+        return np.zeros((n, self.rnn_state_size), dtype=np.float32)
+
+    def _obs_tensors(self, obs: list[np.ndarray]) -> list[Tensor]:
         sensors = self.spec.sensors
         if len(obs) != len(sensors):
             raise ValueError(f"act: expected {len(sensors)} sensors {[s.name for s in sensors]}, got {len(obs)}")
@@ -198,20 +231,25 @@ class SAC:
             if o.ndim != len(s.shape) + 1 or tuple(o.shape[1:]) != s.shape:
                 raise ValueError(f"act: sensor {s.name!r} must be [N, {', '.join(map(str, s.shape))}], got {o.shape}")
             tensors.append(torch.as_tensor(o, dtype=torch.float32, device=self.device))
-        tensors = self._normalize(tensors)
+        return self._normalize(tensors)
+
+    def _act_with_noise(
+        self, tensors: list[Tensor], deterministic: bool, full_state: Tensor | None
+    ) -> tuple[np.ndarray, np.ndarray]:
         if self._noisy:
             if deterministic:
                 set_noise(self._acting, False)
             else:
                 reset_noise(self._acting, self._act_rng)
         try:
-            return self._act(tensors, deterministic)
+            if full_state is None:
+                full_state = self.models.representation(tensors)
+            return self._act(full_state, tensors, deterministic)
         finally:
             if self._noisy and deterministic:
                 set_noise(self._acting, True)
 
-    def _act(self, tensors: list[Tensor], deterministic: bool) -> tuple[np.ndarray, np.ndarray]:
-        full_state = self.models.representation(tensors)
+    def _act(self, full_state: Tensor, tensors: list[Tensor], deterministic: bool) -> tuple[np.ndarray, np.ndarray]:
         state = self.models.representation.policy_state(full_state)
         n, spec = state.shape[0], self.spec.action
         log_prob = torch.zeros(n, device=self.device)
@@ -299,33 +337,35 @@ class SAC:
 
     def _window_values(
         self,
-        obs: list[Tensor],
+        online: Tensor,
+        target: Tensor,
+        action_mask: Tensor | None,
         actions: Tensor,
         noise: Tensor,
         alpha: Tensor,
         alpha_d: Tensor,
         heads: Tensor | None,
     ) -> tuple[Tensor, Tensor]:
-        """For V-trace: soft values ``V(o_t) [B, L + 1]`` at every window position and the current
-        policy's ``log pi(a_t|o_t) [B, L]`` of the stored actions (greedy dqn-like branches: 0 for the
-        greedy action, ``MASKED_LOG_PROB`` otherwise, so the trace is cut where behaviour left it)."""
-        b, positions = actions.shape[0], actions.shape[1] + 1
-        flat = [o.flatten(0, 1) for o in obs]
-        state, mask = self.models.representation(flat), self._mask(flat)
+        """For V-trace: soft values ``V(o_t) [B, P]`` at every window position (online and target
+        states ``[B, P, D]``) and the current policy's ``log pi(a_t|o_t) [B, P - 1]`` of the stored
+        actions (greedy dqn-like branches: 0 for the greedy action, ``MASKED_LOG_PROB`` otherwise,
+        so the trace is cut where behaviour left it)."""
+        b, positions = online.shape[:2]
+        state = online.flatten(0, 1)
+        mask = None if action_mask is None else action_mask.flatten(0, 1)
         pi = self._policy(state, noise.flatten(0, 1), mask)
-        q = self.target_q(self.target_representation(flat), pi.continuous, heads).min(dim=0).values
+        q = self.target_q(target.flatten(0, 1), pi.continuous, heads).min(dim=0).values
         values = soft_value(q, pi, alpha, alpha_d, self._branches).view(b, positions)
 
         taken = actions.flatten(0, 1)
         steps = torch.arange(b * positions, device=actions.device).view(b, positions)[:, :-1].flatten()
         log_pi = torch.zeros(steps.shape[0], device=actions.device)
         policy_state = self.models.representation.policy_state(state[steps])
+        d = self.spec.action.discrete_size
         if self.models.policy is not None:
-            d = self.spec.action.discrete_size
             log_pi = log_pi + self.models.policy.log_prob(policy_state, taken[:, d:])
         if self._branches is not None:
             assert pi.probs is not None
-            d = self.spec.action.discrete_size
             chosen = taken[:, :d] > 0.5
             if pi.log_probs is not None:
                 per_action = pi.log_probs[steps]
@@ -334,38 +374,95 @@ class SAC:
             log_pi = log_pi + torch.where(chosen, per_action, 0.0).sum(dim=-1)
         return values, log_pi.view(b, positions - 1)
 
+    def _sequence_states(
+        self, obs: list[Tensor], actions: Tensor, prev_actions: Tensor, mask: Tensor, rnn_state: Tensor
+    ) -> tuple[Tensor, Tensor]:
+        """``use_rnn``: online and target states ``[B, L + 1, H]`` at every obs position of the window,
+        from the stored state at its first valid row. Position ``L`` (after the last step) reads the
+        last action as its previous action; positions before the first valid row keep the state."""
+        first = mask.long().argmax(dim=1)  # the first valid step (look-back rows before it are masked)
+        positions = torch.arange(mask.shape[1] + 1, device=mask.device)
+        valid = positions[None, :] >= first[:, None]
+        prev = torch.cat([prev_actions, actions[:, -1:]], dim=1)
+        rep, target_rep = self.models.representation, self.target_representation
+        assert isinstance(rep, RecurrentRepresentation) and isinstance(target_rep, RecurrentRepresentation)
+        burn_in = self.sac.burn_in_step
+        online = rep.sequence(obs, prev, rnn_state, valid, burn_in, self.sac.burn_in_gradient)
+        with torch.no_grad():
+            target = target_rep.sequence(obs, prev, rnn_state, valid, burn_in)
+        return online, target
+
     def _losses(
         self,
         obs: list[Tensor],
         actions: Tensor,
+        prev_actions: Tensor,
         rewards: Tensor,
         terminated: Tensor,
         truncated: Tensor,
         mask: Tensor,
         behaviour_logp: Tensor,
+        rnn_state: Tensor | None,
         weights: Tensor | None,
         noise: Tensor,
         target_heads: Tensor | None,
         policy_heads: Tensor | None,
     ) -> tuple[Tensor, Tensor, Tensor, Tensor, Metrics]:
         """The SAC losses from the current parameters: ``(q_loss, policy_loss, alpha_loss, td_abs,
-        metrics)``. Batch tensors are ``[B, L(+1), ...]``; ``noise [B, L + 2, A]`` feeds the action
-        samples: position 0 the policy loss's, 1.. the target's (only ``noise[:, 1]`` without V-trace,
-        the value at the bootstrap observation). Pure tensor code, so ``compile=True`` can compile it."""
+        metrics)``. Batch tensors are ``[B, L(+1), ...]``; the trained step is step ``burn_in_step``
+        of each window (the sampled key; earlier steps only warm up a recurrent state). ``noise
+        [B, n_step + 2, A]`` feeds the action samples: position 0 the policy loss's, 1.. the
+        target's (only ``noise[:, 1]`` without V-trace, the value at the bootstrap observation)."""
         sac, dev, branches = self.sac, self.device, self._branches
-        rep, q = self.models.representation, self.models.q
+        q = self.models.q
         alpha = self.log_alpha.detach().exp()
         alpha_d = self.log_alpha_discrete.detach().exp()
         metrics: Metrics = {"learner/alpha": alpha}
         if alpha_d.numel():
             metrics["learner/alpha_discrete"] = alpha_d
 
-        # 1. Target y for step 0 of each window: n-step return + gamma^m V(o_m)  (eq. 2, 3, 5), or the
+        # 0. States at the window's observation positions from the trained step on. A recurrent
+        #    representation runs over the whole window (burn-in first); otherwise states are computed
+        #    only where they are needed: at the trained step and at the bootstrap position.
+        burn_in = sac.burn_in_step
+        sequences = None
+        if rnn_state is not None:
+            online_seq, target_seq = self._sequence_states(obs, actions, prev_actions, mask, rnn_state)
+            sequences = (online_seq[:, burn_in:], target_seq[:, burn_in:])
+        obs = [o[:, burn_in:] for o in obs]
+        actions, rewards, terminated, truncated, mask, behaviour_logp = (
+            x[:, burn_in:] for x in (actions, rewards, terminated, truncated, mask, behaviour_logp)
+        )
+        action_masks = None if self._mask_index is None else obs[self._mask_index] > 0.5
+
+        def states_at(index: Tensor | int | None, target: bool) -> Tensor:
+            """States ``[B, D]`` at position ``index`` (a ``[B]`` tensor or an int), or ``[B, P, D]``
+            at every position (None)."""
+            if sequences is not None:
+                seq = sequences[1] if target else sequences[0]
+                if index is None:
+                    return seq
+                return seq[:, index] if isinstance(index, int) else gather_positions(seq, index)
+            rep = self.target_representation if target else self.models.representation
+            if index is None:
+                b, p = obs[0].shape[:2]
+                return rep([o.flatten(0, 1) for o in obs]).view(b, p, -1)
+            return rep([o[:, index] if isinstance(index, int) else gather_positions(o, index) for o in obs])
+
+        def masks_at(index: Tensor | int | None) -> Tensor | None:
+            if action_masks is None or index is None:
+                return action_masks
+            return action_masks[:, index] if isinstance(index, int) else gather_positions(action_masks, index)
+
+        # 1. Target y for the trained step: n-step return + gamma^m V(o_m)  (eq. 2, 3, 5), or the
         #    V-trace estimate over the window (returns.vtrace_target).
         with torch.no_grad():
             valid = valid_steps(mask, terminated, truncated)
             if sac.use_n_step_is:
-                values, log_pi = self._window_values(obs, actions, noise[:, 1:], alpha, alpha_d, target_heads)
+                values, log_pi = self._window_values(
+                    states_at(None, False), states_at(None, True), masks_at(None),
+                    actions, noise[:, 1:], alpha, alpha_d, target_heads,
+                )  # fmt: skip
                 y, rho = vtrace_target(
                     rewards, terminated, valid, values, log_pi - behaviour_logp,
                     sac.gamma, sac.v_lambda, sac.v_rho, sac.v_c,
@@ -374,20 +471,20 @@ class SAC:
                 metrics["learner/vtrace_rho"] = rho[weighted] if weighted.any() else torch.ones(1, device=dev)
                 v = values[:, 1]
             else:
-                next_obs = [gather_positions(o, bootstrap_index(valid)) for o in obs]
-                next_pi = self._policy(rep(next_obs), noise[:, 1], self._mask(next_obs))
-                next_q = self.target_q(self.target_representation(next_obs), next_pi.continuous, target_heads)
+                m = bootstrap_index(valid)
+                next_pi = self._policy(states_at(m, False), noise[:, 1], masks_at(m))
+                next_q = self.target_q(states_at(m, True), next_pi.continuous, target_heads)
                 v = soft_value(next_q.min(dim=0).values, next_pi, alpha, alpha_d, branches)
                 y = n_step_target(rewards, terminated, valid, v, sac.gamma)
-            obs0, action0 = [o[:, 0] for o in obs], actions[:, 0]
+            action0 = actions[:, 0]
             old_q = None
             if sac.clip_epsilon is not None:
-                old_q = self._q_taken(self.target_q, self.target_representation(obs0), action0)
+                old_q = self._q_taken(self.target_q, states_at(0, True), action0)
 
         # 2. Critic loss; the policy and alpha losses on the detached state.
-        state = rep(obs0)
+        state = states_at(0, False)
         q_loss, td_abs, q_metrics = critic_loss(self._q_taken(q, state, action0), y, weights, sac.clip_epsilon, old_q)
-        pi = self._policy(state.detach(), noise[:, 0], self._mask(obs0))
+        pi = self._policy(state.detach(), noise[:, 0], masks_at(0))
         q_pi = q(state.detach(), pi.continuous, policy_heads, detach_params=True).min(dim=0).values
         pi_loss, pi_metrics = policy_loss(q_pi, pi, alpha, alpha_d, branches)
         a_loss = torch.zeros((), device=dev)
@@ -420,7 +517,7 @@ class SAC:
         if self._noisy:
             reset_noise(self.models, self._learn_rng)
             reset_noise(self.target_q, self._learn_rng)
-        samples = batch.window + 2 if sac.use_n_step_is else 2  # see _losses
+        samples = sac.n_step + 2 if sac.use_n_step_is else 2  # see _losses
         noise = torch.randn(
             batch.batch_size, samples, self.spec.action.continuous_dim, generator=self._learn_rng, device=dev
         )
@@ -428,11 +525,13 @@ class SAC:
             q_loss, pi_loss, a_loss, td_abs, metric_tensors = self._compute_losses(
                 self._normalize([torch.from_numpy(o).to(dev) for o in batch.obs]),
                 torch.from_numpy(batch.actions).to(dev),
+                torch.from_numpy(batch.prev_actions).to(dev),
                 torch.from_numpy(batch.rewards).to(dev),
                 torch.from_numpy(batch.terminated).to(dev),
                 torch.from_numpy(batch.truncated).to(dev),
                 torch.from_numpy(batch.mask).to(dev),
                 torch.from_numpy(batch.behaviour_logp).to(dev),
+                torch.from_numpy(batch.rnn_state).to(dev) if self.rnn_state_size else None,
                 weights,
                 noise,
                 self._subset(),
@@ -526,8 +625,12 @@ class SAC:
             got = getattr(batch, name).shape
             if got != shape:
                 raise ValueError(f"batch.{name} must have shape {shape}, got {got}")
-        if not batch.mask[:, 0].all():
-            raise ValueError("batch.mask[:, 0] must be True: every window starts at a stored step")
+        burn_in = self.sac.burn_in_step
+        if not batch.mask[:, burn_in].all():
+            raise ValueError(f"batch.mask[:, {burn_in}] must be True: the sampled step of every window is stored")
+        if self.rnn_state_size and (batch.rnn_state is None or batch.rnn_state.shape != (n_b, self.rnn_state_size)):
+            got = None if batch.rnn_state is None else batch.rnn_state.shape
+            raise ValueError(f"batch.rnn_state must have shape {(n_b, self.rnn_state_size)} with use_rnn, got {got}")
         if self.sac.use_priority and batch.table_size < 1:
             raise ValueError(f"batch.table_size must be >= 1 with use_priority, got {batch.table_size}")
 

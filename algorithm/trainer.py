@@ -118,7 +118,15 @@ class EmbeddedTrainer:
         spec = self.env.spec
         self.sac = SAC(spec, sac_cfg, config.nn_config, replay_cfg, device=device, compile=sac_cfg.compile)
         window = sac_cfg.burn_in_step + sac_cfg.n_step
-        self.table = PrioritizedTable.from_config(replay_cfg, spec.sensors, spec.action.size, window, seed=seed)
+        self.table = PrioritizedTable.from_config(
+            replay_cfg,
+            spec.sensors,
+            spec.action.size,
+            window,
+            rnn_state_size=self.sac.rnn_state_size,
+            seed=seed,
+            burn_in=sac_cfg.burn_in_step,
+        )
         self.actor = ActorLoop(
             self.env,
             self.sac,

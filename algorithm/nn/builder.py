@@ -13,6 +13,7 @@ from algorithm.nn.models import (
     VectorRepresentation,
 )
 from algorithm.nn.normalization import ObservationNormalizer
+from algorithm.nn.recurrent import RecurrentRepresentation
 from algorithm.spaces import EnvSpec
 
 
@@ -27,6 +28,8 @@ def build_models(spec: EnvSpec, sac: SacConfig, nn: NNConfig) -> SacModels:
         rep = MultiSensorRepresentation(spec.sensors, nn.conv_features, nn.critic_only, nn.activation)
     else:
         rep = VectorRepresentation(spec.sensors)
+    if sac.use_rnn:
+        rep = RecurrentRepresentation(rep, act.size, nn.rnn_units, nn.rnn_type)
     q_sigma = nn.noisy_sigma0 if nn.noisy_q else None
     policy_sigma = nn.noisy_sigma0 if nn.noisy_policy else None
     q = QEnsemble(

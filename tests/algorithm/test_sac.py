@@ -407,7 +407,6 @@ def test_bad_batches_get_clear_errors() -> None:
 @pytest.mark.parametrize(
     "key",
     [
-        "use_rnn",
         "use_prediction",
         "use_curiosity",
         "use_rnd",

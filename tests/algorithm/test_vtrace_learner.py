@@ -59,11 +59,13 @@ def make_batch(spec: EnvSpec, behaviour_logp: np.ndarray | None = None, seed: in
 
 
 def current_log_pi(sac: SAC, batch: Batch) -> np.ndarray:
-    obs = [torch.from_numpy(o) for o in batch.obs]
+    obs = torch.from_numpy(batch.obs[0])
     noise = torch.zeros(B, N_STEP + 1, sac.spec.action.continuous_dim)
     with torch.no_grad():
-        _, log_pi = sac._window_values(obs, torch.from_numpy(batch.actions), noise, torch.tensor(0.1),
-                                       sac.log_alpha_discrete.exp(), None)  # fmt: skip
+        online = sac.models.representation([obs.flatten(0, 1)]).view(B, N_STEP + 1, -1)
+        target = sac.target_representation([obs.flatten(0, 1)]).view(B, N_STEP + 1, -1)
+        _, log_pi = sac._window_values(online, target, None, torch.from_numpy(batch.actions), noise,
+                                       torch.tensor(0.1), sac.log_alpha_discrete.exp(), None)  # fmt: skip
     return log_pi.numpy()
 
 
