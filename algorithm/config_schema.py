@@ -100,10 +100,11 @@ class SacConfig(Section):
     use_prediction: bool = False
     transition_kl: float = 0.8
     use_extra_data: bool = True
-    use_curiosity: bool = False
-    curiosity_strength: float = 1.0
-    use_rnd: bool = False
-    rnd_n_sample: int = Field(10, ge=1)
+    use_curiosity: bool = Field(False, description="Intrinsic reward from a forward model's error, in targets only.")
+    curiosity_strength: float = Field(1.0, ge=0.0, description="Scale of the curiosity reward.")
+    curiosity_inverse: bool = Field(False, description="Learn curiosity features with an inverse model (ICM).")
+    use_rnd: bool = Field(False, description="Act with the most novel of rnd_n_sample policy actions (RND).")
+    rnd_n_sample: int = Field(10, ge=1, description="Policy actions drawn per step to pick the most novel from.")
     use_normalization: bool = False
     max_nonfinite_steps: int = Field(100, ge=1, description="Consecutive skipped (non-finite) updates before stopping.")
     compile: bool = Field(False, description="torch.compile the losses; 5-10% slower on CPU (bench/learner.py).")

@@ -60,7 +60,7 @@ class UpdateResult:
     skipped: bool = False
 
 
-_NOT_BUILT = ("use_prediction", "use_curiosity", "use_rnd")
+_NOT_BUILT = ("use_prediction",)
 
 
 def check_supported(spec: EnvSpec, sac: SacConfig) -> None:
@@ -161,6 +161,11 @@ class SAC:
         self.critic_optimizer = self._adam(self._critic_params)
         self.policy_optimizer = self._adam(self._policy_params) if self._policy_params else None
         self.alpha_optimizer = self._adam(alpha_params) if sac.use_auto_alpha and alpha_params else None
+        auxiliary = [m for m in (self.models.curiosity, self.models.rnd) if m is not None]
+        self._auxiliary_params: list[Tensor] = [p for m in auxiliary for p in m.parameters() if p.requires_grad]
+        self.auxiliary_optimizer = self._adam(self._auxiliary_params) if self._auxiliary_params else None
+        if self.models.rnd is not None:
+            self._acting["rnd"] = self.models.rnd  # actors choose by novelty
         self._target_params: list[Tensor] = [
             *self.target_representation.parameters(),
             *self.target_q.parameters(),
@@ -244,12 +249,22 @@ class SAC:
         try:
             if full_state is None:
                 full_state = self.models.representation(tensors)
-            return self._act(full_state, tensors, deterministic)
+            if self.models.rnd is None or deterministic:
+                action, log_prob = self._act(full_state, tensors, deterministic)
+            else:  # the most novel of rnd_n_sample policy actions per env
+                n, k = full_state.shape[0], self.sac.rnd_n_sample
+                repeated = full_state.repeat_interleave(k, dim=0)
+                candidates, log_probs = self._act(repeated, [t.repeat_interleave(k, dim=0) for t in tensors], False)
+                novelty = self.models.rnd.novelty(repeated, candidates).view(n, k)
+                pick = novelty.argmax(dim=1) + torch.arange(n, device=self.device) * k
+                # log-prob under the policy alone: the selection's own probability has no closed form
+                action, log_prob = candidates[pick], log_probs[pick]
+            return action.cpu().numpy(), log_prob.cpu().numpy()
         finally:
             if self._noisy and deterministic:
                 set_noise(self._acting, True)
 
-    def _act(self, full_state: Tensor, tensors: list[Tensor], deterministic: bool) -> tuple[np.ndarray, np.ndarray]:
+    def _act(self, full_state: Tensor, tensors: list[Tensor], deterministic: bool) -> tuple[Tensor, Tensor]:
         state = self.models.representation.policy_state(full_state)
         n, spec = state.shape[0], self.spec.action
         log_prob = torch.zeros(n, device=self.device)
@@ -282,7 +297,7 @@ class SAC:
         if continuous is not None:
             parts.append(continuous)
         action = parts[0] if len(parts) == 1 else torch.cat(parts, dim=-1)
-        return action.cpu().numpy(), log_prob.cpu().numpy()
+        return action, log_prob
 
     def _normalize(self, obs: list[Tensor]) -> list[Tensor]:
         return obs if self.models.normalizer is None else self.models.normalizer(obs)
@@ -407,10 +422,10 @@ class SAC:
         noise: Tensor,
         target_heads: Tensor | None,
         policy_heads: Tensor | None,
-    ) -> tuple[Tensor, Tensor, Tensor, Tensor, Metrics]:
-        """The SAC losses from the current parameters: ``(q_loss, policy_loss, alpha_loss, td_abs,
-        metrics)``. Batch tensors are ``[B, L(+1), ...]``; the trained step is step ``burn_in_step``
-        of each window (the sampled key; earlier steps only warm up a recurrent state). ``noise
+    ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Metrics]:
+        """The SAC losses from the current parameters: ``(q_loss, policy_loss, alpha_loss,
+        auxiliary_loss, td_abs, metrics)``. Batch tensors are ``[B, L(+1), ...]``; the trained step
+        is step ``burn_in_step`` of each window (the sampled key; earlier steps only warm up a recurrent state). ``noise
         [B, n_step + 2, A]`` feeds the action samples: position 0 the policy loss's, 1.. the
         target's (only ``noise[:, 1]`` without V-trace, the value at the bootstrap observation)."""
         sac, dev, branches = self.sac, self.device, self._branches
@@ -454,6 +469,27 @@ class SAC:
                 return action_masks
             return action_masks[:, index] if isinstance(index, int) else gather_positions(action_masks, index)
 
+        # Exploration models: curiosity rewards (targets only) and their training losses.
+        aux_loss = torch.zeros((), device=dev)
+        if self.models.curiosity is not None:
+            states = states_at(None, False).detach()
+            b, p = states.shape[:2]
+            forward_error, inverse_error = (
+                e.view(b, p - 1)
+                for e in self.models.curiosity.errors(
+                    states[:, :-1].flatten(0, 1), actions.flatten(0, 1), states[:, 1:].flatten(0, 1)
+                )
+            )
+            trained = valid_steps(mask, terminated, truncated)
+            intrinsic = sac.curiosity_strength * torch.where(trained, forward_error.detach(), 0.0)
+            rewards = rewards + intrinsic
+            aux_loss = aux_loss + ((forward_error + inverse_error) * trained).sum() / trained.sum()
+            metrics["learner/curiosity_reward"] = intrinsic[:, 0]
+        if self.models.rnd is not None:
+            novelty = self.models.rnd.novelty(states_at(0, False).detach(), actions[:, 0])
+            aux_loss = aux_loss + novelty.mean()
+            metrics["learner/rnd_novelty"] = novelty.detach()
+
         # 1. Target y for the trained step: n-step return + gamma^m V(o_m)  (eq. 2, 3, 5), or the
         #    V-trace estimate over the window (returns.vtrace_target).
         with torch.no_grad():
@@ -494,8 +530,8 @@ class SAC:
             if pi.log_probs is not None and branches is not None:
                 expected = expected_log_prob(pi, branches)
                 a_loss = a_loss + alpha_loss(self.log_alpha_discrete, expected, self.discrete_target_entropy)[0]
-        metrics.update({**q_metrics, **pi_metrics, "learner/next_value": v})
-        return q_loss, pi_loss, a_loss, td_abs, metrics
+        metrics.update({**q_metrics, **pi_metrics, "learner/next_value": v, "learner/auxiliary_loss": aux_loss})
+        return q_loss, pi_loss, a_loss, aux_loss, td_abs, metrics
 
     def update(self, batch: Batch, with_metrics: bool = False) -> UpdateResult:
         """One gradient step on every part from one batch (ARCHITECTURE.md 4).
@@ -522,7 +558,7 @@ class SAC:
             batch.batch_size, samples, self.spec.action.continuous_dim, generator=self._learn_rng, device=dev
         )
         with torch.autocast(dev.type, dtype=torch.bfloat16, enabled=self._low_precision):
-            q_loss, pi_loss, a_loss, td_abs, metric_tensors = self._compute_losses(
+            q_loss, pi_loss, a_loss, aux_loss, td_abs, metric_tensors = self._compute_losses(
                 self._normalize([torch.from_numpy(o).to(dev) for o in batch.obs]),
                 torch.from_numpy(batch.actions).to(dev),
                 torch.from_numpy(batch.prev_actions).to(dev),
@@ -542,9 +578,11 @@ class SAC:
         #    alpha_loss detaches log_prob, the target is no-grad), so each gets exactly its own grads.
         for opt in self._optimizers():
             opt.zero_grad(set_to_none=True)
-        (q_loss + pi_loss + a_loss).backward()
+        (q_loss + pi_loss + a_loss + aux_loss).backward()
         critic_norm, policy_norm = _grad_norm(self._critic_params), _grad_norm(self._policy_params)
-        checks = torch.stack([q_loss.detach(), pi_loss.detach(), a_loss.detach(), critic_norm, policy_norm])
+        checks = torch.stack(
+            [q_loss.detach(), pi_loss.detach(), a_loss.detach(), aux_loss.detach(), critic_norm, policy_norm]
+        )
 
         # 4. Apply, or skip the whole step if anything is non-finite.
         skipped = not bool(torch.isfinite(checks).all())  # the one host sync of the step
@@ -592,7 +630,7 @@ class SAC:
         self.nonfinite_skipped += 1
         self._consecutive_nonfinite += 1
         if self._consecutive_nonfinite >= self.sac.max_nonfinite_steps:
-            names = ("q_loss", "policy_loss", "alpha_loss", "grad_norm_critic", "grad_norm_policy")
+            names = ("q_loss", "policy_loss", "alpha_loss", "auxiliary_loss", "grad_norm_critic", "grad_norm_policy")
             values = ", ".join(f"{n}={v:.4g}" for n, v in zip(names, checks.tolist(), strict=True))
             raise RuntimeError(
                 f"{self._consecutive_nonfinite} consecutive SAC updates had non-finite losses or gradients "
@@ -685,6 +723,8 @@ class SAC:
             named["policy"] = self.policy_optimizer
         if self.alpha_optimizer is not None:
             named["alpha"] = self.alpha_optimizer
+        if self.auxiliary_optimizer is not None:
+            named["auxiliary"] = self.auxiliary_optimizer
         return named
 
     def acting_state_dict(self) -> dict[str, Tensor]:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from algorithm.config_schema import NNConfig, SacConfig
 from algorithm.nn.encoders import MultiSensorRepresentation
+from algorithm.nn.exploration import Curiosity, RandomNetworkDistillation
 from algorithm.nn.models import (
     DiscretePolicy,
     QEnsemble,
@@ -58,4 +59,8 @@ def build_models(spec: EnvSpec, sac: SacConfig, nn: NNConfig) -> SacModels:
             rep.policy_state_dim, act.discrete_branches, nn.hidden_units, nn.activation, policy_sigma
         )
     normalizer = ObservationNormalizer(spec.sensors) if sac.use_normalization else None
-    return SacModels(rep, q, policy, discrete_policy, normalizer)
+    curiosity = None
+    if sac.use_curiosity:
+        curiosity = Curiosity(rep.state_dim, act.size, nn.hidden_units, sac.curiosity_inverse)
+    rnd = RandomNetworkDistillation(rep.state_dim, act.size, nn.hidden_units) if sac.use_rnd else None
+    return SacModels(rep, q, policy, discrete_policy, normalizer, curiosity, rnd)

@@ -239,8 +239,12 @@ class SacModels(nn.Module):
         policy: TanhGaussianPolicy | None,
         discrete_policy: DiscretePolicy | None = None,
         normalizer: ObservationNormalizer | None = None,
+        curiosity: nn.Module | None = None,
+        rnd: nn.Module | None = None,
     ) -> None:
         super().__init__()
+        self.curiosity = curiosity  # nn.exploration.Curiosity with use_curiosity
+        self.rnd = rnd  # nn.exploration.RandomNetworkDistillation with use_rnd
         self.normalizer = normalizer  # ObservationNormalizer with use_normalization, applied before representation
         self.representation = representation
         self.q = q

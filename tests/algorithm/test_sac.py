@@ -408,8 +408,6 @@ def test_bad_batches_get_clear_errors() -> None:
     "key",
     [
         "use_prediction",
-        "use_curiosity",
-        "use_rnd",
     ],
 )
 def test_features_not_built_yet_name_their_key(key: str) -> None:

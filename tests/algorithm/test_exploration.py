@@ -1,0 +1,101 @@
+"""Curiosity and RND in the learner: intrinsic rewards reach the targets only, the models train,
+RND's target stays frozen and checkpointed, and acting picks the most novel candidate."""
+
+from __future__ import annotations
+
+import copy
+from collections.abc import Iterator
+from typing import Any
+
+import numpy as np
+import pytest
+import torch
+
+from algorithm.config_schema import NNConfig, ReplayConfig, SacConfig
+from algorithm.sac import SAC
+from algorithm.spaces import ActionSpec, EnvSpec, SensorSpec
+from tests.algorithm.test_sac import make_batch
+
+OBS, ACT = 3, 2
+SPEC = EnvSpec((SensorSpec("obs", (OBS,)),), ActionSpec((), ACT, (-1.0,) * ACT, (1.0,) * ACT))
+
+
+@pytest.fixture(autouse=True)
+def _one_thread() -> Iterator[None]:
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
+def predictable_batch():  # noqa: ANN201
+    """32 one-step windows whose next observation is a fixed function of observation and action."""
+    batch = make_batch(b=32)
+    obs, action = batch.obs[0], batch.actions[:, 0]
+    obs[:, 1] = obs[:, 0] + np.concatenate([action, action[:, :1]], axis=1)
+    return batch
+
+
+def make_sac(**sac: Any) -> SAC:
+    return SAC(
+        SPEC, SacConfig(**{"seed": 1, "use_priority": False, **sac}), NNConfig(hidden_units=[16]), ReplayConfig()
+    )
+
+
+@pytest.mark.parametrize("inverse", [False, True])
+def test_curiosity_adds_its_reward_to_the_target_only_and_learns_to_predict(inverse: bool) -> None:
+    batch = predictable_batch()
+    rewards_before = batch.rewards.copy()
+    plain = make_sac(learning_rate=3e-3).update(batch, with_metrics=True).metrics
+    curious_sac = make_sac(use_curiosity=True, curiosity_strength=2.0, curiosity_inverse=inverse, learning_rate=3e-3)
+    curious = curious_sac.update(batch, with_metrics=True).metrics
+    np.testing.assert_array_equal(batch.rewards, rewards_before)  # stored rewards never change
+    assert curious["learner/curiosity_reward"] > 0
+    # one-step windows: y = r + 2 * forward error + gamma V(o_1), with everything else identical
+    assert curious["learner/target_mean"] == pytest.approx(
+        plain["learner/target_mean"] + curious["learner/curiosity_reward"], rel=1e-5
+    )
+    first = curious["learner/curiosity_reward"]
+    for _ in range(100):
+        last = curious_sac.update(batch, with_metrics=True).metrics["learner/curiosity_reward"]
+    assert last < 0.5 * first  # the forward model learns the transitions it sees
+
+
+def test_rnd_target_stays_frozen_its_predictor_learns_and_both_are_checkpointed() -> None:
+    sac = make_sac(use_rnd=True, learning_rate=3e-3)
+    assert sac.models.rnd is not None
+    target = copy.deepcopy(sac.models.rnd.target.state_dict())
+    batch = make_batch(b=32)
+    first = sac.update(batch, with_metrics=True).metrics["learner/rnd_novelty"]
+    for _ in range(100):
+        last = sac.update(batch, with_metrics=True).metrics["learner/rnd_novelty"]
+    assert last < 0.5 * first
+    for name, value in sac.models.rnd.target.state_dict().items():
+        assert torch.equal(value, target[name]), name
+    state = sac.state_dict()
+    assert any(k.startswith("rnd.target.") for k in state["models"])
+    assert any(k.startswith("rnd.") for k in sac.acting_state_dict())  # actors need it to choose
+    restored = make_sac(use_rnd=True, learning_rate=3e-3, seed=9)
+    restored.load_state_dict(copy.deepcopy(state))
+    for name, value in restored.models.rnd.state_dict().items():  # type: ignore[union-attr]
+        assert torch.equal(value, sac.models.rnd.state_dict()[name]), name
+
+
+def test_rnd_acting_picks_more_novel_actions_than_the_policy_alone() -> None:
+    with_rnd, without = make_sac(use_rnd=True, rnd_n_sample=10), make_sac(use_rnd=True, rnd_n_sample=1)
+    without.load_state_dict(copy.deepcopy(with_rnd.state_dict()))
+    obs = [np.tile(np.array([[0.2, -0.4, 0.7]], dtype=np.float32), (500, 1))]
+    rnd = with_rnd.models.rnd
+    assert rnd is not None
+
+    def novelty(actions: np.ndarray) -> float:
+        state = with_rnd.models.representation([torch.from_numpy(obs[0])])
+        with torch.no_grad():
+            return float(rnd.novelty(state, torch.from_numpy(actions)).mean())
+
+    picked, _ = with_rnd.act(obs)
+    plain, _ = without.act(obs)
+    assert novelty(picked) > 1.2 * novelty(plain)
+    deterministic_a, _ = with_rnd.act(obs, deterministic=True)
+    deterministic_b, _ = without.act(obs, deterministic=True)
+    np.testing.assert_array_equal(deterministic_a, deterministic_b)  # evaluation ignores novelty
