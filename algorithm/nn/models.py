@@ -15,6 +15,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from algorithm.nn.exploration import Curiosity, RandomNetworkDistillation
 from algorithm.nn.layers import EnsembleLinear, activation, in_float32, mlp
 from algorithm.nn.noisy import NoisyEnsembleLinear, NoisyLinear
 from algorithm.nn.normalization import ObservationNormalizer
@@ -239,12 +240,12 @@ class SacModels(nn.Module):
         policy: TanhGaussianPolicy | None,
         discrete_policy: DiscretePolicy | None = None,
         normalizer: ObservationNormalizer | None = None,
-        curiosity: nn.Module | None = None,
-        rnd: nn.Module | None = None,
+        curiosity: Curiosity | None = None,
+        rnd: RandomNetworkDistillation | None = None,
     ) -> None:
         super().__init__()
-        self.curiosity = curiosity  # nn.exploration.Curiosity with use_curiosity
-        self.rnd = rnd  # nn.exploration.RandomNetworkDistillation with use_rnd
+        self.curiosity = curiosity  # with use_curiosity
+        self.rnd = rnd  # with use_rnd
         self.normalizer = normalizer  # ObservationNormalizer with use_normalization, applied before representation
         self.representation = representation
         self.q = q
