@@ -14,6 +14,7 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 import argparse
 import logging
 import random
+import shutil
 import sys
 import time
 from collections.abc import Callable
@@ -25,6 +26,7 @@ from algorithm.checkpoint import CheckpointError, checkpoint_path, load_checkpoi
 from algorithm.config import ConfigError, apply_overrides, config_from_yaml, load_config
 from algorithm.config_schema import Config
 from algorithm.evaluation import evaluate
+from algorithm.nn.user import ModelBuilder, model_builder
 from algorithm.sac import SAC
 from algorithm.trainer import EmbeddedTrainer, RunDir, seed_everything
 from envs.make import VectorEnv, make_env, vector_env_factory
@@ -92,12 +94,31 @@ def cli_overrides(args: argparse.Namespace) -> list[str]:
     return overrides + list(args.override)
 
 
-def check_nn_file(task: Path, config: Config) -> None:
-    if (task / f"{config.base_config.nn}.py").exists():
-        raise UsageError(
-            f"{task / (config.base_config.nn + '.py')}: custom nn.py models are not supported yet; "
-            "models are built from nn_config"
-        )
+def copy_model_file(task: Path, config: Config, run_dir: Path, explicit: bool) -> None:
+    """Copy the task's model file (``base_config.nn``, ``--nn``) into a new run directory; a run that
+    already has one keeps it (resume). An explicit ``--nn`` naming a missing file is an error."""
+    source = task / f"{config.base_config.nn}.py"
+    target = RunDir(run_dir).model_file
+    if not source.is_file():
+        if explicit:
+            raise UsageError(f"--nn {config.base_config.nn}: no model file {source}")
+        return
+    if target.exists():
+        return
+    try:
+        model_builder(source)  # fail now, naming the file, rather than after the run directory exists
+    except (ImportError, AttributeError) as e:
+        raise UsageError(str(e)) from None
+    run_dir.mkdir(parents=True, exist_ok=True)
+    shutil.copyfile(source, target)
+
+
+def run_model_builder(paths: RunDir) -> ModelBuilder:
+    """Models as the run built them: from its copied model file when it has one."""
+    try:
+        return model_builder(paths.model_file if paths.model_file.exists() else None)
+    except (ImportError, AttributeError) as e:
+        raise UsageError(str(e)) from None
 
 
 def env_factory(config: Config) -> Callable[[int, int | None], VectorEnv]:
@@ -121,7 +142,6 @@ def train(args: argparse.Namespace) -> int:
     task = task_dir(args.env)
     resolved = load_config(task, args.config, cli_overrides(args))
     config = resolved.config
-    check_nn_file(task, config)
     name_template = args.name or config.base_config.name
     for repeat in range(args.repeat):
         run_config = config.model_copy(deep=True)
@@ -140,6 +160,7 @@ def train(args: argparse.Namespace) -> int:
         elif args.repeat > 1:
             run_config.sac_config.seed = int(run_config.sac_config.seed) + repeat
         run_config.base_config.name = name
+        copy_model_file(task, run_config, run_dir, explicit=args.nn is not None)
         setup_logging(run_dir, args.logger_in_file)
         log.info("run %s (seed %s)", run_dir, run_config.sac_config.seed)
         trainer = EmbeddedTrainer(
@@ -191,7 +212,8 @@ def play(args: argparse.Namespace) -> int:
     if args.render:
         return _play_rendered(config, state, run_dir, ckpt.stem, episodes, limit, args.device)
     env = env_factory(config)(min(episodes, config.eval_config.eval_envs), seed)
-    sac = SAC(env.spec, config.sac_config, config.nn_config, config.replay_config, device=args.device)
+    sac = SAC(env.spec, config.sac_config, config.nn_config, config.replay_config, device=args.device,
+              build=run_model_builder(paths))  # fmt: skip
     _load_policy(sac, state, ckpt)
     result = evaluate(env, sac, episodes, seed)
     print(f"{run_dir} checkpoint {ckpt.stem}: return {result.mean:.1f} +- {result.std:.1f} over {episodes} episodes")
@@ -219,7 +241,8 @@ def _play_rendered(
     )
     venv = VectorEnv([env])  # sensors split and actions mapped exactly as in training
     spec = venv.spec
-    sac = SAC(spec, config.sac_config, config.nn_config, config.replay_config, device=device)
+    sac = SAC(spec, config.sac_config, config.nn_config, config.replay_config, device=device,
+              build=run_model_builder(RunDir(run_dir)))  # fmt: skip
     _load_policy(sac, state, run_dir / "model" / f"{step}.pt")
     frames: list[np.ndarray] = []
     returns = []

@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import copy
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -42,7 +42,7 @@ from algorithm.losses import (
     soft_value,
 )
 from algorithm.nn.builder import build_models
-from algorithm.nn.models import MASKED_LOG_PROB, masked_branch_one_hot_argmax
+from algorithm.nn.models import MASKED_LOG_PROB, SacModels, masked_branch_one_hot_argmax
 from algorithm.nn.noisy import NoisyLayer, reset_noise, set_noise
 from algorithm.nn.recurrent import RecurrentRepresentation
 from algorithm.returns import bootstrap_index, gather_positions, n_step_target, valid_steps, vtrace_target
@@ -95,6 +95,7 @@ class SAC:
         replay: ReplayConfig,
         device: str | torch.device = "cpu",
         compile: bool = False,
+        build: Callable[[EnvSpec, SacConfig, NNConfig], SacModels] = build_models,
     ) -> None:
         check_supported(spec, sac)
         self.spec = spec
@@ -117,7 +118,7 @@ class SAC:
             init_seed, act_seed, learn_seed = (int(s) for s in np.random.SeedSequence(sac.seed).generate_state(3))
         with torch.random.fork_rng(devices=[]):
             torch.manual_seed(init_seed)
-            self.models = build_models(spec, sac, nn).to(self.device)
+            self.models = build(spec, sac, nn).to(self.device)
         self.target_representation = copy.deepcopy(self.models.representation).requires_grad_(False)
         self.target_q = copy.deepcopy(self.models.q).requires_grad_(False)
         self._act_rng = torch.Generator(device=self.device)

@@ -37,6 +37,7 @@ from algorithm.config import config_to_yaml
 from algorithm.config_schema import Config
 from algorithm.evaluation import append_evaluation, evaluate
 from algorithm.logging import MetricsWriter, ProgressLine, RateMeter, Timers
+from algorithm.nn.user import model_builder
 from algorithm.replay import PrioritizedTable
 from algorithm.sac import SAC
 
@@ -69,6 +70,11 @@ class RunDir:
     def evaluations(self) -> Path:
         return self.root / "evaluations.csv"
 
+    @property
+    def model_file(self) -> Path:
+        """The run's copy of the task's model file (nn/user.py), when the task has one."""
+        return self.root / "nn.py"
+
 
 @dataclass
 class TrainSummary:
@@ -99,7 +105,8 @@ class EmbeddedTrainer:
     ) -> None:
         """``make_env(num_envs, seed)`` builds the training envs (``n_agents``) and, with ``evaluate``
         and ``eval_per_step > 0``, separate evaluation envs (``eval_envs``); ``config.sac_config.seed``
-        must be resolved (not None)."""
+        must be resolved (not None). Models come from ``run_dir/nn.py`` when the run has one
+        (main.py copies the task's model file there)."""
         if config.sac_config.seed is None:
             raise ValueError("EmbeddedTrainer needs a resolved sac_config.seed (main.py picks one)")
         self.config = config
@@ -116,7 +123,11 @@ class EmbeddedTrainer:
         self.eval_env = make_env(config.eval_config.eval_envs, seed + EVAL_SEED_OFFSET) if evaluating else None
         self.eval_seed = seed + EVAL_SEED_OFFSET
         spec = self.env.spec
-        self.sac = SAC(spec, sac_cfg, config.nn_config, replay_cfg, device=device, compile=sac_cfg.compile)
+        model_file = self.paths.model_file if self.paths.model_file.exists() else None
+        self.sac = SAC(
+            spec, sac_cfg, config.nn_config, replay_cfg, device=device, compile=sac_cfg.compile,
+            build=model_builder(model_file),
+        )  # fmt: skip
         window = sac_cfg.burn_in_step + sac_cfg.n_step
         self.table = PrioritizedTable.from_config(
             replay_cfg,

@@ -8,11 +8,18 @@ import sys
 from pathlib import Path
 
 import pytest
+import torch
 
 ROOT = Path(__file__).resolve().parents[1]
 TINY_OVERRIDES = [
-    "sac.seed=3", "replay.samples_per_insert=null", "nn.hidden_units=[16,16]", "replay.batch_size=16",
-    "replay.min_size_to_sample=64", "base.max_step=250", "eval.eval_per_step=0", "eval.eval_episodes=2",
+    "sac.seed=3",
+    "replay.samples_per_insert=null",
+    "nn.hidden_units=[16,16]",
+    "replay.batch_size=16",
+    "replay.min_size_to_sample=64",
+    "base.max_step=250",
+    "eval.eval_per_step=0",
+    "eval.eval_episodes=2",
     "eval.eval_envs=2",
 ]
 TINY = [arg for override in TINY_OVERRIDES for arg in ("--override", override)] + ["--no_progress"]
@@ -21,8 +28,14 @@ TINY = [arg for override in TINY_OVERRIDES for arg in ("--override", override)] 
 def run_main(*args: str, cwd: Path, timeout: float = 180) -> subprocess.CompletedProcess[str]:
     env = {**os.environ, "OMP_WAIT_POLICY": "PASSIVE", "OMP_NUM_THREADS": "1", "MUJOCO_GL": "egl"}
     env.pop("DISPLAY", None)
-    return subprocess.run([sys.executable, str(ROOT / "main.py"), *args], cwd=cwd, env=env, text=True,
-                          capture_output=True, timeout=timeout)
+    return subprocess.run(
+        [sys.executable, str(ROOT / "main.py"), *args],
+        cwd=cwd,
+        env=env,
+        text=True,
+        capture_output=True,
+        timeout=timeout,
+    )
 
 
 @pytest.fixture(scope="module")
@@ -47,8 +60,18 @@ def test_run_plays_the_checkpoint_and_reports_a_return(trained: Path) -> None:
 
 
 def test_run_render_headless_writes_a_video(trained: Path) -> None:
-    done = run_main("gym/pendulum", "-n", "tiny", "--run", "--render", "--episodes", "1",
-                    "--override", "base.max_step_each_iter=20", cwd=trained)
+    done = run_main(
+        "gym/pendulum",
+        "-n",
+        "tiny",
+        "--run",
+        "--render",
+        "--episodes",
+        "1",
+        "--override",
+        "base.max_step_each_iter=20",
+        cwd=trained,
+    )
     assert done.returncode == 0, done.stderr
     video = trained / "models/gym/pendulum/tiny/play_250.mp4"
     assert video.is_file() and video.stat().st_size > 1000
@@ -103,8 +126,18 @@ def test_sigint_saves_and_the_same_command_resumes(tmp_path: Path) -> None:
     import signal
     import time
 
-    args = [sys.executable, str(ROOT / "main.py"), "gym/pendulum", "-n", "stopped", *TINY,
-            "--override", "base.max_step=-1", "--override", "replay.save_replay=true"]
+    args = [
+        sys.executable,
+        str(ROOT / "main.py"),
+        "gym/pendulum",
+        "-n",
+        "stopped",
+        *TINY,
+        "--override",
+        "base.max_step=-1",
+        "--override",
+        "replay.save_replay=true",
+    ]
     env = {**os.environ, "OMP_WAIT_POLICY": "PASSIVE", "OMP_NUM_THREADS": "1"}
     proc = subprocess.Popen(args, cwd=tmp_path, env=env, text=True, stderr=subprocess.PIPE)
     log_dir = tmp_path / "models/gym/pendulum/stopped/log"
@@ -120,8 +153,34 @@ def test_sigint_saves_and_the_same_command_resumes(tmp_path: Path) -> None:
     assert steps and max(steps) > 0
     assert (tmp_path / "models/gym/pendulum/stopped/replay/replay.npz").is_file()
 
-    done = run_main("gym/pendulum", "-n", "stopped", *TINY, "--override", f"base.max_step={max(steps) + 50}",
-                    cwd=tmp_path)
+    done = run_main(
+        "gym/pendulum", "-n", "stopped", *TINY, "--override", f"base.max_step={max(steps) + 50}", cwd=tmp_path
+    )
     assert done.returncode == 0, done.stderr
     assert f"resumed at {max(steps)} env steps" in done.stderr
     assert (model / f"{max(steps) + 50}.pt").is_file()
+
+
+def test_a_task_model_file_is_copied_into_the_run_and_used_by_run(tmp_path: Path) -> None:
+    source = ROOT / "envs/gym/pendulum/nn_layernorm.py"
+    result = run_main("gym/pendulum", "--nn", "nn_layernorm", "-n", "custom", "--model_root", str(tmp_path),
+                      "--no_progress", "--override", "base.max_step=300", "--override", "eval.eval_per_step=0",
+                      "--override", "replay.min_size_to_sample=100", cwd=tmp_path)  # fmt: skip
+    assert result.returncode == 0, result.stderr
+    run_dir = tmp_path / "gym/pendulum/custom"
+    assert (run_dir / "nn.py").read_text() == source.read_text()
+    ckpt = sorted((run_dir / "model").glob("*.pt"))[-1]
+    models = torch.load(ckpt, weights_only=True)["sac"]["models"]
+    assert any(k.startswith("representation.net.") for k in models)  # the file's encoder was trained
+    # --run builds from the run's copy: it keeps working when the task's file is gone or changed
+    (run_dir / "nn.py").write_text((run_dir / "nn.py").read_text() + "\n# edited after training\n")
+    played = run_main("gym/pendulum", "--run", "-n", "custom", "--model_root", str(tmp_path), "--episodes", "2",
+                      cwd=tmp_path)  # fmt: skip
+    assert played.returncode == 0, played.stderr
+    assert "return" in played.stdout
+
+
+def test_a_missing_or_broken_model_file_is_a_clear_error(tmp_path: Path) -> None:
+    result = run_main("gym/pendulum", "--nn", "no_such_file", "--model_root", str(tmp_path), cwd=tmp_path)
+    assert result.returncode == 2 and "no_such_file" in result.stderr and "Traceback" not in result.stderr
+    assert not (tmp_path / "gym").exists()  # nothing started

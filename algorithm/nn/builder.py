@@ -18,14 +18,19 @@ from algorithm.nn.recurrent import RecurrentRepresentation
 from algorithm.spaces import EnvSpec
 
 
-def build_models(spec: EnvSpec, sac: SacConfig, nn: NNConfig) -> SacModels:
+def build_models(
+    spec: EnvSpec, sac: SacConfig, nn: NNConfig, representation: Representation | None = None
+) -> SacModels:
     """Representation (concatenated vector sensors; a conv encoder per image sensor and critic-only
     sensors last when there are any), ``sac.ensemble_q_num`` Q heads, a tanh-Gaussian
     policy for the continuous part and a categorical one per discrete branch (none with
-    ``discrete_dqn_like``), all with ``nn.hidden_units`` and ``nn.activation``."""
+    ``discrete_dqn_like``), all with ``nn.hidden_units`` and ``nn.activation``. ``representation``
+    replaces the default encoder (a task's model file)."""
     act = spec.action
     rep: Representation
-    if any(s.is_image for s in spec.sensors) or nn.critic_only:
+    if representation is not None:  # a task's model file (nn/user.py)
+        rep = representation
+    elif any(s.is_image for s in spec.sensors) or nn.critic_only:
         rep = MultiSensorRepresentation(spec.sensors, nn.conv_features, nn.critic_only, nn.activation)
     else:
         rep = VectorRepresentation(spec.sensors)

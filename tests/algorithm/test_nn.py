@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -18,6 +19,7 @@ from algorithm.nn.models import (
     VectorRepresentation,
     squashed_gaussian_log_prob,
 )
+from algorithm.nn.user import model_builder
 from algorithm.spaces import ActionSpec, EnvSpec, SensorSpec
 
 
@@ -170,3 +172,25 @@ def test_build_models_uses_config_sizes() -> None:
 def test_unknown_activation_names_the_key() -> None:
     with pytest.raises(ValueError, match="nn_config.activation"):
         activation("gelu")
+
+
+def test_model_files_build_what_they_define_and_errors_name_the_file(tmp_path: Path) -> None:
+    spec = EnvSpec((SensorSpec("obs", (3,)),), ActionSpec((), 1, (-1.0,), (1.0,)))
+    full = tmp_path / "full.py"
+    full.write_text(
+        "from algorithm.nn.builder import build_models as default\n"
+        "def build_models(spec, sac, nn):\n"
+        "    models = default(spec, sac, nn)\n"
+        "    models.tag = 'mine'\n"
+        "    return models\n"
+    )
+    assert model_builder(full)(spec, SacConfig(), NNConfig(hidden_units=[8])).tag == "mine"
+    empty = tmp_path / "empty.py"
+    empty.write_text("x = 1\n")
+    with pytest.raises(AttributeError, match="empty.py"):
+        model_builder(empty)
+    broken = tmp_path / "broken.py"
+    broken.write_text("raise RuntimeError('boom')\n")
+    with pytest.raises(ImportError, match="broken.py.*boom"):
+        model_builder(broken)
+    assert model_builder(None) is build_models
