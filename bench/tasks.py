@@ -1,0 +1,99 @@
+"""Learning results of the issue-3 tasks (discrete, masks, mixed, POMDP, pixels, sparse reward).
+
+    python -m bench.tasks TASK [-c SECTION] [--seeds 0 1] [--steps N] [--threshold X] [--every K]
+        [--override KEY=VALUE ...]
+    python -m bench.tasks --report
+
+Trains ``envs/TASK`` (a config section with ``-c``) for ``--steps`` env steps per seed,
+evaluating (10 deterministic episodes) every ``--every`` steps, and appends one row per seed to
+bench/results/tasks.csv: the first evaluation that reached ``--threshold`` (or none), the best and
+the last evaluation's mean return, and the wall time. ``--report`` prints every row so far as the
+README's table. Examples (the README lists the exact commands behind its numbers):
+
+    python -m bench.tasks gym/cartpole --threshold 475 --steps 30000
+    python -m bench.tasks gym/pendulum_novel -c feedforward --threshold -300 --steps 15000
+    python -m bench.tasks gym/mountain_car -c curiosity --threshold 90 --steps 30000 --every 5000
+"""
+
+from __future__ import annotations
+
+import os
+
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
+import argparse  # noqa: E402
+import csv  # noqa: E402
+import tempfile  # noqa: E402
+import time  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+from algorithm.config import load_config  # noqa: E402
+from algorithm.evaluation import read_evaluations  # noqa: E402
+from algorithm.trainer import EmbeddedTrainer  # noqa: E402
+from envs.make import vector_env_factory  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[1]
+RESULTS = ROOT / "bench" / "results" / "tasks.csv"
+FIELDS = ["task", "section", "overrides", "seed", "steps", "threshold", "reached_at", "best", "last", "wall_s"]
+
+
+def run(task: str, section: str | None, seed: int, steps: int, every: int, threshold: float | None,
+        overrides: list[str]) -> dict[str, object]:  # fmt: skip
+    config = load_config(ROOT / "envs" / task, section,
+                         [f"sac.seed={seed}", f"base.max_step={steps}", f"eval.eval_per_step={every}",
+                          "eval.eval_episodes=10", *overrides]).config  # fmt: skip
+    base = config.base_config
+    limit = base.max_step_each_iter if base.max_step_each_iter > 0 else None
+    start = time.perf_counter()
+    with tempfile.TemporaryDirectory() as tmp:
+        factory = vector_env_factory(base.build_path, env_kwargs=base.env_kwargs, max_episode_steps=limit)
+        EmbeddedTrainer(config, Path(tmp), factory, progress=False).run()
+        rows = read_evaluations(Path(tmp) / "evaluations.csv")
+    reached = next((int(r["env_steps"]) for r in rows if threshold is not None and r["return_mean"] >= threshold), None)
+    return {
+        "task": task, "section": section or "default", "overrides": " ".join(overrides), "seed": seed,
+        "steps": steps, "threshold": threshold, "reached_at": reached,
+        "best": round(max(r["return_mean"] for r in rows), 1), "last": round(rows[-1]["return_mean"], 1),
+        "wall_s": round(time.perf_counter() - start),
+    }  # fmt: skip
+
+
+def report() -> None:
+    rows = list(csv.DictReader(RESULTS.open())) if RESULTS.exists() else []
+    print("| task | config | seed | steps | reached threshold at | best | last | wall s |")
+    print("|---|---|---|---|---|---|---|---|")
+    for r in rows:
+        config = r["section"] + (f" ({r['overrides']})" if r["overrides"] else "")
+        reached = f"{r['reached_at']} ({r['threshold']})" if r["reached_at"] else f"not reached ({r['threshold']})"
+        print(f"| {r['task']} | {config} | {r['seed']} | {r['steps']} | {reached} | {r['best']} | {r['last']} "
+              f"| {r['wall_s']} |")  # fmt: skip
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("task", nargs="?")
+    p.add_argument("-c", "--config", default=None)
+    p.add_argument("--seeds", type=int, nargs="+", default=[0])
+    p.add_argument("--steps", type=int, default=20000)
+    p.add_argument("--every", type=int, default=1000)
+    p.add_argument("--threshold", type=float, default=None)
+    p.add_argument("--override", action="append", default=[], metavar="KEY=VALUE")
+    p.add_argument("--report", action="store_true")
+    args = p.parse_args()
+    if args.report or args.task is None:
+        report()
+        return
+    RESULTS.parent.mkdir(parents=True, exist_ok=True)
+    for seed in args.seeds:
+        row = run(args.task, args.config, seed, args.steps, args.every, args.threshold, args.override)
+        new = not RESULTS.exists()
+        with RESULTS.open("a", newline="") as f:
+            writer = csv.DictWriter(f, FIELDS)
+            if new:
+                writer.writeheader()
+            writer.writerow(row)
+        print(row, flush=True)
+
+
+if __name__ == "__main__":
+    main()
