@@ -80,6 +80,9 @@ class SacConfig(Section):
     use_rnn: bool = Field(False, description="Recurrent representation (nn_config.rnn_type, rnn_units).")
     tau: float = Field(0.005, gt=0.0, le=1.0)
     update_target_per_step: int = Field(1, ge=1)
+    update_policy_variables_per_step: int = Field(
+        1, ge=1, description="Actors get the learner's weights every N updates (1: always current)."
+    )
     init_log_alpha: float = -2.3
     use_auto_alpha: bool = True
     learning_rate: float = Field(3e-4, gt=0.0)

@@ -124,10 +124,8 @@ class EmbeddedTrainer:
         self.eval_seed = seed + EVAL_SEED_OFFSET
         spec = self.env.spec
         model_file = self.paths.model_file if self.paths.model_file.exists() else None
-        self.sac = SAC(
-            spec, sac_cfg, config.nn_config, replay_cfg, device=device, compile=sac_cfg.compile,
-            build=model_builder(model_file),
-        )  # fmt: skip
+        build = model_builder(model_file)
+        self.sac = SAC(spec, sac_cfg, config.nn_config, replay_cfg, device=device, compile=sac_cfg.compile, build=build)
         window = sac_cfg.burn_in_step + sac_cfg.n_step
         self.table = PrioritizedTable.from_config(
             replay_cfg,
@@ -138,9 +136,15 @@ class EmbeddedTrainer:
             seed=seed,
             burn_in=sac_cfg.burn_in_step,
         )
+        # Actors act with the learner's weights as of the last publication, every
+        # update_policy_variables_per_step updates (1: always current), as distributed actors do.
+        self.acting_policy = self.sac
+        if sac_cfg.update_policy_variables_per_step > 1:
+            self.acting_policy = SAC(spec, sac_cfg, config.nn_config, replay_cfg, device=device, build=build)
+            self.acting_policy.load_acting_state_dict(self.sac.acting_state_dict())
         self.actor = ActorLoop(
             self.env,
-            self.sac,
+            self.acting_policy,
             self.table.insert,
             chunk_length=config.actor_config.chunk_length,
             random_steps=config.actor_config.random_steps,
@@ -179,6 +183,7 @@ class EmbeddedTrainer:
         update_rate = RateMeter()
         priorities_matter = replay_cfg.alpha > 0
         normalize = cfg.sac_config.use_normalization
+        publish_every = cfg.sac_config.update_policy_variables_per_step
         sampling = self.table.rate_limiter.size >= replay_cfg.min_size_to_sample
         started = time.perf_counter() - self.wall_seconds
         last_save_time = time.perf_counter()
@@ -207,6 +212,8 @@ class EmbeddedTrainer:
                             self.table.update_priorities(batch.keys, result.td_abs)
                     self.owed_updates -= 1.0
                     self.updates += 1
+                    if self.acting_policy is not self.sac and self.updates % publish_every == 0:
+                        self.acting_policy.load_acting_state_dict(self.sac.acting_state_dict())
                     if with_metrics:
                         self._write_summary(result.metrics, update_rate.mark(self.updates))
                 self.wall_seconds = time.perf_counter() - started

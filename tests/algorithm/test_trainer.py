@@ -16,10 +16,19 @@ from envs.make import vector_env_factory
 
 ROOT = Path(__file__).resolve().parents[2]
 SMALL = [
-    "sac.seed=7", "nn.hidden_units=[32, 32]", "replay.batch_size=32", "replay.samples_per_insert=null",
+    "sac.seed=7",
+    "nn.hidden_units=[32, 32]",
+    "replay.batch_size=32",
+    "replay.samples_per_insert=null",
     "replay.min_size_to_sample=100",
-    "replay.capacity=5000", "actor.chunk_length=16", "eval.eval_per_step=200", "eval.eval_episodes=2",
-    "eval.eval_envs=2", "sac.write_summary_per_step=20", "base.max_step=400", "base.max_step_each_iter=50",
+    "replay.capacity=5000",
+    "actor.chunk_length=16",
+    "eval.eval_per_step=200",
+    "eval.eval_episodes=2",
+    "eval.eval_envs=2",
+    "sac.write_summary_per_step=20",
+    "base.max_step=400",
+    "base.max_step_each_iter=50",
 ]
 
 
@@ -82,8 +91,11 @@ def next_update(trainer: EmbeddedTrainer) -> tuple[dict[str, float], list[torch.
     batch = trainer.table.sample(trainer.config.replay_config.batch_size)
     result = trainer.sac.update(batch, with_metrics=True)
     trainer.table.update_priorities(batch.keys, result.td_abs)
-    params = [p.detach().clone() for p in trainer.sac.state_dict_tensors()] if hasattr(
-        trainer.sac, "state_dict_tensors") else [t.clone() for t in _tensors(trainer.sac.state_dict())]
+    params = (
+        [p.detach().clone() for p in trainer.sac.state_dict_tensors()]
+        if hasattr(trainer.sac, "state_dict_tensors")
+        else [t.clone() for t in _tensors(trainer.sac.state_dict())]
+    )
     return result.metrics, params
 
 
@@ -147,9 +159,20 @@ def test_run_directory_contents(tmp_path: Path) -> None:
     acc = EventAccumulator(str(tmp_path / "run/log"))
     acc.Reload()
     tags = set(acc.Tags()["scalars"])
-    for tag in ("learner/q_loss", "learner/policy_loss", "learner/alpha", "learner/entropy", "learner/q_mean",
-                "actor/episode_return", "actor/episode_length", "replay/size", "eval/return_mean",
-                "time/update_fraction", "time/env_fraction", "time/updates_per_second"):
+    for tag in (
+        "learner/q_loss",
+        "learner/policy_loss",
+        "learner/alpha",
+        "learner/entropy",
+        "learner/q_mean",
+        "actor/episode_return",
+        "actor/episode_length",
+        "replay/size",
+        "eval/return_mean",
+        "time/update_fraction",
+        "time/env_fraction",
+        "time/updates_per_second",
+    ):
         assert tag in tags, f"{tag} missing from TensorBoard; have {sorted(tags)}"
     returns = [e.value for e in acc.Scalars("actor/episode_return")]
     assert len(returns) == 400 // 50 and all(-50 * 16.3 <= r <= 0 for r in returns)  # Pendulum: r in [-16.3, 0]
@@ -162,6 +185,32 @@ def test_resume_from_an_earlier_checkpoint(tmp_path: Path) -> None:
     assert sorted(int(p.stem) for p in (tmp_path / "run/model").glob("*.pt")) == [100, 200, 300]
     earlier = make_trainer(config, tmp_path / "run", with_eval=False)  # resumes the latest: 300
     assert earlier.env_steps == 300
-    earlier = EmbeddedTrainer(config, tmp_path / "run", vector_env_factory("Pendulum-v1", max_episode_steps=50),
-                              evaluate=False, progress=False, ckpt_step=200)
+    earlier = EmbeddedTrainer(
+        config,
+        tmp_path / "run",
+        vector_env_factory("Pendulum-v1", max_episode_steps=50),
+        evaluate=False,
+        progress=False,
+        ckpt_step=200,
+    )
     assert (earlier.env_steps, earlier.updates) == (200, 101)
+
+
+def test_actors_act_with_weights_published_every_n_updates(tmp_path: Path) -> None:
+    trainer = make_trainer(small_config("sac.update_policy_variables_per_step=50", "eval.eval_per_step=0"),
+                           tmp_path, False)  # fmt: skip
+    assert trainer.acting_policy is not trainer.sac
+    published = {k: v.clone() for k, v in trainer.sac.acting_state_dict().items()}
+
+    def same(a: dict, b: dict) -> bool:
+        return all(torch.equal(a[k], b[k]) for k in a)
+
+    seen_stale = False
+    while trainer.sac.updates < 120:
+        trainer.run(until_step=trainer.env_steps + 1)
+        acting = trainer.acting_policy.acting_state_dict()
+        if trainer.sac.updates % 50 == 0:
+            published = {k: v.clone() for k, v in trainer.sac.acting_state_dict().items()}
+        assert same(acting, published)  # exactly the last publication
+        seen_stale |= not same(acting, trainer.sac.acting_state_dict())
+    assert seen_stale
