@@ -100,9 +100,9 @@ class SacConfig(Section):
     )
     use_priority: bool = Field(True, description="Weight the Q loss by PER importance weights.")
     use_n_step_is: bool = Field(False, description="V-trace correction of n-step targets.")
-    use_prediction: bool = False
-    transition_kl: float = 0.8
-    use_extra_data: bool = True
+    use_prediction: bool = Field(False, description="Transition/reward/observation models shape the representation.")
+    transition_kl: float = Field(0.8, ge=0.0, description="Weight of the transition model's KL to N(0, I).")
+    use_extra_data: bool = Field(True, description="The observation model also reconstructs critic_only sensors.")
     use_curiosity: bool = Field(False, description="Intrinsic reward from a forward model's error, in targets only.")
     curiosity_strength: float = Field(1.0, ge=0.0, description="Scale of the curiosity reward.")
     curiosity_inverse: bool = Field(False, description="Learn curiosity features with an inverse model (ICM).")

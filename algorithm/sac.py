@@ -44,6 +44,7 @@ from algorithm.losses import (
 from algorithm.nn.builder import build_models
 from algorithm.nn.models import MASKED_LOG_PROB, SacModels, masked_branch_one_hot_argmax
 from algorithm.nn.noisy import NoisyLayer, reset_noise, set_noise
+from algorithm.nn.prediction import gated_gradients, observation_targets, prediction_losses
 from algorithm.nn.recurrent import RecurrentRepresentation
 from algorithm.returns import bootstrap_index, gather_positions, n_step_target, valid_steps, vtrace_target
 from algorithm.spaces import EnvSpec
@@ -58,16 +59,6 @@ class UpdateResult:
     td_abs: np.ndarray
     metrics: dict[str, float] = field(default_factory=dict)
     skipped: bool = False
-
-
-_NOT_BUILT = ("use_prediction",)
-
-
-def check_supported(spec: EnvSpec, sac: SacConfig) -> None:
-    """Raise NotImplementedError naming the first config key or spec feature not built yet."""
-    for key in _NOT_BUILT:
-        if getattr(sac, key):
-            raise NotImplementedError(f"sac_config.{key}=true is not implemented yet")
 
 
 class SAC:
@@ -97,7 +88,6 @@ class SAC:
         compile: bool = False,
         build: Callable[[EnvSpec, SacConfig, NNConfig], SacModels] = build_models,
     ) -> None:
-        check_supported(spec, sac)
         self.spec = spec
         self.sac = sac
         self.device = torch.device(device)
@@ -111,6 +101,7 @@ class SAC:
         )
         self._branches = branch_matrix(act.discrete_branches, self.device) if act.discrete_branches else None
         self._mask_index = spec.action_mask_index
+        self._observation_targets = observation_targets(spec.sensors, nn.critic_only, sac.use_extra_data)
 
         if sac.seed is None:
             init_seed, act_seed, learn_seed = (int(s) for s in torch.randint(0, 2**62, (3,)))
@@ -162,7 +153,7 @@ class SAC:
         self.critic_optimizer = self._adam(self._critic_params)
         self.policy_optimizer = self._adam(self._policy_params) if self._policy_params else None
         self.alpha_optimizer = self._adam(alpha_params) if sac.use_auto_alpha and alpha_params else None
-        auxiliary = [m for m in (self.models.curiosity, self.models.rnd) if m is not None]
+        auxiliary = [m for m in (self.models.curiosity, self.models.rnd, self.models.prediction) if m is not None]
         self._auxiliary_params: list[Tensor] = [p for m in auxiliary for p in m.parameters() if p.requires_grad]
         self.auxiliary_optimizer = self._adam(self._auxiliary_params) if self._auxiliary_params else None
         if self.models.rnd is not None:
@@ -423,9 +414,9 @@ class SAC:
         noise: Tensor,
         target_heads: Tensor | None,
         policy_heads: Tensor | None,
-    ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Metrics]:
+    ) -> tuple[Tensor, Tensor, Tensor, Tensor, dict[str, Tensor], Tensor, Metrics]:
         """The SAC losses from the current parameters: ``(q_loss, policy_loss, alpha_loss,
-        auxiliary_loss, td_abs, metrics)``. Batch tensors are ``[B, L(+1), ...]``; the trained step
+        auxiliary_loss, prediction_losses, td_abs, metrics)``. Batch tensors are ``[B, L(+1), ...]``; the trained step
         is step ``burn_in_step`` of each window (the sampled key; earlier steps only warm up a recurrent state). ``noise
         [B, n_step + 2, A]`` feeds the action samples: position 0 the policy loss's, 1.. the
         target's (only ``noise[:, 1]`` without V-trace, the value at the bootstrap observation)."""
@@ -518,8 +509,19 @@ class SAC:
             if sac.clip_epsilon is not None:
                 old_q = self._q_taken(self.target_q, states_at(0, True), action0)
 
-        # 2. Critic loss; the policy and alpha losses on the detached state.
+        # 2. Critic loss; the policy and alpha losses on the detached state; prediction losses on the
+        #    live state (update() gates their gradient into the representation).
         state = states_at(0, False)
+        predictions: dict[str, Tensor] = {}
+        if self.models.prediction is not None:
+            with torch.no_grad():
+                next_state = states_at(1, True)
+            targets = [obs[i][:, 0].flatten(1) for i in self._observation_targets]
+            predictions = prediction_losses(
+                self.models.prediction, state, actions[:, 0], next_state, rewards[:, 0],
+                torch.cat(targets, dim=-1) if targets else None, sac.transition_kl,
+            )  # fmt: skip
+            metrics.update({f"learner/prediction_{k}": v.detach() for k, v in predictions.items()})
         q_loss, td_abs, q_metrics = critic_loss(self._q_taken(q, state, action0), y, weights, sac.clip_epsilon, old_q)
         pi = self._policy(state.detach(), noise[:, 0], masks_at(0))
         q_pi = q(state.detach(), pi.continuous, policy_heads, detach_params=True).min(dim=0).values
@@ -532,7 +534,7 @@ class SAC:
                 expected = expected_log_prob(pi, branches)
                 a_loss = a_loss + alpha_loss(self.log_alpha_discrete, expected, self.discrete_target_entropy)[0]
         metrics.update({**q_metrics, **pi_metrics, "learner/next_value": v, "learner/auxiliary_loss": aux_loss})
-        return q_loss, pi_loss, a_loss, aux_loss, td_abs, metrics
+        return q_loss, pi_loss, a_loss, aux_loss, predictions, td_abs, metrics
 
     def update(self, batch: Batch, with_metrics: bool = False) -> UpdateResult:
         """One gradient step on every part from one batch (ARCHITECTURE.md 4).
@@ -559,7 +561,7 @@ class SAC:
             batch.batch_size, samples, self.spec.action.continuous_dim, generator=self._learn_rng, device=dev
         )
         with torch.autocast(dev.type, dtype=torch.bfloat16, enabled=self._low_precision):
-            q_loss, pi_loss, a_loss, aux_loss, td_abs, metric_tensors = self._compute_losses(
+            q_loss, pi_loss, a_loss, aux_loss, predictions, td_abs, metric_tensors = self._compute_losses(
                 self._normalize([torch.from_numpy(o).to(dev) for o in batch.obs]),
                 torch.from_numpy(batch.actions).to(dev),
                 torch.from_numpy(batch.prev_actions).to(dev),
@@ -579,11 +581,15 @@ class SAC:
         #    alpha_loss detaches log_prob, the target is no-grad), so each gets exactly its own grads.
         for opt in self._optimizers():
             opt.zero_grad(set_to_none=True)
-        (q_loss + pi_loss + a_loss + aux_loss).backward()
+        (q_loss + pi_loss + a_loss + aux_loss).backward(retain_graph=bool(predictions))
+        if predictions:
+            self._apply_prediction_gradients(predictions, metric_tensors)
         critic_norm, policy_norm = _grad_norm(self._critic_params), _grad_norm(self._policy_params)
+        prediction_loss = torch.stack(list(predictions.values())).sum().detach() if predictions else aux_loss.detach()
         checks = torch.stack(
-            [q_loss.detach(), pi_loss.detach(), a_loss.detach(), aux_loss.detach(), critic_norm, policy_norm]
-        )
+            [q_loss.detach(), pi_loss.detach(), a_loss.detach(), aux_loss.detach(), prediction_loss, critic_norm,
+             policy_norm]
+        )  # fmt: skip
 
         # 4. Apply, or skip the whole step if anything is non-finite.
         skipped = not bool(torch.isfinite(checks).all())  # the one host sync of the step
@@ -622,6 +628,25 @@ class SAC:
             )
         return UpdateResult(td_abs=td.cpu().numpy(), metrics=metrics, skipped=skipped)
 
+    def _apply_prediction_gradients(self, predictions: dict[str, Tensor], metrics: Metrics) -> None:
+        """Prediction models get their losses' full gradients; the representation gets each loss's
+        gradient only where its cosine with the critic's gradient there is positive (nn/prediction.py)."""
+        assert self.models.prediction is not None
+        model_params = list(self.models.prediction.parameters())
+        total = torch.stack(list(predictions.values())).sum()
+        grads = torch.autograd.grad(total, model_params, retain_graph=True, allow_unused=True)
+        for p, g in zip(model_params, grads, strict=True):
+            if g is not None:
+                p.grad = g if p.grad is None else p.grad + g
+        rep_params = [p for p in self.models.representation.parameters() if p.requires_grad]
+        if not rep_params:
+            return
+        critic = [torch.zeros_like(p) if p.grad is None else p.grad for p in rep_params]  # the Q loss's alone
+        gated, cosines = gated_gradients(predictions, critic, rep_params)
+        for p, g in zip(rep_params, gated, strict=True):
+            p.grad = g if p.grad is None else p.grad + g
+        metrics.update({f"learner/prediction_{k}_cosine": v for k, v in cosines.items()})
+
     def _optimizers(self) -> list[torch.optim.Optimizer]:
         return list(self._named_optimizers().values())
 
@@ -631,7 +656,10 @@ class SAC:
         self.nonfinite_skipped += 1
         self._consecutive_nonfinite += 1
         if self._consecutive_nonfinite >= self.sac.max_nonfinite_steps:
-            names = ("q_loss", "policy_loss", "alpha_loss", "auxiliary_loss", "grad_norm_critic", "grad_norm_policy")
+            names = (
+                "q_loss", "policy_loss", "alpha_loss", "auxiliary_loss", "prediction_loss", "grad_norm_critic",
+                "grad_norm_policy",
+            )  # fmt: skip
             values = ", ".join(f"{n}={v:.4g}" for n, v in zip(names, checks.tolist(), strict=True))
             raise RuntimeError(
                 f"{self._consecutive_nonfinite} consecutive SAC updates had non-finite losses or gradients "

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 from algorithm.config_schema import NNConfig, SacConfig
 from algorithm.nn.encoders import MultiSensorRepresentation
 from algorithm.nn.exploration import Curiosity, RandomNetworkDistillation
@@ -14,6 +16,7 @@ from algorithm.nn.models import (
     VectorRepresentation,
 )
 from algorithm.nn.normalization import ObservationNormalizer
+from algorithm.nn.prediction import PredictionModels, observation_targets
 from algorithm.nn.recurrent import RecurrentRepresentation
 from algorithm.spaces import EnvSpec
 
@@ -68,4 +71,9 @@ def build_models(
     if sac.use_curiosity:
         curiosity = Curiosity(rep.state_dim, act.size, nn.hidden_units, sac.curiosity_inverse)
     rnd = RandomNetworkDistillation(rep.state_dim, act.size, nn.hidden_units) if sac.use_rnd else None
-    return SacModels(rep, q, policy, discrete_policy, normalizer, curiosity, rnd)
+    prediction = None
+    if sac.use_prediction:
+        targets = observation_targets(spec.sensors, nn.critic_only, sac.use_extra_data)
+        observation_dim = sum(math.prod(spec.sensors[i].shape) for i in targets)
+        prediction = PredictionModels(rep.state_dim, act.size, observation_dim, nn.hidden_units)
+    return SacModels(rep, q, policy, discrete_policy, normalizer, curiosity, rnd, prediction)

@@ -19,6 +19,7 @@ from algorithm.nn.exploration import Curiosity, RandomNetworkDistillation
 from algorithm.nn.layers import EnsembleLinear, activation, in_float32, mlp
 from algorithm.nn.noisy import NoisyEnsembleLinear, NoisyLinear
 from algorithm.nn.normalization import ObservationNormalizer
+from algorithm.nn.prediction import PredictionModels
 from algorithm.spaces import SensorSpec
 
 _LOG2 = math.log(2.0)
@@ -242,8 +243,10 @@ class SacModels(nn.Module):
         normalizer: ObservationNormalizer | None = None,
         curiosity: Curiosity | None = None,
         rnd: RandomNetworkDistillation | None = None,
+        prediction: PredictionModels | None = None,
     ) -> None:
         super().__init__()
+        self.prediction = prediction  # with use_prediction
         self.curiosity = curiosity  # with use_curiosity
         self.rnd = rnd  # with use_rnd
         self.normalizer = normalizer  # ObservationNormalizer with use_normalization, applied before representation

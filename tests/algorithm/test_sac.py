@@ -405,17 +405,6 @@ def test_bad_batches_get_clear_errors() -> None:
 
 
 @pytest.mark.parametrize(
-    "key",
-    [
-        "use_prediction",
-    ],
-)
-def test_features_not_built_yet_name_their_key(key: str) -> None:
-    with pytest.raises(NotImplementedError, match=key):
-        make_sac(**{key: True})
-
-
-@pytest.mark.parametrize(
     ("terminated", "expected", "mean_tol", "max_tol"), [(True, 1.0, 0.02, 0.1), (False, 2.0, 0.2, 0.3)]
 )
 def test_q_learns_a_constant_reward(terminated: bool, expected: float, mean_tol: float, max_tol: float) -> None:
