@@ -184,3 +184,42 @@ def test_a_missing_or_broken_model_file_is_a_clear_error(tmp_path: Path) -> None
     result = run_main("gym/pendulum", "--nn", "no_such_file", "--model_root", str(tmp_path), cwd=tmp_path)
     assert result.returncode == 2 and "no_such_file" in result.stderr and "Traceback" not in result.stderr
     assert not (tmp_path / "gym").exists()  # nothing started
+
+
+FEATURES = {
+    "every_extra": ("toy/masked_grid", None, [
+        "sac.use_curiosity=true", "sac.curiosity_inverse=true", "sac.use_rnd=true", "nn.noisy_q=true",
+        "nn.noisy_policy=true", "sac.use_normalization=true", "sac.use_prediction=true", "sac.use_n_step_is=true",
+        "sac.n_step=3",
+    ]),
+    "recurrent_vtrace": ("gym/pendulum_novel", None, ["sac.use_n_step_is=true", "nn.rnn_type=lstm"]),
+    "image": ("toy/pixel_point", None, []),
+    "dqn_like": ("gym/cartpole", "dqn", []),
+    "mixed": ("toy/mixed_target", None, ["sac.use_rnd=true"]),
+}  # fmt: skip
+
+
+@pytest.mark.parametrize("feature", sorted(FEATURES))
+def test_algorithm_features_train_and_play_through_main(feature: str, tmp_path: Path) -> None:
+    task, section, extra = FEATURES[feature]
+    small = [
+        "base.max_step=120",
+        "replay.min_size_to_sample=40",
+        "actor.random_steps=20",
+        "replay.batch_size=16",
+        "replay.samples_per_insert=null",
+        "eval.eval_per_step=0",
+        "nn.hidden_units=[16]",
+        "actor.chunk_length=16",
+    ]
+    args = [task, "-n", feature, "--model_root", str(tmp_path), "--no_progress"]
+    if section:
+        args += ["-c", section]
+    for override in small + extra:
+        args += ["--override", override]
+    trained_run = run_main(*args, cwd=tmp_path)
+    assert trained_run.returncode == 0, trained_run.stderr
+    assert sorted((tmp_path / task / feature / "model").glob("*.pt"))
+    played = run_main(task, "--run", "-n", feature, "--model_root", str(tmp_path), "--episodes", "1", cwd=tmp_path)
+    assert played.returncode == 0, played.stderr
+    assert "return" in played.stdout
