@@ -64,6 +64,11 @@ class NoisyLayer(nn.Module):
 
     eps_in: Tensor
     eps_out: Tensor
+    in_features: int
+    weight_mu: nn.Parameter
+    weight_sigma: nn.Parameter
+    bias_mu: nn.Parameter
+    bias_sigma: nn.Parameter
 
     def __init__(self, sigma0: float) -> None:
         super().__init__()
@@ -72,6 +77,14 @@ class NoisyLayer(nn.Module):
         # caller's explicit choice (deterministic evaluation), not a side effect of a mode that
         # other modules read too.
         self.noise_enabled = True
+
+    def reset_parameters(self) -> None:
+        """mu ~ U(+-1/sqrt(in)), sigma = sigma0 / sqrt(in) (1706.10295, section 3.2, factorised case)."""
+        bound = 1.0 / math.sqrt(self.in_features)
+        nn.init.uniform_(self.weight_mu, -bound, bound)
+        nn.init.uniform_(self.bias_mu, -bound, bound)
+        nn.init.constant_(self.weight_sigma, self.sigma0 * bound)
+        nn.init.constant_(self.bias_sigma, self.sigma0 * bound)
 
     def reset_noise(self, generator: torch.Generator | None = None) -> None:
         """Draw fresh standard-normal ``eps_in`` then ``eps_out``.
@@ -127,13 +140,6 @@ class NoisyLinear(NoisyLayer):
         self.register_buffer("eps_out", torch.empty(out_features), persistent=False)
         self.reset_parameters()
         self.reset_noise()
-
-    def reset_parameters(self) -> None:
-        bound = 1.0 / math.sqrt(self.in_features)
-        nn.init.uniform_(self.weight_mu, -bound, bound)
-        nn.init.uniform_(self.bias_mu, -bound, bound)
-        nn.init.constant_(self.weight_sigma, self.sigma0 * bound)
-        nn.init.constant_(self.bias_sigma, self.sigma0 * bound)
 
     def epsilon(self) -> tuple[Tensor, Tensor]:
         """The current noise as applied: ``eps_w = outer(f(eps_out), f(eps_in))`` ``[out, in]``
@@ -195,13 +201,6 @@ class NoisyEnsembleLinear(NoisyLayer):
         self.register_buffer("eps_out", torch.empty(ensemble_size, out_features), persistent=False)
         self.reset_parameters()
         self.reset_noise()
-
-    def reset_parameters(self) -> None:
-        bound = 1.0 / math.sqrt(self.in_features)
-        nn.init.uniform_(self.weight_mu, -bound, bound)
-        nn.init.uniform_(self.bias_mu, -bound, bound)
-        nn.init.constant_(self.weight_sigma, self.sigma0 * bound)
-        nn.init.constant_(self.bias_sigma, self.sigma0 * bound)
 
     def epsilon(self, heads: Tensor | None = None) -> tuple[Tensor, Tensor]:
         """The current noise as applied, per head: ``eps_w`` ``[E, out, in]`` (one rank-one

@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import copy
 import math
-from collections.abc import Iterator
 from typing import Any
 
 import numpy as np
@@ -22,14 +21,6 @@ from algorithm.spaces import ActionSpec, EnvSpec, SensorSpec
 from algorithm.types import Batch
 
 OBS = 3
-
-
-@pytest.fixture(autouse=True)
-def _one_thread() -> Iterator[None]:
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
 
 
 def masked_spec(branches: tuple[int, ...] = (4,), continuous: int = 0) -> EnvSpec:

@@ -3,10 +3,7 @@ the representation only when its cosine with the critic's gradient there is posi
 
 from __future__ import annotations
 
-from collections.abc import Iterator
-
 import numpy as np
-import pytest
 import torch
 from torch import Tensor, nn
 
@@ -20,14 +17,6 @@ from tests.algorithm.test_sac import make_batch
 
 OBS, ACT = 3, 2
 SPEC = EnvSpec((SensorSpec("obs", (OBS,)),), ActionSpec((), ACT, (-1.0,) * ACT, (1.0,) * ACT))
-
-
-@pytest.fixture(autouse=True)
-def _one_thread() -> Iterator[None]:
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
 
 
 def test_the_cosine_gate_drops_an_opposing_gradient_and_keeps_an_aligned_one() -> None:

@@ -4,7 +4,6 @@ stored state, burn-in rows get no gradient unless configured, and actors store t
 from __future__ import annotations
 
 import copy
-from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -22,14 +21,6 @@ from envs.make import vector_env_factory
 
 ROOT = Path(__file__).resolve().parents[2]
 OBS, ACT, H = 3, 2, 8
-
-
-@pytest.fixture(autouse=True)
-def _one_thread() -> Iterator[None]:
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
 
 
 def recurrent(rnn_type: str = "gru") -> RecurrentRepresentation:

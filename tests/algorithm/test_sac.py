@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import copy
 import io
-from collections.abc import Iterator
 from typing import Any
 
 import numpy as np
@@ -23,16 +22,6 @@ from algorithm.types import Batch
 OBS, ACT = 3, 2
 SPEC = EnvSpec((SensorSpec("obs", (OBS,)),), ActionSpec((), ACT, (-1.0,) * ACT, (1.0,) * ACT))
 NN = NNConfig(hidden_units=[16, 16])
-
-
-@pytest.fixture(autouse=True)
-def _one_thread() -> Iterator[None]:
-    """Tiny models gain nothing from threads, and with OpenMP's default spin-waiting a 2-thread
-    update ran 100x slower while another process held a core (measured on the 2-core dev box)."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
 
 
 def make_batch(b: int = 8, length: int = 1, seed: int = 0, **overrides: Any) -> Batch:

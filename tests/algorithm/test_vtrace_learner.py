@@ -3,7 +3,6 @@ log-probability, the on-policy case equal to the plain n-step target, and the ra
 
 from __future__ import annotations
 
-from collections.abc import Iterator
 from typing import Any
 
 import numpy as np
@@ -17,14 +16,6 @@ from algorithm.spaces import ActionSpec, EnvSpec, SensorSpec
 from algorithm.types import Batch
 
 OBS, N_STEP, B = 3, 4, 32
-
-
-@pytest.fixture(autouse=True)
-def _one_thread() -> Iterator[None]:
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
 
 
 def make_sac(spec: EnvSpec, **sac: Any) -> SAC:
