@@ -31,6 +31,7 @@ server unreachable                          UNAVAILABLE           retried, then 
 from __future__ import annotations
 
 import random
+import threading
 import time
 from collections.abc import Callable, Iterator, Sequence
 from concurrent import futures
@@ -165,8 +166,8 @@ def _wait_seconds(request: Any, context: grpc.ServicerContext) -> float | None:
         if not request.timeout_s >= 0:  # also NaN
             raise WireError("timeout_s", f"must be >= 0, got {request.timeout_s}")
         limits.append(request.timeout_s)
-    remaining = context.time_remaining()
-    if remaining is not None:
+    remaining = context.time_remaining()  # about 9e18 for a call without deadline
+    if remaining is not None and remaining < threading.TIMEOUT_MAX:
         limits.append(max(0.0, remaining))
     return min(limits) if limits else None
 
@@ -261,9 +262,10 @@ class ReplayClient:
     arrays with the same dtypes) and raises the same exceptions: ``ValueError`` for data the
     server rejects, :class:`SampleTimeout` / :class:`InsertTimeout` when the rate limiter holds a
     call back. Every call has a deadline: ``rpc_timeout_s``, plus the wait the caller asked for
-    on ``insert``/``sample`` (a wait without end, ``timeout=None``, is a series of ``poll_s``
-    -second calls), or ``file_timeout_s`` for ``save``/``load``. UNAVAILABLE is retried per ``retry``; every other error surfaces at
-    once with the server's message. Thread-safe: share one client between threads.
+    on ``insert``/``sample`` (a wait without end, ``timeout=None``, is a series of
+    ``poll_s``-second calls), or ``file_timeout_s`` for ``save``/``load``. UNAVAILABLE is
+    retried per ``retry``; every other error surfaces at once with the server's message.
+    Thread-safe: share one client between threads.
     """
 
     def __init__(
@@ -289,11 +291,12 @@ class ReplayClient:
         self.file_timeout_s = float(file_timeout_s)
         self.poll_s = float(poll_s)
         self.retry = retry or RetryPolicy()
-        self._channel = grpc.insecure_channel(address, options=_channel_options(max_message_bytes))
-        self._stub = replay_pb2_grpc.ReplayServiceStub(self._channel)
+        # The channel reconnects by itself; other services of the same server (health) may use it.
+        self.channel = grpc.insecure_channel(address, options=_channel_options(max_message_bytes))
+        self._stub = replay_pb2_grpc.ReplayServiceStub(self.channel)
 
     def close(self) -> None:
-        self._channel.close()
+        self.channel.close()
 
     def __enter__(self) -> ReplayClient:
         return self
@@ -331,7 +334,7 @@ class ReplayClient:
         if len(reply.keys) != len(chunks):
             raise WireError("keys", f"has {len(reply.keys)} tensors for {len(chunks)} chunks")
         return [
-            from_tensor(k, TensorSpec(f"keys[{i}]", np.uint64, leading=("T",)), {"T": len(c)})
+            from_tensor(k, TensorSpec(f"keys[{i}]", np.dtype(np.uint64), leading=("T",)), {"T": len(c)})
             for i, (k, c) in enumerate(zip(reply.keys, chunks, strict=True))
         ]
 
