@@ -15,17 +15,15 @@ Usage, a replay process and its peers (protos/replay.proto documents every rpc):
 types and exceptions (``ValueError`` for rejected data, :class:`SampleTimeout`/:class:`InsertTimeout`),
 so the replay contract tests run unchanged against it (tests/ds/test_replay_contract.py).
 
-Errors map to gRPC status codes on the server and back on the client:
+Errors map to gRPC status codes on the server and back to exceptions on the client:
 
-==========================================  ====================  ===============================
-server side                                 status                client raises
-==========================================  ====================  ===============================
-:class:`~ds.wire.WireError`, ``ValueError``  INVALID_ARGUMENT      :class:`ReplayRequestRejected`
-``SampleTimeout`` / ``InsertTimeout``       DEADLINE_EXCEEDED     ``SampleTimeout`` / ``InsertTimeout``
-``OSError`` (save/load files)               FAILED_PRECONDITION   :class:`ReplayRpcError`
-batch over the message limit                RESOURCE_EXHAUSTED    :class:`ReplayRpcError`
-server unreachable                          UNAVAILABLE           retried, then :class:`ReplayRpcError`
-==========================================  ====================  ===============================
+- bad data or a bad file (``WireError``, ``ValueError``): INVALID_ARGUMENT -> :class:`ReplayRequestRejected`,
+  a ``ValueError`` carrying the server's message;
+- the rate limiter's ``SampleTimeout`` / ``InsertTimeout``: DEADLINE_EXCEEDED -> the same exception;
+- a file the server cannot write (``OSError``): FAILED_PRECONDITION -> :class:`ReplayRpcError`;
+- a message over the size limit: RESOURCE_EXHAUSTED -> :class:`ReplayRpcError` (the client refuses
+  to send an oversize request itself, with a ``WireError`` naming the size and the limit);
+- server unreachable: UNAVAILABLE -> retried with backoff, then :class:`ReplayRpcError`.
 """
 
 from __future__ import annotations

@@ -79,10 +79,10 @@ class ReplayServiceServicer:
         """Stores chunks, each contiguously, and returns each chunk's T new keys (uint64, increasing,
         never reused). Called by actors. All or nothing: every chunk is validated before any is
         stored, and the rate limiter admits the request's total steps at once.
-        Errors: INVALID_ARGUMENT (a tensor breaks its spec, a chunk breaks the chunk rules, or a
-        chunk is longer than capacity - 1 steps; nothing is stored), DEADLINE_EXCEEDED (the rate
-        limiter held the insert back for timeout_s; nothing is stored), RESOURCE_EXHAUSTED (message
-        over the size limit).
+        Errors: INVALID_ARGUMENT (a tensor breaks its spec, a chunk breaks the chunk rules, a chunk
+        is longer than capacity - 1 steps, or timeout_s < 0; nothing is stored), DEADLINE_EXCEEDED
+        (the rate limiter held the insert back for timeout_s or until the call's deadline; nothing is
+        stored), RESOURCE_EXHAUSTED (message over the server's size limit; nothing is stored).
         """
         context.set_code(grpc.StatusCode.UNIMPLEMENTED)
         context.set_details('Method not implemented!')
@@ -91,9 +91,10 @@ class ReplayServiceServicer:
     def Sample(self, request, context):
         """Draws batch_size windows with probability proportional to priority and returns them with
         their keys, probabilities and the table size. Called by learners.
-        Errors: INVALID_ARGUMENT (batch_size < 1), DEADLINE_EXCEEDED (no batch allowed within
-        timeout_s: too few steps stored, or the learner is ahead of the actors), RESOURCE_EXHAUSTED
-        (the reply would exceed the server's message size limit; nothing is drawn).
+        Errors: INVALID_ARGUMENT (batch_size < 1 or timeout_s < 0), DEADLINE_EXCEEDED (no batch
+        allowed within timeout_s or the call's deadline: too few steps stored, or the learner is
+        ahead of the actors; the message says which), RESOURCE_EXHAUSTED (the reply would exceed the
+        server's message size limit; nothing is drawn).
         """
         context.set_code(grpc.StatusCode.UNIMPLEMENTED)
         context.set_details('Method not implemented!')
@@ -118,7 +119,8 @@ class ReplayServiceServicer:
 
     def Save(self, request, context):
         """Writes the whole table atomically to a file on the server. Called by the learner when it
-        checkpoints, or by operators. Errors: FAILED_PRECONDITION (the file cannot be written).
+        checkpoints, or by operators. Errors: INVALID_ARGUMENT (empty path), FAILED_PRECONDITION
+        (the file cannot be written).
         """
         context.set_code(grpc.StatusCode.UNIMPLEMENTED)
         context.set_details('Method not implemented!')
@@ -126,8 +128,8 @@ class ReplayServiceServicer:
 
     def Load(self, request, context):
         """Replaces the table's contents with a file written by Save. Called by the replay role on
-        restart or by operators. Errors: INVALID_ARGUMENT (unreadable, corrupt or mismatched file;
-        the table is unchanged), FAILED_PRECONDITION (the file cannot be read).
+        restart or by operators. Errors: INVALID_ARGUMENT (empty path; a missing, unreadable, corrupt
+        or mismatched file; the table is unchanged either way).
         """
         context.set_code(grpc.StatusCode.UNIMPLEMENTED)
         context.set_details('Method not implemented!')

@@ -204,7 +204,11 @@ class PrioritizedTable:
         ratio); raises :class:`~algorithm.replay.rate_limiter.InsertTimeout` after ``timeout`` s.
         A chunk that does not match the table's specs raises ``ValueError`` and stores nothing.
         """
-        return self.insert_many([chunk], None if priorities is None else [priorities], timeout)[0]
+        t = self._check_chunk(chunk)
+        new_p = None if priorities is None else self._transform(self._check_priorities(priorities, t, "insert"))
+        with self._lock:
+            self.rate_limiter.await_insert(t, timeout)
+            return self._store(chunk, t, new_p)
 
     def insert_many(
         self,

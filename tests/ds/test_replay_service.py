@@ -10,6 +10,7 @@ import threading
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import grpc
@@ -222,7 +223,7 @@ def test_malformed_priority_update_is_invalid_argument_and_changes_nothing(
     assert_unchanged(served)
 
 
-def test_client_raises_the_servers_message_as_a_value_error(served: Served) -> None:
+def test_client_raises_the_servers_message_as_a_value_error(served: Served, tmp_path: Path) -> None:
     bad = dataclasses.replace(chunk(4, 0), actions=np.zeros((4, 2), np.float64))
     with pytest.raises(ReplayRequestRejected, match=r"chunks\[0\]\.actions is float64") as e:
         served.client.insert(bad)
@@ -231,6 +232,12 @@ def test_client_raises_the_servers_message_as_a_value_error(served: Served) -> N
         served.client.sample(0)
     with pytest.raises(ReplayRequestRejected, match="path is empty"):
         served.client.save("")
+    (tmp_path / "a file").write_text("")
+    with pytest.raises(ReplayRpcError, match="(FileExists|NotADirectory)Error") as failed:
+        served.client.save(tmp_path / "a file" / "replay.npz")  # a folder that cannot be made
+    assert failed.value.code == grpc.StatusCode.FAILED_PRECONDITION
+    with pytest.raises(ReplayRequestRejected, match="not a readable replay file"):
+        served.client.load(tmp_path / "missing.npz")
     assert_unchanged(served)
 
 
