@@ -42,3 +42,9 @@ def test_nothing_imports_the_launchers() -> None:
                 continue
             bad = {n for n in imported_packages(path) if n.split(".")[0] in ("main", "main_ds")}
             assert not bad, f"{path.relative_to(ROOT)} imports {bad}"
+
+
+def test_protos_import_only_protos() -> None:
+    for path in (ROOT / "protos").rglob("*.py"):
+        bad = {n for n in imported_packages(path) if not n.startswith("protos")}
+        assert not bad, f"{path.relative_to(ROOT)} imports {bad}"

@@ -26,6 +26,7 @@ atomic); the hot paths are vectorised numpy plus compiled tree loops, with no pe
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any, Protocol
 
@@ -207,45 +208,80 @@ class PrioritizedTable:
         new_p = None if priorities is None else self._transform(self._check_priorities(priorities, t, "insert"))
         with self._lock:
             self.rate_limiter.await_insert(t, timeout)
-            first = self._next_key
-            keys = np.arange(first, first + t + 1, dtype=np.int64)
-            rows = keys % self.capacity
-            old = self._row_key[rows]
-            stored = old != _EMPTY
-            evicted_steps = int(np.count_nonzero(stored & (old != self._end_key[rows])))
+            return self._store(chunk, t, new_p)
 
-            # Plain slices when the chunk does not wrap the ring: much cheaper than index arrays.
-            wraps = rows[t] < rows[0]
-            span = rows if wraps else slice(rows[0], rows[t] + 1)
-            steps = rows[:t] if wraps else slice(rows[0], rows[t])
-            boot = rows[t]
-            for store, data in zip(self._obs, chunk.obs, strict=True):
-                store[span] = data
-            for name, store in self._steps.items():
-                store[steps] = getattr(chunk, name)
-                store[boot] = 0  # masked window steps read these zeros
-            if self._rnn is not None:
-                self._rnn[steps] = chunk.rnn_state
-            self._row_key[span] = keys
-            self._end_key[span] = first + t
-            self._start_key[span] = first
+    def insert_many(
+        self,
+        chunks: Sequence[Chunk],
+        priorities: Sequence[np.ndarray | None] | None = None,
+        timeout: float | None = None,
+    ) -> list[np.ndarray]:
+        """Store several chunks as one request, all or nothing; returns each chunk's keys.
 
-            if new_p is None:
-                new_p = np.full(t, self._max_priority)
-            else:
-                self._max_priority = max(self._max_priority, float(new_p.max()))
-            self._tree.set(rows, np.append(new_p, 0.0))
-            # Each observation counts once: a chunk cut mid-episode hands its last observation on
-            # as the next chunk's first, so it is only counted here when the episode ended.
-            ended = bool(chunk.terminated[-1] or chunk.truncated[-1])
-            for spec, data in zip(self.sensors, chunk.obs, strict=True):
-                if spec.name in self._normalizers:
-                    self._normalizers[spec.name].update(data if ended else data[:-1])
+        Every chunk (and its optional raw ``priorities``) is validated before any is stored, the
+        rate limiter admits their total steps at once, and no other operation runs between them:
+        either all are stored, with consecutive keys in order, or none (``ValueError`` naming
+        ``chunks[i]``, or :class:`~algorithm.replay.rate_limiter.InsertTimeout`). For callers
+        that hand over several chunks at a time, such as the replay server.
+        """
+        if priorities is not None and len(priorities) != len(chunks):
+            raise ValueError(f"insert: {len(priorities)} priority arrays for {len(chunks)} chunks")
+        checked: list[tuple[Chunk, int, np.ndarray | None]] = []
+        for i, chunk in enumerate(chunks):
+            p = None if priorities is None else priorities[i]
+            try:
+                t = self._check_chunk(chunk)
+                new_p = None if p is None else self._transform(self._check_priorities(p, t, "insert"))
+            except ValueError as e:
+                if len(chunks) == 1:
+                    raise
+                raise ValueError(f"chunks[{i}]: {e}") from e
+            checked.append((chunk, t, new_p))
+        with self._lock:
+            self.rate_limiter.await_insert(sum(t for _, t, _ in checked), timeout)
+            return [self._store(chunk, t, new_p) for chunk, t, new_p in checked]
 
-            self._next_key = first + t + 1
-            self._counters["inserted_chunks"] += 1
-            self._counters["evicted_rows"] += int(np.count_nonzero(stored))
-            self.rate_limiter.record_insert(t, evicted_steps)
+    def _store(self, chunk: Chunk, t: int, new_p: np.ndarray | None) -> np.ndarray:
+        """Write a validated, admitted chunk into the ring (the caller holds the lock)."""
+        first = self._next_key
+        keys = np.arange(first, first + t + 1, dtype=np.int64)
+        rows = keys % self.capacity
+        old = self._row_key[rows]
+        stored = old != _EMPTY
+        evicted_steps = int(np.count_nonzero(stored & (old != self._end_key[rows])))
+
+        # Plain slices when the chunk does not wrap the ring: much cheaper than index arrays.
+        wraps = rows[t] < rows[0]
+        span = rows if wraps else slice(rows[0], rows[t] + 1)
+        steps = rows[:t] if wraps else slice(rows[0], rows[t])
+        boot = rows[t]
+        for store, data in zip(self._obs, chunk.obs, strict=True):
+            store[span] = data
+        for name, store in self._steps.items():
+            store[steps] = getattr(chunk, name)
+            store[boot] = 0  # masked window steps read these zeros
+        if self._rnn is not None:
+            self._rnn[steps] = chunk.rnn_state
+        self._row_key[span] = keys
+        self._end_key[span] = first + t
+        self._start_key[span] = first
+
+        if new_p is None:
+            new_p = np.full(t, self._max_priority)
+        else:
+            self._max_priority = max(self._max_priority, float(new_p.max()))
+        self._tree.set(rows, np.append(new_p, 0.0))
+        # Each observation counts once: a chunk cut mid-episode hands its last observation on
+        # as the next chunk's first, so it is only counted here when the episode ended.
+        ended = bool(chunk.terminated[-1] or chunk.truncated[-1])
+        for spec, data in zip(self.sensors, chunk.obs, strict=True):
+            if spec.name in self._normalizers:
+                self._normalizers[spec.name].update(data if ended else data[:-1])
+
+        self._next_key = first + t + 1
+        self._counters["inserted_chunks"] += 1
+        self._counters["evicted_rows"] += int(np.count_nonzero(stored))
+        self.rate_limiter.record_insert(t, evicted_steps)
         return keys[:t].astype(np.uint64)
 
     def sample(self, batch_size: int, timeout: float | None = None) -> Batch:

@@ -12,10 +12,11 @@ import pytest
 from scipy.stats import chisquare
 
 from algorithm.normalizer import RunningMeanStd
-from algorithm.replay import PrioritizedTable, RateLimiter, SampleTimeout
+from algorithm.replay import InsertTimeout, PrioritizedTable, RateLimiter, SampleTimeout
 from algorithm.spaces import SensorSpec
 
 from .chunks import IMAGE, VECTOR, make_chunk
+from .conftest import Connect
 
 
 def table(capacity: int = 64, window: int = 1, **kwargs: Any) -> PrioritizedTable:
@@ -23,22 +24,22 @@ def table(capacity: int = 64, window: int = 1, **kwargs: Any) -> PrioritizedTabl
     return PrioritizedTable(capacity, kwargs.pop("sensors", (VECTOR,)), 2, window, **kwargs)
 
 
-def fill(tab: PrioritizedTable, lengths: list[int]) -> list[np.ndarray]:
+def fill(tab: Any, lengths: list[int]) -> list[np.ndarray]:
     keys = []
     for t in lengths:
         keys.append(tab.insert(make_chunk(t, tab.info()["next_key"], tab.sensors, tab.action_size)))
     return keys
 
 
-def sample_counts(tab: PrioritizedTable, n_batches: int, batch: int = 256) -> np.ndarray:
+def sample_counts(tab: Any, n_batches: int, batch: int = 256) -> np.ndarray:
     counts = np.zeros(tab.info()["next_key"], dtype=np.int64)
     for _ in range(n_batches):
         np.add.at(counts, tab.sample(batch).keys.astype(np.int64), 1)
     return counts
 
 
-def test_keys_are_consecutive_per_chunk_and_skip_bootstrap_rows() -> None:
-    tab = table()
+def test_keys_are_consecutive_per_chunk_and_skip_bootstrap_rows(connect: Connect) -> None:
+    tab = connect(table())
     a, b = fill(tab, [3, 2])
     assert a.dtype == np.uint64 and a.tolist() == [0, 1, 2]
     assert b.tolist() == [4, 5]  # key 3 is the bootstrap row of the first chunk
@@ -51,8 +52,8 @@ def test_keys_are_consecutive_per_chunk_and_skip_bootstrap_rows() -> None:
     )
 
 
-def test_sampled_frequencies_follow_transformed_priorities() -> None:
-    tab = table(capacity=200, alpha=0.7, td_error_min=0.05, td_error_max=2.0)
+def test_sampled_frequencies_follow_transformed_priorities(connect: Connect) -> None:
+    tab = connect(table(capacity=200, alpha=0.7, td_error_min=0.05, td_error_max=2.0))
     rng = np.random.default_rng(0)
     raw: dict[int, float] = {}
     for t in (5, 17, 30, 1, 40):
@@ -71,8 +72,8 @@ def test_sampled_frequencies_follow_transformed_priorities() -> None:
     assert batch.table_size == len(keys)
 
 
-def test_zero_priority_rows_are_never_drawn() -> None:
-    tab = table(capacity=300, alpha=1.0, td_error_min=0.0)
+def test_zero_priority_rows_are_never_drawn(connect: Connect) -> None:
+    tab = connect(table(capacity=300, alpha=1.0, td_error_min=0.0))
     keys = np.concatenate(fill(tab, [50, 60, 70]))
     tab.update_priorities(keys, np.zeros(keys.shape[0]))
     live = keys[[3, 77, 150]]
@@ -81,8 +82,8 @@ def test_zero_priority_rows_are_never_drawn() -> None:
     assert set(np.flatnonzero(counts).tolist()) <= set(live.tolist())
 
 
-def test_all_zero_priorities_sample_uniformly_among_step_rows() -> None:
-    tab = table(capacity=100, alpha=0.5, td_error_min=0.0)
+def test_all_zero_priorities_sample_uniformly_among_step_rows(connect: Connect) -> None:
+    tab = connect(table(capacity=100, alpha=0.5, td_error_min=0.0))
     keys = np.concatenate(fill(tab, [1, 1, 7, 3, 1, 12, 30, 2]))  # many bootstrap rows between
     tab.update_priorities(keys, np.zeros(keys.shape[0]))
     assert tab.info()["total_priority"] == 0.0
@@ -93,15 +94,15 @@ def test_all_zero_priorities_sample_uniformly_among_step_rows() -> None:
     assert chisquare(counts[keys]).pvalue > 0.001
 
 
-def test_alpha_zero_is_uniform_whatever_the_priorities() -> None:
-    tab = table(capacity=100, alpha=0.0)
+def test_alpha_zero_is_uniform_whatever_the_priorities(connect: Connect) -> None:
+    tab = connect(table(capacity=100, alpha=0.0))
     keys = tab.insert(make_chunk(40), priorities=np.linspace(0.0, 5.0, 40))
     counts = sample_counts(tab, 100)
     assert chisquare(counts[keys]).pvalue > 0.001
 
 
-def test_new_rows_get_the_highest_priority_seen() -> None:
-    tab = table(alpha=0.5, td_error_max=4.0)
+def test_new_rows_get_the_highest_priority_seen(connect: Connect) -> None:
+    tab = connect(table(alpha=0.5, td_error_max=4.0))
     a = fill(tab, [3])[0]
     assert tab.info()["max_priority"] == 1.0  # 1.0 transformed
     tab.update_priorities(a[:1], np.array([0.25]))
@@ -116,8 +117,8 @@ def test_new_rows_get_the_highest_priority_seen() -> None:
     assert batch_p[int(b[0])] == pytest.approx(2.0) and batch_p[int(a[0])] == pytest.approx(0.5)
 
 
-def test_fifo_eviction_and_stale_updates_are_ignored() -> None:
-    tab = table(capacity=10, alpha=1.0, td_error_max=100.0)
+def test_fifo_eviction_and_stale_updates_are_ignored(connect: Connect) -> None:
+    tab = connect(table(capacity=10, alpha=1.0, td_error_max=100.0))
     old = fill(tab, [4])[0]  # keys 0..3, bootstrap 4
     fill(tab, [3, 2])  # keys 5..7 (+8), 9..10 (+11): rows 0 and 1 overwritten
     info = tab.info()
@@ -136,8 +137,8 @@ def test_fifo_eviction_and_stale_updates_are_ignored() -> None:
     assert drawn.isdisjoint({0, 1, 4, 8, 11})
 
 
-def test_sample_times_out_below_min_size() -> None:
-    tab = table(rate_limiter=RateLimiter(1.0, min_size_to_sample=5, enforce_ratio=False))
+def test_sample_times_out_below_min_size(connect: Connect) -> None:
+    tab = connect(table(rate_limiter=RateLimiter(1.0, min_size_to_sample=5, enforce_ratio=False)))
     fill(tab, [4])
     with pytest.raises(SampleTimeout, match="min_size_to_sample"):
         tab.sample(2, timeout=0)
@@ -145,7 +146,7 @@ def test_sample_times_out_below_min_size() -> None:
     assert tab.sample(2, timeout=0).batch_size == 2
 
 
-def test_from_config_wires_the_rate_limiter() -> None:
+def test_from_config_wires_the_rate_limiter(connect: Connect) -> None:
     cfg = SimpleNamespace(
         capacity=50,
         alpha=0.6,
@@ -155,14 +156,15 @@ def test_from_config_wires_the_rate_limiter() -> None:
         samples_per_insert_tolerance=0.0,
         min_size_to_sample=3,
     )
-    tab = PrioritizedTable.from_config(cfg, (VECTOR,), 2, window=2, enforce_ratio=True, seed=0)
-    assert (tab.capacity, tab.window, tab.alpha) == (50, 2, 0.6)
+    built = PrioritizedTable.from_config(cfg, (VECTOR,), 2, window=2, enforce_ratio=True, seed=0)
+    assert (built.capacity, built.window, built.alpha) == (50, 2, 0.6)
+    tab = connect(built)
     fill(tab, [3])
     with pytest.raises(SampleTimeout, match="rate-limited"):
         tab.sample(4, timeout=0)  # at min size, no surplus yet
     fill(tab, [1])
     assert tab.sample(4, timeout=0).window == 2
-    free = PrioritizedTable.from_config(cfg, (VECTOR,), 2, window=2)  # single-process default
+    free = connect(PrioritizedTable.from_config(cfg, (VECTOR,), 2, window=2))  # single-process default
     fill(free, [3])
     assert free.sample(100, timeout=0).batch_size == 100
 
@@ -183,8 +185,8 @@ BAD_CHUNKS = {
 
 
 @pytest.mark.parametrize("message", list(BAD_CHUNKS))
-def test_bad_chunks_are_named_and_store_nothing(message: str) -> None:
-    tab = table()
+def test_bad_chunks_are_named_and_store_nothing(connect: Connect, message: str) -> None:
+    tab = connect(table())
     fill(tab, [2])
     before = tab.info()
     chunk = BAD_CHUNKS[message](make_chunk(4, before["next_key"]))
@@ -196,8 +198,31 @@ def test_bad_chunks_are_named_and_store_nothing(message: str) -> None:
     }
 
 
-def test_chunk_longer_than_capacity_is_refused() -> None:
-    tab = table(capacity=8)
+def test_insert_many_stores_all_chunks_or_none(connect: Connect) -> None:
+    tab = connect(table())
+    keys = tab.insert_many([make_chunk(3, 0), make_chunk(2, 4)], [None, np.array([0.5, 2.0])])
+    assert [k.tolist() for k in keys] == [[0, 1, 2], [4, 5]]
+    before = tab.info()
+    bad = replace(make_chunk(2, 10), rewards=np.array([np.nan, 1.0], np.float32))
+    with pytest.raises(ValueError, match=re.escape("chunks[1]")):
+        tab.insert_many([make_chunk(3, 7), bad])
+    after = tab.info()
+    assert {k: after[k] for k in ("size", "next_key", "inserted_chunks", "total_priority")} == {
+        k: before[k] for k in ("size", "next_key", "inserted_chunks", "total_priority")
+    }
+
+
+def test_insert_many_is_admitted_as_one_request(connect: Connect) -> None:
+    # Chunk by chunk, the second would be held back (surplus 3 windows, + 4 > tolerance 5).
+    tab = connect(table(rate_limiter=RateLimiter(1.0, min_size_to_sample=1, tolerance=5.0)))
+    tab.insert_many([make_chunk(4, 0), make_chunk(4, 5)], timeout=0)
+    assert tab.info()["size"] == 8
+    with pytest.raises(InsertTimeout):
+        tab.insert(make_chunk(1, 10), timeout=0)
+
+
+def test_chunk_longer_than_capacity_is_refused(connect: Connect) -> None:
+    tab = connect(table(capacity=8))
     tab.insert(make_chunk(7))  # exactly fills the ring
     with pytest.raises(ValueError, match="needs 9 rows but replay capacity is 8"):
         tab.insert(make_chunk(8, 8))
@@ -212,8 +237,10 @@ def test_chunk_longer_than_capacity_is_refused() -> None:
         (np.array([0.0]), np.array([1.0]), "integer"),
     ],
 )
-def test_bad_priority_updates_are_named(keys: np.ndarray, priorities: np.ndarray, message: str) -> None:
-    tab = table()
+def test_bad_priority_updates_are_named(
+    connect: Connect, keys: np.ndarray, priorities: np.ndarray, message: str
+) -> None:
+    tab = connect(table())
     fill(tab, [3])
     with pytest.raises(ValueError, match=message):
         tab.update_priorities(keys, priorities)
@@ -236,9 +263,9 @@ def test_constructor_rejects_bad_arguments() -> None:
         table(rate_limiter=RateLimiter(1.0, 64))
 
 
-def test_normalizer_sees_every_inserted_observation_of_vector_sensors() -> None:
+def test_normalizer_sees_every_inserted_observation_of_vector_sensors(connect: Connect) -> None:
     two = SensorSpec("two_d", (2, 2))
-    tab = table(sensors=(VECTOR, IMAGE, two), capacity=20)
+    tab = connect(table(sensors=(VECTOR, IMAGE, two), capacity=20))
     rng = np.random.default_rng(0)
     seen: list[np.ndarray] = []
     # The last chunk wraps and evicts: statistics still cover everything. A chunk cut mid-episode
@@ -256,13 +283,11 @@ def test_normalizer_sees_every_inserted_observation_of_vector_sensors() -> None:
     np.testing.assert_allclose(stats["two_d"]["var"], data.var(axis=0), rtol=1e-12)
     rms = RunningMeanStd((2, 2))
     rms.load_state_dict(tab.normalizer_stats()["two_d"])
-    np.testing.assert_allclose(
-        rms.normalize(data), np.clip((data - data.mean(0)) / data.std(0), -5, 5), rtol=1e-5
-    )
+    np.testing.assert_allclose(rms.normalize(data), np.clip((data - data.mean(0)) / data.std(0), -5, 5), rtol=1e-5)
 
 
-def test_images_stay_uint8_and_rnn_state_comes_from_the_window_start() -> None:
-    tab = table(sensors=(VECTOR, IMAGE), window=3, rnn_state_size=4, alpha=0.0)
+def test_images_stay_uint8_and_rnn_state_comes_from_the_window_start(connect: Connect) -> None:
+    tab = connect(table(sensors=(VECTOR, IMAGE), window=3, rnn_state_size=4, alpha=0.0))
     tab.insert(make_chunk(5, 0, tab.sensors, rnn_state_size=4))
     batch = tab.sample(32)
     assert batch.obs[1].dtype == np.uint8 and batch.obs[1].shape == (32, 4, 4, 4, 3)

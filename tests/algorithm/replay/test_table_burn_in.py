@@ -3,18 +3,21 @@ zeros (masked) before the chunk's first live row, never another chunk's rows."""
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
-from hypothesis import given, settings
+from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from algorithm.replay import PrioritizedTable
 
 from .chunks import VECTOR, make_chunk
+from .conftest import Connect
 
 BURN_IN, N_STEP = 3, 2
 
 
-def by_key(tab: PrioritizedTable, n: int = 256) -> tuple[dict[int, int], object]:
+def by_key(tab: Any, n: int = 256) -> tuple[dict[int, int], object]:
     batch = tab.sample(n)
     first: dict[int, int] = {}
     for b, key in enumerate(batch.keys.tolist()):
@@ -22,9 +25,9 @@ def by_key(tab: PrioritizedTable, n: int = 256) -> tuple[dict[int, int], object]
     return first, batch
 
 
-def test_the_sampled_step_sits_after_the_burn_in_and_early_steps_get_zero_rows() -> None:
-    tab = PrioritizedTable(64, (VECTOR,), 2, window=BURN_IN + N_STEP, alpha=0.0, rnn_state_size=2, seed=0,
-                           burn_in=BURN_IN)  # fmt: skip
+def test_the_sampled_step_sits_after_the_burn_in_and_early_steps_get_zero_rows(connect: Connect) -> None:
+    tab = connect(PrioritizedTable(64, (VECTOR,), 2, window=BURN_IN + N_STEP, alpha=0.0, rnn_state_size=2, seed=0,
+                                   burn_in=BURN_IN))  # fmt: skip
     tab.insert(make_chunk(6, 0, terminated=True, rnn_state_size=2))  # keys 0..5, bootstrap 6
     tab.insert(make_chunk(4, 7, rnn_state_size=2))  # keys 7..10
     index, batch = by_key(tab)
@@ -52,14 +55,17 @@ def test_the_sampled_step_sits_after_the_burn_in_and_early_steps_get_zero_rows()
     np.testing.assert_array_equal(batch.obs[0][b, :, 0], [2, 3, 4, 5, 6, 6])
 
 
-@settings(max_examples=40, deadline=None)
+# connect is shared by the examples on purpose: it only wraps each example's new table.
+@settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(
     lengths=st.lists(st.integers(1, 9), min_size=1, max_size=12),
     capacity=st.integers(12, 40),
     burn_in=st.integers(1, 4),
 )
-def test_look_back_windows_never_leave_the_sampled_chunk(lengths: list[int], capacity: int, burn_in: int) -> None:
-    tab = PrioritizedTable(capacity, (VECTOR,), 2, window=burn_in + 2, alpha=0.0, seed=1, burn_in=burn_in)
+def test_look_back_windows_never_leave_the_sampled_chunk(
+    connect: Connect, lengths: list[int], capacity: int, burn_in: int
+) -> None:
+    tab = connect(PrioritizedTable(capacity, (VECTOR,), 2, window=burn_in + 2, alpha=0.0, seed=1, burn_in=burn_in))
     chunk_of: dict[int, tuple[int, int]] = {}  # key -> (chunk's first key, its bootstrap key)
     key = 0
     for t in lengths:
@@ -69,7 +75,7 @@ def test_look_back_windows_never_leave_the_sampled_chunk(lengths: list[int], cap
         for k in range(key, key + t):
             chunk_of[k] = (key, key + t)
         key += t + 1
-    if tab.rate_limiter.size == 0:
+    if tab.info()["size"] == 0:
         return
     oldest = key - capacity
     batch = tab.sample(64)

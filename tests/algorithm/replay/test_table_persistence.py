@@ -15,6 +15,7 @@ from algorithm.spaces import SensorSpec
 from algorithm.types import Batch
 
 from .chunks import IMAGE, VECTOR, make_chunk
+from .conftest import Connect
 
 SENSORS = (VECTOR, IMAGE)
 
@@ -34,8 +35,8 @@ def build(seed: int, **kwargs: Any) -> PrioritizedTable:
     )
 
 
-def populated(seed: int = 0) -> PrioritizedTable:
-    tab = build(seed)
+def populated(connect: Connect, seed: int = 0) -> Any:
+    tab = connect(build(seed))
     rng = np.random.default_rng(seed)
     for t in (5, 12, 20, 9, 17):  # wraps the ring and evicts
         tab.insert(make_chunk(t, tab.info()["next_key"], SENSORS, rnn_state_size=3))
@@ -63,12 +64,12 @@ def assert_same_info(a: dict[str, Any], b: dict[str, Any]) -> None:
         np.testing.assert_allclose(stats["var"], b["normalizer"][name]["var"], rtol=1e-14)
 
 
-def test_round_trip_continues_sampling_identically(tmp_path: Path) -> None:
-    original = populated()
+def test_round_trip_continues_sampling_identically(connect: Connect, tmp_path: Path) -> None:
+    original = populated(connect)
     path = tmp_path / "replay.npz"
     original.save(path)
     assert [p.name for p in tmp_path.iterdir()] == ["replay.npz"]  # no temp file left behind
-    restored = build(seed=123)  # a different seed: the saved random state must win
+    restored = connect(build(seed=123))  # a different seed: the saved random state must win
     restored.load(path)
     assert_same_info(original.info(), restored.info())
     for step in range(5):
@@ -82,10 +83,10 @@ def test_round_trip_continues_sampling_identically(tmp_path: Path) -> None:
     assert_same_info(original.info(), restored.info())
 
 
-def test_save_overwrites_atomically(tmp_path: Path) -> None:
+def test_save_overwrites_atomically(connect: Connect, tmp_path: Path) -> None:
     path = tmp_path / "replay.npz"
     path.write_bytes(b"old contents")
-    tab = populated()
+    tab = populated(connect)
     tab.save(path)
     with np.load(path, allow_pickle=False) as f:  # plain arrays, no pickles
         assert json.loads(str(f["meta"]))["next_key"] == tab.info()["next_key"]
@@ -128,9 +129,9 @@ def corrupt(path: Path, tmp_path: Path, **changes: Any) -> Path:
         ("rng", "inconsistent replay file"),
     ],
 )
-def test_bad_file_raises_and_leaves_the_table_intact(tmp_path: Path, case: str, message: str) -> None:
+def test_bad_file_raises_and_leaves_the_table_intact(connect: Connect, tmp_path: Path, case: str, message: str) -> None:
     good = tmp_path / "good.npz"
-    populated(seed=1).save(good)
+    populated(connect, seed=1).save(good)
     with np.load(good, allow_pickle=False) as f:
         leaves, row_key, end_key = f["priorities"].copy(), f["row_key"].copy(), f["end_key"].copy()
         meta = json.loads(str(f["meta"]))
@@ -166,18 +167,18 @@ def test_bad_file_raises_and_leaves_the_table_intact(tmp_path: Path, case: str, 
     else:
         path = corrupt(good, tmp_path, rng={"bit_generator": "PCG64", "state": "nonsense"})
 
-    tab, twin = populated(seed=2), populated(seed=2)
+    tab, twin = populated(connect, seed=2), populated(connect, seed=2)
     with pytest.raises(ValueError, match=message):
         tab.load(path)
     assert_same_info(tab.info(), twin.info())
     assert_same_batch(tab.sample(16), twin.sample(16))
 
 
-def test_mismatched_table_is_refused(tmp_path: Path) -> None:
+def test_mismatched_table_is_refused(connect: Connect, tmp_path: Path) -> None:
     path = tmp_path / "replay.npz"
-    populated().save(path)
-    other = build(seed=0, sensors=(VECTOR, SensorSpec("pixels", (4, 4, 1), np.dtype(np.uint8))))
+    populated(connect).save(path)
+    other = connect(build(seed=0, sensors=(VECTOR, SensorSpec("pixels", (4, 4, 1), np.dtype(np.uint8)))))
     with pytest.raises(ValueError, match="saved sensors"):
         other.load(path)
     with pytest.raises(ValueError, match="saved rnn_state_size is 3"):
-        build(seed=0, rnn_state_size=0).load(path)
+        connect(build(seed=0, rnn_state_size=0)).load(path)

@@ -3,17 +3,18 @@
 from __future__ import annotations
 
 import numpy as np
-from hypothesis import given, settings
+from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from algorithm.replay import PrioritizedTable
 from algorithm.types import Batch
 
 from .chunks import VECTOR, make_chunk
+from .conftest import Connect
 
 
-def test_window_past_the_chunk_end_is_masked_and_repeats_the_final_observation() -> None:
-    tab = PrioritizedTable(32, (VECTOR,), 2, window=4, alpha=0.0, seed=0)
+def test_window_past_the_chunk_end_is_masked_and_repeats_the_final_observation(connect: Connect) -> None:
+    tab = connect(PrioritizedTable(32, (VECTOR,), 2, window=4, alpha=0.0, seed=0))
     tab.insert(make_chunk(3, 0, terminated=True))  # keys 0, 1, 2; bootstrap row 3 holds obs[3]
     tab.insert(make_chunk(5, 4))  # keys 4..8 must never leak into the first chunk's windows
     by_key: dict[int, int] = {}
@@ -56,7 +57,8 @@ def check_windows(batch: Batch, chunks: dict[int, tuple[int, bool]], oldest: int
         np.testing.assert_array_equal(batch.terminated[b] | batch.truncated[b], last)
 
 
-@settings(max_examples=60, deadline=None)
+# connect is shared by the examples on purpose: it only wraps each example's new table.
+@settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(
     capacity=st.integers(2, 40),
     window=st.integers(1, 6),
@@ -65,9 +67,9 @@ def check_windows(batch: Batch, chunks: dict[int, tuple[int, bool]], oldest: int
     seed=st.integers(0, 2**16),
 )
 def test_windows_never_span_two_chunks(
-    capacity: int, window: int, lengths: list[int], alpha: float, seed: int
+    connect: Connect, capacity: int, window: int, lengths: list[int], alpha: float, seed: int
 ) -> None:
-    tab = PrioritizedTable(capacity, (VECTOR,), 2, window, alpha=alpha, seed=seed)
+    tab = connect(PrioritizedTable(capacity, (VECTOR,), 2, window, alpha=alpha, seed=seed))
     rng = np.random.default_rng(seed)
     chunks: dict[int, tuple[int, bool]] = {}
     next_key = 0

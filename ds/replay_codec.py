@@ -1,0 +1,270 @@
+"""Replay messages <-> algorithm types (Chunk, Batch, info dicts), checked against the replay's specs.
+
+The server decodes what actors and learners send with :meth:`ReplaySpecs.chunk_from_proto` and
+:meth:`ReplaySpecs.priorities_from_proto`; the client decodes what the server returns with
+:meth:`ReplaySpecs.batch_from_proto`. Both check every tensor (dtype, shape, leading dimensions
+consistent within the message, finiteness) before the data goes anywhere, and name the offending
+field in the :class:`~ds.wire.WireError`. :func:`message_limit_bytes` sizes gRPC's message limits
+from the largest message the configuration produces.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from algorithm.spaces import SensorSpec
+from algorithm.types import Batch, Chunk
+from ds.wire import TensorSpec, WireError, from_tensor, to_tensor
+from protos import replay_pb2
+
+# gRPC's own default receive limit; the limits are never set below it.
+GRPC_DEFAULT_MESSAGE_BYTES = 4 * 1024 * 1024
+# protobuf cannot serialise a message of 2 GiB or more.
+PROTOBUF_MAX_MESSAGE_BYTES = 2**31 - 1
+# Framing of one Tensor inside a message: tags, length prefixes, dtype name, up to ~6 shape varints.
+TENSOR_FRAMING_BYTES = 128
+
+_F32, _F64, _BOOL, _U64 = np.dtype(np.float32), np.dtype(np.float64), np.dtype(bool), np.dtype(np.uint64)
+# Per-step fields shared by Chunk and Batch, with their dtypes; actions also have a trailing A.
+_STEP_FIELDS = (
+    ("actions", _F32),
+    ("prev_actions", _F32),
+    ("rewards", _F32),
+    ("terminated", _BOOL),
+    ("truncated", _BOOL),
+    ("behaviour_logp", _F32),
+)
+
+
+@dataclass(frozen=True)
+class ReplaySpecs:
+    """What a replay table stores, hence what its server accepts and its client expects back."""
+
+    sensors: tuple[SensorSpec, ...]
+    action_size: int
+    rnn_state_size: int = 0
+
+    # ------------------------------------------------------------------ chunks (actor -> server)
+
+    def chunk_from_proto(self, msg: replay_pb2.Chunk, where: str) -> tuple[Chunk, np.ndarray | None]:
+        """Decode and check one chunk; returns it and its raw priorities (None: not given).
+
+        ``where`` prefixes field names (``"chunks[3]"``). The table itself still checks what
+        is not about the wire (flags only on the last step, length against capacity).
+        """
+        dims: dict[str, int] = {}
+        rewards = _required(msg, "rewards", self._step_spec(where, "rewards"), dims)
+        if dims["T"] < 1:
+            raise WireError(f"{where}.rewards", "is float32 of shape [0], expected float32 of shape [T] with T >= 1")
+        if len(msg.obs) != len(self.sensors):
+            raise WireError(
+                f"{where}.obs", f"has {len(msg.obs)} observation sensors, the table expects {len(self.sensors)}"
+            )
+        obs = [from_tensor(t, self._obs_spec(where, i, "T+1"), dims) for i, t in enumerate(msg.obs)]
+        steps = {name: _required(msg, name, self._step_spec(where, name), dims) for name, _ in _STEP_FIELDS}
+        steps["rewards"] = rewards
+        rnn_state = None
+        if self.rnn_state_size:
+            rnn_spec = TensorSpec(f"{where}.rnn_state", _F32, (self.rnn_state_size,), finite=True, leading=("T",))
+            rnn_state = _required(msg, "rnn_state", rnn_spec, dims)
+        elif msg.HasField("rnn_state"):
+            raise WireError(f"{where}.rnn_state", "is set but the table stores no recurrent state (rnn_state_size=0)")
+        priorities = None
+        if msg.HasField("priorities"):
+            spec = TensorSpec(f"{where}.priorities", _F64, finite=True, nonnegative=True, leading=("T",))
+            priorities = from_tensor(msg.priorities, spec, dims)
+        return Chunk(obs=obs, rnn_state=rnn_state, **steps), priorities
+
+    # ------------------------------------------------------------------ priorities (learner -> server)
+
+    def priorities_from_proto(self, msg: replay_pb2.UpdatePrioritiesRequest) -> tuple[np.ndarray, np.ndarray]:
+        """Decode and check ``(keys uint64 [N], raw priorities float64 [N], finite, >= 0)``."""
+        dims: dict[str, int] = {}
+        keys = _required(msg, "keys", TensorSpec("keys", _U64, leading=("N",)), dims)
+        spec = TensorSpec("priorities", _F64, finite=True, nonnegative=True, leading=("N",))
+        return keys, _required(msg, "priorities", spec, dims)
+
+    # ------------------------------------------------------------------ batches (server -> learner)
+
+    def batch_from_proto(self, msg: replay_pb2.SampleReply, batch_size: int) -> Batch:
+        """Decode and check a sampled batch of ``batch_size`` windows (``L`` read from its mask)."""
+        dims = {"B": int(batch_size)}
+        mask = _required(msg, "mask", TensorSpec("mask", _BOOL, leading=("B", "L")), dims)
+        steps = {name: _required(msg, name, self._window_spec(name, dtype), dims) for name, dtype in _STEP_FIELDS}
+        if len(msg.obs) != len(self.sensors):
+            raise WireError("obs", f"has {len(msg.obs)} observation sensors, expected {len(self.sensors)}")
+        rnn_state = None
+        if self.rnn_state_size:
+            spec = TensorSpec("rnn_state", _F32, (self.rnn_state_size,), finite=True, leading=("B",))
+            rnn_state = _required(msg, "rnn_state", spec, dims)
+        return Batch(
+            keys=_required(msg, "keys", TensorSpec("keys", _U64, leading=("B",)), dims),
+            probabilities=_required(
+                msg, "probabilities", TensorSpec("probabilities", _F64, finite=True, leading=("B",)), dims
+            ),
+            table_size=int(msg.table_size),
+            obs=[from_tensor(t, self._obs_spec("", i, "B", "L+1"), dims) for i, t in enumerate(msg.obs)],
+            mask=mask,
+            rnn_state=rnn_state,
+            **steps,
+        )
+
+    # ------------------------------------------------------------------ info (server -> anyone)
+
+    def info_from_proto(self, msg: replay_pb2.InfoReply) -> dict[str, Any]:
+        """The table's ``info()`` dict back: counters as ``int``, values as ``float``, and
+        ``"normalizer"``: ``{sensor: {"count": int, "mean": float64 array, "var": float64 array}}``."""
+        out: dict[str, Any] = {key: int(v) for key, v in msg.counters.items()}
+        out.update((key, float(v)) for key, v in msg.values.items())
+        out["normalizer"] = self.normalizer_from_proto(msg)
+        return out
+
+    def normalizer_from_proto(self, msg: replay_pb2.InfoReply) -> dict[str, dict[str, Any]]:
+        """``{sensor: {"count", "mean", "var"}}`` of an InfoReply; every sensor must be known."""
+        shapes = {s.name: s.shape for s in self.sensors}
+        out = {}
+        for name, stats in msg.normalizer.items():
+            if name not in shapes:
+                raise WireError(f"normalizer[{name!r}]", f"names no sensor of this replay ({sorted(shapes)})")
+            where = f"normalizer[{name!r}]"
+            mean = _required(stats, "mean", TensorSpec(f"{where}.mean", _F64, shapes[name], finite=True), {})
+            var = _required(stats, "var", TensorSpec(f"{where}.var", _F64, shapes[name], finite=True), {})
+            out[name] = {"count": int(stats.count), "mean": mean, "var": var}
+        return out
+
+    # ------------------------------------------------------------------ specs
+
+    def _obs_spec(self, where: str, i: int, *leading: str) -> TensorSpec:
+        s = self.sensors[i]
+        name = f"{where}.obs[{i}] ({s.name})" if where else f"obs[{i}] ({s.name})"
+        return TensorSpec(name, s.dtype, s.shape, finite=np.dtype(s.dtype).kind == "f", leading=leading)
+
+    def _step_spec(self, where: str, name: str) -> TensorSpec:
+        dtype = dict(_STEP_FIELDS)[name]
+        suffix = (self.action_size,) if name in ("actions", "prev_actions") else ()
+        return TensorSpec(f"{where}.{name}", dtype, suffix, finite=dtype.kind == "f", leading=("T",))
+
+    def _window_spec(self, name: str, dtype: np.dtype) -> TensorSpec:
+        suffix = (self.action_size,) if name in ("actions", "prev_actions") else ()
+        return TensorSpec(name, dtype, suffix, finite=dtype.kind == "f", leading=("B", "L"))
+
+
+def _required(msg: Any, name: str, spec: TensorSpec, dims: dict[str, int]) -> np.ndarray:
+    """Decode the Tensor field ``name`` of ``msg``, which must be present."""
+    if not msg.HasField(name):
+        raise WireError(spec.name, "is missing")
+    return from_tensor(getattr(msg, name), spec, dims)
+
+
+# ---------------------------------------------------------------------- encoders (no checks beyond to_tensor)
+
+
+def chunk_to_proto(chunk: Chunk, priorities: np.ndarray | None = None, where: str = "chunks[0]") -> replay_pb2.Chunk:
+    """Encode a chunk (and optional raw priorities, sent as float64) for an InsertRequest."""
+    msg = replay_pb2.Chunk(obs=[to_tensor(o, f"{where}.obs[{i}]") for i, o in enumerate(chunk.obs)])
+    for name, _ in _STEP_FIELDS:
+        getattr(msg, name).CopyFrom(to_tensor(getattr(chunk, name), f"{where}.{name}"))
+    if chunk.rnn_state is not None:
+        msg.rnn_state.CopyFrom(to_tensor(chunk.rnn_state, f"{where}.rnn_state"))
+    if priorities is not None:
+        msg.priorities.CopyFrom(to_tensor(np.asarray(priorities, dtype=np.float64), f"{where}.priorities"))
+    return msg
+
+
+def batch_to_proto(batch: Batch) -> replay_pb2.SampleReply:
+    """Encode a sampled batch as a SampleReply."""
+    msg = replay_pb2.SampleReply(
+        keys=to_tensor(batch.keys, "keys"),
+        probabilities=to_tensor(batch.probabilities, "probabilities"),
+        table_size=batch.table_size,
+        obs=[to_tensor(o, f"obs[{i}]") for i, o in enumerate(batch.obs)],
+        mask=to_tensor(batch.mask, "mask"),
+    )
+    for name, _ in _STEP_FIELDS:
+        getattr(msg, name).CopyFrom(to_tensor(getattr(batch, name), name))
+    if batch.rnn_state is not None:
+        msg.rnn_state.CopyFrom(to_tensor(batch.rnn_state, "rnn_state"))
+    return msg
+
+
+def info_to_proto(info: dict[str, Any]) -> replay_pb2.InfoReply:
+    """Encode a table's ``info()``: integers as counters, other numbers as values, plus normalizers."""
+    msg = replay_pb2.InfoReply()
+    for key, value in info.items():
+        if key == "normalizer":
+            for name, stats in value.items():
+                msg.normalizer[name].CopyFrom(
+                    replay_pb2.NormalizerStats(
+                        count=int(stats["count"]),
+                        mean=to_tensor(np.asarray(stats["mean"], np.float64)),
+                        var=to_tensor(np.asarray(stats["var"], np.float64)),
+                    )
+                )
+        elif isinstance(value, int | np.integer):
+            msg.counters[key] = int(value)
+        else:
+            msg.values[key] = float(value)
+    return msg
+
+
+# ---------------------------------------------------------------------- message sizes
+
+
+def batch_payload_bytes(
+    sensors: tuple[SensorSpec, ...], action_size: int, batch_size: int, window: int, rnn_state_size: int = 0
+) -> int:
+    """Raw tensor bytes of a SampleReply with ``batch_size`` windows of ``window`` steps."""
+    b, steps = int(batch_size), int(batch_size) * int(window)
+    obs = sum(b * (window + 1) * math.prod(s.shape) * np.dtype(s.dtype).itemsize for s in sensors)
+    per_step = 2 * 4 * action_size + 4 + 1 + 1 + 4 + 1  # actions, prev_actions, reward, flags, logp, mask
+    return obs + steps * per_step + b * (8 + 8 + 4 * rnn_state_size)  # keys, probabilities, state
+
+
+def chunk_payload_bytes(sensors: tuple[SensorSpec, ...], action_size: int, steps: int, rnn_state_size: int = 0) -> int:
+    """Raw tensor bytes of one chunk of ``steps`` steps, with priorities."""
+    obs = sum((steps + 1) * math.prod(s.shape) * np.dtype(s.dtype).itemsize for s in sensors)
+    per_step = 2 * 4 * action_size + 4 + 1 + 1 + 4 + 8 + 4 * rnn_state_size  # ... + priority, state
+    return obs + steps * per_step
+
+
+def sample_reply_bytes(
+    sensors: tuple[SensorSpec, ...], action_size: int, batch_size: int, window: int, rnn_state_size: int = 0
+) -> int:
+    """Upper estimate of a serialised SampleReply: payload plus framing of each tensor."""
+    tensors = len(sensors) + len(_STEP_FIELDS) + 4
+    return (
+        batch_payload_bytes(sensors, action_size, batch_size, window, rnn_state_size) + tensors * TENSOR_FRAMING_BYTES
+    )
+
+
+def message_limit_bytes(
+    sensors: tuple[SensorSpec, ...],
+    action_size: int,
+    batch_size: int,
+    window: int,
+    rnn_state_size: int = 0,
+    max_chunk_steps: int = 0,
+) -> int:
+    """The gRPC send/receive limit for a replay server and its clients, from the real sizes.
+
+    Rule: ``max(4 MiB, 2 * P + 1 MiB)`` where ``P`` is the larger of the raw tensor bytes of one
+    sampled batch (``batch_size`` windows of ``window`` steps) and of one chunk of
+    ``max_chunk_steps`` steps. The factor 2 leaves room for an insert of a few chunks at once or
+    a learner sampling a somewhat larger batch; 1 MiB covers the framing. Never below gRPC's
+    4 MiB default; a limit protobuf cannot carry (2 GiB) is a ``ValueError``.
+    """
+    payload = batch_payload_bytes(sensors, action_size, batch_size, window, rnn_state_size)
+    if max_chunk_steps:
+        payload = max(payload, chunk_payload_bytes(sensors, action_size, max_chunk_steps, rnn_state_size))
+    limit = max(GRPC_DEFAULT_MESSAGE_BYTES, 2 * payload + 1024 * 1024)
+    if limit > PROTOBUF_MAX_MESSAGE_BYTES:
+        raise ValueError(
+            f"replay messages of {payload} bytes (batch_size={batch_size}, window={window}, "
+            f"max_chunk_steps={max_chunk_steps}) need a {limit}-byte limit, over protobuf's 2 GiB: "
+            "sample smaller batches or cut shorter chunks"
+        )
+    return limit

@@ -1,0 +1,431 @@
+"""The replay table over gRPC: a servicer wrapping the in-process table, and a client that is one.
+
+Usage, a replay process and its peers (protos/replay.proto documents every rpc)::
+
+    limit = message_limit_bytes(sensors, action_size, batch_size, window, rnn_state_size, chunk_length)
+    server, port = serve_replay(table, "0.0.0.0:50051", max_message_bytes=limit)   # replay role
+    ...
+    replay = ReplayClient("replay:50051", sensors, action_size, rnn_state_size, max_message_bytes=limit)
+    keys = replay.insert(chunk)                      # actor
+    batch = replay.sample(256, timeout=1.0)          # learner: a Batch with the same dtypes as in-process
+    replay.update_priorities(batch.keys, td_abs)     # learner
+    server.stop(grace=5.0)
+
+:class:`ReplayClient` implements the table interface of :mod:`algorithm.replay.base` with the same
+types and exceptions (``ValueError`` for rejected data, :class:`SampleTimeout`/:class:`InsertTimeout`),
+so the replay contract tests run unchanged against it (tests/ds/test_replay_contract.py).
+
+Errors map to gRPC status codes on the server and back to exceptions on the client:
+
+- bad data or a bad file (``WireError``, ``ValueError``): INVALID_ARGUMENT -> :class:`ReplayRequestRejected`,
+  a ``ValueError`` carrying the server's message;
+- the rate limiter's ``SampleTimeout`` / ``InsertTimeout``: DEADLINE_EXCEEDED -> the same exception;
+- a file the server cannot write (``OSError``): FAILED_PRECONDITION -> :class:`ReplayRpcError`;
+- a message over the size limit: RESOURCE_EXHAUSTED -> :class:`ReplayRpcError` (the client refuses
+  to send an oversize request itself, with a ``WireError`` naming the size and the limit);
+- server unreachable: UNAVAILABLE -> retried with backoff, then :class:`ReplayRpcError`.
+"""
+
+from __future__ import annotations
+
+import random
+import threading
+import time
+from collections.abc import Callable, Iterator, Sequence
+from concurrent import futures
+from contextlib import contextmanager
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, TypeVar
+
+import grpc
+import numpy as np
+from grpc_health.v1 import health, health_pb2, health_pb2_grpc
+
+from algorithm.replay import InsertTimeout, PrioritizedTable, SampleTimeout
+from algorithm.spaces import SensorSpec
+from algorithm.types import Batch, Chunk
+from ds.replay_codec import (
+    GRPC_DEFAULT_MESSAGE_BYTES,
+    ReplaySpecs,
+    batch_to_proto,
+    chunk_to_proto,
+    info_to_proto,
+    message_limit_bytes,
+    sample_reply_bytes,
+)
+from ds.wire import TensorSpec, WireError, from_tensor, to_tensor
+from protos import replay_pb2, replay_pb2_grpc
+
+__all__ = [
+    "SERVICE_NAME",
+    "ReplayClient",
+    "ReplayRequestRejected",
+    "ReplayRpcError",
+    "ReplayServicer",
+    "RetryPolicy",
+    "message_limit_bytes",
+    "serve_replay",
+    "set_serving",
+]
+
+SERVICE_NAME = "asac.ReplayService"
+_T = TypeVar("_T")
+
+
+def _channel_options(max_message_bytes: int) -> list[tuple[str, int]]:
+    return [
+        ("grpc.max_send_message_length", int(max_message_bytes)),
+        ("grpc.max_receive_message_length", int(max_message_bytes)),
+    ]
+
+
+# ---------------------------------------------------------------------- server
+
+
+class ReplayServicer(replay_pb2_grpc.ReplayServiceServicer):
+    """Serves one :class:`PrioritizedTable`; every request is checked against the registered specs.
+
+    ``sensors``, ``action_size`` and ``rnn_state_size`` are what clients must send (they must
+    equal the table's). The table has its own lock, so the servicer is safe under any number of
+    concurrent RPCs; it keeps no state of its own.
+    """
+
+    def __init__(
+        self,
+        table: PrioritizedTable,
+        sensors: tuple[SensorSpec, ...],
+        action_size: int,
+        rnn_state_size: int = 0,
+        max_message_bytes: int = GRPC_DEFAULT_MESSAGE_BYTES,
+    ) -> None:
+        self.specs = ReplaySpecs(tuple(sensors), int(action_size), int(rnn_state_size))
+        stored = ReplaySpecs(table.sensors, table.action_size, table.rnn_state_size)
+        if self.specs != stored:
+            raise ValueError(f"replay servicer specs {self.specs} differ from the table's {stored}")
+        self.table = table
+        self.max_message_bytes = int(max_message_bytes)
+
+    def Insert(self, request: replay_pb2.InsertRequest, context: grpc.ServicerContext) -> replay_pb2.InsertReply:
+        with _status_codes(context):
+            # Decode every chunk first: a bad one anywhere rejects the whole request untouched.
+            decoded = [self.specs.chunk_from_proto(c, f"chunks[{i}]") for i, c in enumerate(request.chunks)]
+            keys = self.table.insert_many(
+                [chunk for chunk, _ in decoded], [p for _, p in decoded], _wait_seconds(request, context)
+            )
+        return replay_pb2.InsertReply(keys=[to_tensor(k) for k in keys])
+
+    def Sample(self, request: replay_pb2.SampleRequest, context: grpc.ServicerContext) -> replay_pb2.SampleReply:
+        spec, b = self.specs, request.batch_size
+        size = sample_reply_bytes(spec.sensors, spec.action_size, b, self.table.window, spec.rnn_state_size)
+        if size > self.max_message_bytes:  # refuse before drawing: a drawn batch would be lost
+            context.abort(
+                grpc.StatusCode.RESOURCE_EXHAUSTED,
+                f"a batch of {b} windows of {self.table.window} steps is about {size} bytes, over this replay "
+                f"server's message limit of {self.max_message_bytes} bytes: start server and clients with "
+                f"max_message_bytes=message_limit_bytes(..., batch_size={b}, ...)",
+            )
+        with _status_codes(context):
+            batch = self.table.sample(b, _wait_seconds(request, context))
+        return batch_to_proto(batch)
+
+    def UpdatePriorities(
+        self, request: replay_pb2.UpdatePrioritiesRequest, context: grpc.ServicerContext
+    ) -> replay_pb2.UpdatePrioritiesReply:
+        with _status_codes(context):
+            self.table.update_priorities(*self.specs.priorities_from_proto(request))
+        return replay_pb2.UpdatePrioritiesReply()
+
+    def Info(self, request: replay_pb2.InfoRequest, context: grpc.ServicerContext) -> replay_pb2.InfoReply:
+        return info_to_proto(self.table.info())
+
+    def Save(self, request: replay_pb2.SaveRequest, context: grpc.ServicerContext) -> replay_pb2.SaveReply:
+        with _status_codes(context):
+            self.table.save(_path(request.path))
+        return replay_pb2.SaveReply()
+
+    def Load(self, request: replay_pb2.LoadRequest, context: grpc.ServicerContext) -> replay_pb2.LoadReply:
+        with _status_codes(context):
+            self.table.load(_path(request.path))
+        return replay_pb2.LoadReply()
+
+
+def _path(path: str) -> Path:
+    if not path:
+        raise WireError("path", "is empty")
+    return Path(path)
+
+
+def _wait_seconds(request: Any, context: grpc.ServicerContext) -> float | None:
+    """How long a blocking table call may wait: the request's ``timeout_s``, never past the call's
+    deadline (a caller that gave up must not leave a server thread blocked); None: forever."""
+    limits = []
+    if request.HasField("timeout_s"):
+        if not request.timeout_s >= 0:  # also NaN
+            raise WireError("timeout_s", f"must be >= 0, got {request.timeout_s}")
+        limits.append(request.timeout_s)
+    remaining = context.time_remaining()  # about 9e18 for a call without deadline
+    if remaining is not None and remaining < threading.TIMEOUT_MAX:
+        limits.append(max(0.0, remaining))
+    return min(limits) if limits else None
+
+
+@contextmanager
+def _status_codes(context: grpc.ServicerContext) -> Iterator[None]:
+    """Turn the table's exceptions into status codes with the exception's message."""
+    try:
+        yield
+    except (SampleTimeout, InsertTimeout) as e:  # before OSError: TimeoutError is an OSError
+        context.abort(grpc.StatusCode.DEADLINE_EXCEEDED, str(e))
+    except ValueError as e:
+        context.abort(grpc.StatusCode.INVALID_ARGUMENT, str(e))
+    except OSError as e:
+        context.abort(grpc.StatusCode.FAILED_PRECONDITION, f"{type(e).__name__}: {e}")
+
+
+def set_serving(health_servicer: health.HealthServicer, serving: bool) -> None:
+    """Report SERVING or NOT_SERVING for the server as a whole and for the replay service."""
+    status = health_pb2.HealthCheckResponse.SERVING if serving else health_pb2.HealthCheckResponse.NOT_SERVING
+    for name in ("", SERVICE_NAME):
+        health_servicer.set(name, status)
+
+
+def serve_replay(
+    table: PrioritizedTable,
+    address: str = "127.0.0.1:0",
+    *,
+    max_message_bytes: int = GRPC_DEFAULT_MESSAGE_BYTES,
+    max_workers: int = 32,
+    health_servicer: health.HealthServicer | None = None,
+    ready: bool = True,
+) -> tuple[grpc.Server, int]:
+    """Start a gRPC server for ``table`` on ``address`` (port 0: any free port); returns it and its port.
+
+    ``max_message_bytes`` limits what the server sends and receives (see
+    :func:`~ds.replay_codec.message_limit_bytes`). ``max_workers`` threads serve calls; a call
+    blocked by the rate limiter holds one, so give at least one per actor and learner. The health
+    service reports NOT_SERVING until the server has started, then SERVING; pass ``ready=False``
+    and your own ``health_servicer`` to flip it with :func:`set_serving` later (after loading a
+    saved table, say). Plaintext on loopback by default (ARCHITECTURE.md 6: without TLS servers
+    bind to loopback). Stop it with ``server.stop(grace)``.
+    """
+    server = grpc.server(
+        futures.ThreadPoolExecutor(max_workers=max_workers, thread_name_prefix="replay-rpc"),
+        options=_channel_options(max_message_bytes),
+    )
+    servicer = ReplayServicer(table, table.sensors, table.action_size, table.rnn_state_size, max_message_bytes)
+    replay_pb2_grpc.add_ReplayServiceServicer_to_server(servicer, server)
+    health_servicer = health_servicer or health.HealthServicer()
+    health_pb2_grpc.add_HealthServicer_to_server(health_servicer, server)
+    set_serving(health_servicer, False)
+    port = server.add_insecure_port(address)
+    server.start()
+    if ready:
+        set_serving(health_servicer, True)
+    return server, port
+
+
+# ---------------------------------------------------------------------- client
+
+
+class ReplayRpcError(RuntimeError):
+    """A replay call failed; ``code`` is the gRPC status and the message carries the server's."""
+
+    def __init__(self, code: grpc.StatusCode, message: str) -> None:
+        super().__init__(message)
+        self.code = code
+
+
+class ReplayRequestRejected(ReplayRpcError, ValueError):
+    """The server refused the request's contents (INVALID_ARGUMENT); nothing was changed."""
+
+
+@dataclass(frozen=True)
+class RetryPolicy:
+    """Exponential backoff for UNAVAILABLE (server down or restarting): ``attempts`` tries in all,
+    sleeping ``initial_backoff_s * multiplier**k`` (at most ``max_backoff_s``, jittered down by up
+    to half so that many actors do not retry in step) between them."""
+
+    attempts: int = 6
+    initial_backoff_s: float = 0.1
+    max_backoff_s: float = 5.0
+    multiplier: float = 2.0
+
+
+class ReplayClient:
+    """The replay table interface over gRPC: ``insert``, ``insert_many``, ``sample``,
+    ``update_priorities``, ``info``, ``normalizer_stats``, ``save``, ``load``.
+
+    Takes and returns the same types as :class:`PrioritizedTable` (Chunk in, Batch out, numpy
+    arrays with the same dtypes) and raises the same exceptions: ``ValueError`` for data the
+    server rejects, :class:`SampleTimeout` / :class:`InsertTimeout` when the rate limiter holds a
+    call back. Every call has a deadline: ``rpc_timeout_s``, plus the wait the caller asked for
+    on ``insert``/``sample`` (a wait without end, ``timeout=None``, is a series of
+    ``poll_s``-second calls), or ``file_timeout_s`` for ``save``/``load``. UNAVAILABLE is
+    retried per ``retry``; every other error surfaces at once with the server's message.
+    Thread-safe: share one client between threads.
+    """
+
+    def __init__(
+        self,
+        address: str,
+        sensors: tuple[SensorSpec, ...],
+        action_size: int,
+        rnn_state_size: int = 0,
+        *,
+        max_message_bytes: int = GRPC_DEFAULT_MESSAGE_BYTES,
+        rpc_timeout_s: float = 30.0,
+        file_timeout_s: float = 600.0,
+        poll_s: float = 10.0,
+        retry: RetryPolicy | None = None,
+    ) -> None:
+        self.address = address
+        self.sensors = tuple(sensors)
+        self.action_size = int(action_size)
+        self.rnn_state_size = int(rnn_state_size)
+        self.specs = ReplaySpecs(self.sensors, self.action_size, self.rnn_state_size)
+        self.max_message_bytes = int(max_message_bytes)
+        self.rpc_timeout_s = float(rpc_timeout_s)
+        self.file_timeout_s = float(file_timeout_s)
+        self.poll_s = float(poll_s)
+        self.retry = retry or RetryPolicy()
+        # The channel reconnects by itself; other services of the same server (health) may use it.
+        self.channel = grpc.insecure_channel(address, options=_channel_options(max_message_bytes))
+        self._stub = replay_pb2_grpc.ReplayServiceStub(self.channel)
+
+    def close(self) -> None:
+        self.channel.close()
+
+    def __enter__(self) -> ReplayClient:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    # ------------------------------------------------------------------ the table interface
+
+    def insert(self, chunk: Chunk, priorities: np.ndarray | None = None, timeout: float | None = None) -> np.ndarray:
+        """Store ``chunk``; returns its ``T`` uint64 keys. See :meth:`PrioritizedTable.insert`."""
+        return self.insert_many([chunk], None if priorities is None else [priorities], timeout)[0]
+
+    def insert_many(
+        self,
+        chunks: Sequence[Chunk],
+        priorities: Sequence[np.ndarray | None] | None = None,
+        timeout: float | None = None,
+    ) -> list[np.ndarray]:
+        """Store several chunks in one request, all or nothing; returns each chunk's keys.
+
+        Raises :class:`~ds.replay_codec.WireError` (a ``ValueError``) before sending if a field is
+        not a numpy array or the request is over ``max_message_bytes``.
+        """
+        if priorities is not None and len(priorities) != len(chunks):
+            raise ValueError(f"insert: {len(priorities)} priority arrays for {len(chunks)} chunks")
+        request = replay_pb2.InsertRequest(
+            chunks=[
+                chunk_to_proto(c, None if priorities is None else priorities[i], f"chunks[{i}]")
+                for i, c in enumerate(chunks)
+            ]
+        )
+        self._check_size(request, f"{len(chunks)} chunks of {sum(len(c) for c in chunks)} steps")
+        reply = self._blocking("Insert", self._stub.Insert, request, timeout, InsertTimeout)
+        if len(reply.keys) != len(chunks):
+            raise WireError("keys", f"has {len(reply.keys)} tensors for {len(chunks)} chunks")
+        return [
+            from_tensor(k, TensorSpec(f"keys[{i}]", np.dtype(np.uint64), leading=("T",)), {"T": len(c)})
+            for i, (k, c) in enumerate(zip(reply.keys, chunks, strict=True))
+        ]
+
+    def sample(self, batch_size: int, timeout: float | None = None) -> Batch:
+        """Draw ``batch_size`` windows; raises :class:`SampleTimeout` after ``timeout`` seconds
+        (None: wait forever). See :meth:`PrioritizedTable.sample`."""
+        request = replay_pb2.SampleRequest(batch_size=int(batch_size))
+        reply = self._blocking("Sample", self._stub.Sample, request, timeout, SampleTimeout)
+        return self.specs.batch_from_proto(reply, int(batch_size))
+
+    def update_priorities(self, keys: np.ndarray, priorities: np.ndarray) -> None:
+        """Set raw priorities of ``keys`` (any integer dtype; evicted keys are ignored)."""
+        k = np.asarray(keys)
+        if k.ndim != 1 or (k.size and k.dtype.kind not in "ui"):
+            raise WireError("keys", f"must be a 1-D integer array, got {k.dtype} {k.shape}")
+        # Negative keys become huge uint64 ones: never issued, so ignored, as in the table.
+        request = replay_pb2.UpdatePrioritiesRequest(
+            keys=to_tensor(k.astype(np.uint64), "keys"),
+            priorities=to_tensor(np.asarray(priorities, dtype=np.float64), "priorities"),
+        )
+        self._check_size(request, f"{k.shape[0]} priorities")
+        self._call("UpdatePriorities", self._stub.UpdatePriorities, request, self.rpc_timeout_s)
+
+    def info(self) -> dict[str, Any]:
+        """The server table's ``info()``: the same keys, ``int`` counters and ``float`` values."""
+        reply = self._call("Info", self._stub.Info, replay_pb2.InfoRequest(), self.rpc_timeout_s)
+        return self.specs.info_from_proto(reply)
+
+    def normalizer_stats(self) -> dict[str, dict[str, Any]]:
+        """``{sensor name: {"count", "mean", "var"}}`` of every vector sensor, as in the table."""
+        reply = self._call("Info", self._stub.Info, replay_pb2.InfoRequest(), self.rpc_timeout_s)
+        return self.specs.normalizer_from_proto(reply)
+
+    def save(self, path: str | Path) -> None:
+        """Save the table to ``path`` on the replay server's filesystem (atomically)."""
+        self._call("Save", self._stub.Save, replay_pb2.SaveRequest(path=str(path)), self.file_timeout_s)
+
+    def load(self, path: str | Path) -> None:
+        """Replace the server table's contents with ``path`` on the server's filesystem; a bad
+        file raises ``ValueError`` and changes nothing."""
+        self._call("Load", self._stub.Load, replay_pb2.LoadRequest(path=str(path)), self.file_timeout_s)
+
+    # ------------------------------------------------------------------ calls
+
+    def _check_size(self, request: Any, what: str) -> None:
+        size = request.ByteSize()
+        if size > self.max_message_bytes:
+            raise WireError(
+                type(request).__name__,
+                f"of {what} is {size} bytes, over the replay message limit of {self.max_message_bytes} bytes: "
+                "send less per call, or start server and clients with a larger max_message_bytes "
+                "(message_limit_bytes(..., max_chunk_steps=...))",
+            )
+
+    def _blocking(
+        self,
+        method: str,
+        rpc: Callable[..., _T],
+        request: Any,
+        timeout: float | None,
+        timeout_error: type[TimeoutError],
+    ) -> _T:
+        """A call that may wait in the rate limiter for ``timeout`` seconds (None: forever)."""
+        while True:
+            wait = self.poll_s if timeout is None else max(0.0, float(timeout))
+            request.timeout_s = wait
+            try:
+                return self._call(method, rpc, request, wait + self.rpc_timeout_s)
+            except ReplayRpcError as e:
+                if e.code != grpc.StatusCode.DEADLINE_EXCEEDED:
+                    raise
+                if timeout is not None:
+                    raise timeout_error(str(e)) from None
+
+    def _call(self, method: str, rpc: Callable[..., _T], request: Any, deadline_s: float) -> _T:
+        """One unary call with a deadline of ``deadline_s`` seconds, retrying UNAVAILABLE with
+        backoff; other errors become :class:`ReplayRpcError` carrying the server's message."""
+        backoff = self.retry.initial_backoff_s
+        for attempt in range(1, self.retry.attempts + 1):
+            try:
+                return rpc(request, timeout=deadline_s)
+            except grpc.RpcError as e:
+                code, details = e.code(), e.details()
+                if code != grpc.StatusCode.UNAVAILABLE or attempt == self.retry.attempts:
+                    raise _client_error(code, f"replay {method} at {self.address}: {details}", attempt) from None
+            time.sleep(backoff * random.uniform(0.5, 1.0))
+            backoff = min(backoff * self.retry.multiplier, self.retry.max_backoff_s)
+        raise AssertionError("unreachable: the last attempt returns or raises")
+
+
+def _client_error(code: grpc.StatusCode, message: str, attempts: int) -> ReplayRpcError:
+    if code == grpc.StatusCode.INVALID_ARGUMENT:
+        return ReplayRequestRejected(code, message)
+    if code == grpc.StatusCode.UNAVAILABLE:
+        return ReplayRpcError(code, f"{message} (unavailable after {attempts} attempts)")
+    return ReplayRpcError(code, f"{message} ({code.name})")
