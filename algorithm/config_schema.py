@@ -111,10 +111,11 @@ class SacConfig(Section):
     use_normalization: bool = False
     max_nonfinite_steps: int = Field(100, ge=1, description="Consecutive skipped (non-finite) updates before stopping.")
     compile: bool = Field(False, description="torch.compile the losses; 5-10% slower on CPU (bench/learner.py).")
-    compute_dtype: Literal["float32", "bfloat16"] = Field(
+    compute_dtype: Literal["float32", "bfloat16", "auto"] = Field(
         "float32",
         description="dtype of the hidden layers' matmuls in updates (torch.autocast); output layers, "
-        "parameters, optimizer states and losses stay float32. bfloat16 pays on CPUs with AVX512-BF16/AMX.",
+        "parameters, optimizer states and losses stay float32. bfloat16 pays on CPUs with AVX512-BF16/AMX; "
+        "auto picks it where the hardware has native bfloat16 (those CPUs, CUDA GPUs that support it).",
     )
 
     @model_validator(mode="after")

@@ -23,6 +23,7 @@ import copy
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -49,6 +50,23 @@ from algorithm.nn.recurrent import RecurrentRepresentation
 from algorithm.returns import bootstrap_index, gather_positions, n_step_target, valid_steps, vtrace_target
 from algorithm.spaces import EnvSpec
 from algorithm.types import Batch
+
+
+def uses_bfloat16(compute_dtype: str, device: torch.device, cpuinfo: Path = Path("/proc/cpuinfo")) -> bool:
+    """Resolve ``sac_config.compute_dtype``: ``auto`` means bfloat16 where the hardware computes it
+    natively — a CUDA device that supports it, or a CPU whose flags list ``avx512_bf16`` or
+    ``amx_bf16`` (elsewhere bf16 matmuls are emulated and slower than float32)."""
+    if compute_dtype != "auto":
+        return compute_dtype == "bfloat16"
+    if device.type == "cuda":
+        return bool(torch.cuda.is_bf16_supported())
+    if device.type != "cpu":
+        return False
+    try:
+        flags = next((line for line in cpuinfo.read_text().splitlines() if line.startswith("flags")), "")
+    except OSError:
+        return False
+    return bool({"avx512_bf16", "amx_bf16"} & set(flags.split()))
 
 
 @dataclass
@@ -168,7 +186,7 @@ class SAC:
         self._compute_losses = torch.compile(self._losses) if compile else self._losses
         # Hidden layers in bfloat16 (sac.compute_dtype): 2.2x faster matmuls on this project's AVX512-BF16
         # CPUs, 1.4x faster updates (bench/learner.py); output layers stay float32 (nn.layers.in_float32).
-        self._low_precision = sac.compute_dtype == "bfloat16"
+        self._low_precision = uses_bfloat16(sac.compute_dtype, self.device)
         self.updates = 0  # applied (not skipped) updates
         self.nonfinite_skipped = 0
         self._consecutive_nonfinite = 0

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import copy
 import io
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -15,7 +16,7 @@ from torch import Tensor, nn
 from algorithm.config_schema import NNConfig, ReplayConfig, SacConfig
 from algorithm.losses import PolicySample, alpha_loss, critic_loss, importance_weights, policy_loss
 from algorithm.nn.models import QEnsemble, Representation, TanhGaussianPolicy
-from algorithm.sac import SAC
+from algorithm.sac import SAC, uses_bfloat16
 from algorithm.spaces import ActionSpec, EnvSpec, SensorSpec
 from algorithm.types import Batch
 
@@ -446,3 +447,13 @@ def test_bfloat16_updates_still_fit_a_regression_target() -> None:
         losses[dtype] = (first, last)
     for dtype, (first, last) in losses.items():
         assert last < 0.05 * first, (dtype, first, last)
+
+
+def test_auto_compute_dtype_follows_the_cpu_flags(tmp_path: Path) -> None:
+    cpu = torch.device("cpu")
+    with_bf16, without = tmp_path / "a", tmp_path / "b"
+    with_bf16.write_text("processor : 0\nflags\t\t: fpu sse2 avx512f avx512_bf16 avx512vl\n")
+    without.write_text("processor : 0\nflags\t\t: fpu sse2 avx2\n")
+    assert uses_bfloat16("auto", cpu, with_bf16) and not uses_bfloat16("auto", cpu, without)
+    assert not uses_bfloat16("auto", cpu, tmp_path / "missing")
+    assert uses_bfloat16("bfloat16", cpu, without) and not uses_bfloat16("float32", cpu, with_bf16)
