@@ -340,21 +340,27 @@ class LocalProcesses:
 
 
 def run_local(
-    command: list[str], child_args: list[str], actors: int, actor_args: list[str] | None = None, grace_s: float = 30.0
+    command: list[str],
+    child_args: list[str],
+    actors: int,
+    role_args: dict[str, list[str]] | None = None,
+    grace_s: float = 30.0,
 ) -> int:
-    """Replay, learner and ``actors`` actors as subprocesses ``command + [role] + child_args`` on
-    loopback with free ports. Returns 0 when the learner finishes (actors stop on their own, then
-    the replay is stopped and saves), 130 on SIGINT/SIGTERM (every child gets SIGINT, then SIGTERM
-    and SIGKILL after ``grace_s``), 1 when a child fails (the others are stopped)."""
+    """Replay, learner and ``actors`` actors as subprocesses ``command + [role] + child_args`` (plus
+    ``role_args[role]``) on loopback with free ports. Returns 0 when the learner finishes (actors
+    stop on their own, then the replay is stopped and saves), 130 on SIGINT/SIGTERM (every child
+    gets SIGINT, then SIGTERM and SIGKILL after ``grace_s``), 1 when a child fails (the others are
+    stopped)."""
     ports = ["--replay_host", LOCAL_HOST, "--replay_port", str(free_port()), "--learner_host", LOCAL_HOST,
              "--learner_port", str(free_port()), "--override", "net.params_port=0"]  # fmt: skip
     children = LocalProcesses()
     stop = stop_on_signals()
     try:
-        children.start("replay", [*command, "replay", *child_args, *ports])
-        children.start("learner", [*command, "learner", *child_args, *ports])
+        extra = role_args or {}
+        children.start("replay", [*command, "replay", *child_args, *ports, *extra.get("replay", [])])
+        children.start("learner", [*command, "learner", *child_args, *ports, *extra.get("learner", [])])
         for i in range(actors):
-            children.start(f"actor-{i}", [*command, "actor", *child_args, *ports, *(actor_args or [])])
+            children.start(f"actor-{i}", [*command, "actor", *child_args, *ports, *extra.get("actor", [])])
         code = _supervise(children, stop)
     except KeyboardInterrupt:
         code = 130
