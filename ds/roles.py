@@ -347,10 +347,10 @@ def run_local(
     grace_s: float = 30.0,
 ) -> int:
     """Replay, learner and ``actors`` actors as subprocesses ``command + [role] + child_args`` (plus
-    ``role_args[role]``) on loopback with free ports. Returns 0 when the learner finishes (actors
-    stop on their own, then the replay is stopped and saves), 130 on SIGINT/SIGTERM (every child
-    gets SIGINT, then SIGTERM and SIGKILL after ``grace_s``), 1 when a child fails (the others are
-    stopped)."""
+    ``role_args[role]``) on loopback with free ports. Returns 0 when the learner finishes (then
+    the actors and then the replay are stopped; the replay saves), 130 on SIGINT/SIGTERM (every
+    child gets SIGINT, then SIGTERM and SIGKILL after ``grace_s``), 1 when a child fails (the others
+    are stopped)."""
     ports = ["--replay_host", LOCAL_HOST, "--replay_port", str(free_port()), "--learner_host", LOCAL_HOST,
              "--learner_port", str(free_port()), "--override", "net.params_port=0"]  # fmt: skip
     children = LocalProcesses()
@@ -364,10 +364,10 @@ def run_local(
         code = _supervise(children, stop)
     except KeyboardInterrupt:
         code = 130
-    if code == 0:
+    if code == 0:  # the run's budget is spent: actors first (nothing left to learn from), then the replay
         actor_names = [n for n in children.children if n.startswith("actor")]
-        if not children.wait_all(grace_s, actor_names):
-            log.warning("actors still running %.0f s after the learner finished: stopping them", grace_s)
+        children.signal(actor_names, signal.SIGINT)
+        children.wait_all(grace_s, actor_names)
         children.signal(["replay"], signal.SIGINT)
     try:
         children.stop_all(grace_s)
