@@ -38,9 +38,9 @@ from algorithm.replay import InsertTimeout
 from algorithm.sac import SAC
 from algorithm.types import Chunk
 from ds import learner_service, replay_service
-from ds.learner import Throttle
 from ds.learner_service import LearnerClient, LeaseExpired, Registration, RemotePolicy
 from ds.params import ParamsSubscriber, decode_params, params_spec
+from ds.replay_feeds import Throttle
 from ds.replay_service import ReplayClient, ReplayRpcError
 from ds.rpc import wait_until_serving
 

@@ -16,9 +16,10 @@ import pytest
 from algorithm.config import load_config
 from algorithm.replay import PrioritizedTable
 from algorithm.sac import SAC
-from ds.learner import BatchPrefetcher, EnvSteps, Learner, PriorityUpdater, merge_priorities
+from ds.learner import EnvSteps, Learner
 from ds.learner_service import ParamsStore
 from ds.params import ParamsPublisher
+from ds.replay_feeds import BatchPrefetcher, PriorityUpdater, merge_priorities
 from ds.replay_service import ReplayClient, RetryPolicy, serve_replay
 from envs.make import make_vector_env
 from tests.algorithm.replay.chunks import VECTOR, make_chunk
