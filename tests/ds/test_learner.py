@@ -18,7 +18,7 @@ from algorithm.replay import PrioritizedTable
 from algorithm.sac import SAC
 from ds.learner import EnvSteps, Learner
 from ds.learner_service import ParamsStore
-from ds.params import ParamsPublisher
+from ds.params import ParamsPublisher, decode_params, params_spec
 from ds.replay_feeds import BatchPrefetcher, PriorityUpdater, merge_priorities
 from ds.replay_service import ReplayClient, RetryPolicy, serve_replay
 from envs.make import make_vector_env
@@ -234,3 +234,28 @@ def test_learner_trains_publishes_checkpoints_and_resumes(over_grpc: ServeOverGr
     for name, value in learner.sac.state_dict()["models"].items():
         assert (torch_state[name] == value).all(), name
     again.publisher.close()
+
+
+def test_learner_takes_the_replays_normalizer_stats_and_publishes_them(
+    over_grpc: ServeOverGrpc, tmp_path: Path
+) -> None:
+    table = pendulum_table(300)
+    client = over_grpc(table)
+    stop = threading.Event()
+    config = load_config(ROOT / "envs/gym/pendulum", None, [*SMALL, "sac.use_normalization=true"]).config
+    spec = make_vector_env("Pendulum-v1", 1, seed=0).spec
+    sac = SAC(spec, config.sac_config, config.nn_config, config.replay_config)
+    publisher = ParamsPublisher("tcp://127.0.0.1:*")
+    learner = Learner(config, tmp_path, sac, client, publisher, ParamsStore(), stop=stop)
+    thread = threading.Thread(target=learner.run)
+    thread.start()
+    until(lambda: learner.updates >= 3, timeout_s=60)
+    stop.set()
+    thread.join(30)
+    publisher.close()
+    stats = table.normalizer_stats()["obs"]
+    latest = learner.store.get()
+    assert latest is not None
+    _, params = decode_params(latest[1], params_spec(sac.acting_state_dict()))
+    np.testing.assert_allclose(params["normalizer.mean_obs"], stats["mean"], rtol=1e-6)
+    assert int(params["normalizer.count"]) == stats["count"]
