@@ -26,7 +26,9 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from types import FrameType
+from typing import TypeVar
 
+import zmq
 from grpc_health.v1 import health
 
 from algorithm.actor import VectorEnvLike
@@ -56,6 +58,22 @@ from ds.rpc import set_serving, wait_until_serving
 
 log = logging.getLogger("asac.roles")
 LOCAL_HOST = "127.0.0.1"
+
+
+_T = TypeVar("_T")
+
+
+class RoleError(RuntimeError):
+    """A role cannot start (e.g. its port is taken); the message says what to change."""
+
+
+def _listen(what: str, address: str, flag: str, start: Callable[[], _T]) -> _T:
+    try:
+        return start()
+    except (RuntimeError, zmq.ZMQError) as e:
+        raise RoleError(
+            f"{what} cannot listen on {address} ({e}); is the port in use? pick another with {flag}"
+        ) from None
 
 
 @dataclass
@@ -156,11 +174,9 @@ def run_replay(role: RoleContext, metrics_every_s: float = 10.0) -> int:
         log.info("replay restored from %s: %d steps", path, table.info()["size"])
     checker = health.HealthServicer()
     address = f"{cfg.net_config.bind_host}:{cfg.net_config.replay_port}"
-    server, port = serve_replay(
+    server, port = _listen("replay", address, "--replay_port", lambda: serve_replay(
         table, address, max_message_bytes=role.replay_limit(spec, rnn), health_servicer=checker, max_workers=64
-    )
-    if port == 0:
-        raise OSError(f"replay: cannot listen on {address} (port in use?)")
+    ))  # fmt: skip
     log.info("replay serving on %s:%d (capacity %d steps)", cfg.net_config.bind_host, port, table.capacity)
     writer = MetricsWriter(role.run_dir / "log" / "replay")
     last_save = time.monotonic()
@@ -201,15 +217,16 @@ def run_learner(role: RoleContext, ckpt_step: int | None = None, progress: bool 
     replay = role.replay_client(spec, sac.rnn_state_size)
     if not wait_until_serving(replay.channel, replay_service.SERVICE_NAME, "replay", replay.address, role.stop):
         return 130
-    publisher = ParamsPublisher(f"tcp://{net.bind_host}:{net.params_port or '*'}")
+    params_address = f"tcp://{net.bind_host}:{net.params_port or '*'}"
+    publisher = _listen("learner's parameter broadcast", params_address, "--override net.params_port=PORT",
+                        lambda: ParamsPublisher(params_address))  # fmt: skip
     params_port = int(publisher.address.rsplit(":", 1)[1])
     store, registry = ParamsStore(), ActorRegistry()
     acting = None if cfg.actor_config.update_policy_mode else ActingPolicy(role.sac(spec))
     servicer = LearnerServicer(spec, registry, store, params_port, acting, sac.rnn_state_size)
     address = f"{net.bind_host}:{net.learner_port}"
-    server, port, health = serve_learner(servicer, address, max_message_bytes=learner_message_limit(sac))
-    if port == 0:
-        raise OSError(f"learner: cannot listen on {address} (port in use?)")
+    server, port, health = _listen("learner", address, "--learner_port", lambda: serve_learner(
+        servicer, address, max_message_bytes=learner_message_limit(sac)))  # fmt: skip
     eval_env = None
     if cfg.eval_config.eval_per_step > 0:
         eval_env = role.make_env(cfg.eval_config.eval_envs, role.seed + EVAL_SEED_OFFSET)
@@ -393,4 +410,4 @@ def _supervise(children: LocalProcesses, stop: threading.Event) -> int:
     return 130
 
 
-__all__ = ["RoleContext", "run_actor", "run_learner", "run_local", "run_replay", "stop_on_signals"]
+__all__ = ["RoleContext", "RoleError", "run_actor", "run_learner", "run_local", "run_replay", "stop_on_signals"]

@@ -6,6 +6,7 @@ import csv
 import os
 import re
 import signal
+import socket
 import subprocess
 import sys
 import time
@@ -84,6 +85,17 @@ def test_bad_input_is_a_one_line_error_with_exit_2(args: list[str], message: str
     assert len(errors) == 1 and message in done.stderr, done.stderr  # config errors list each key below
     assert "Traceback" not in done.stderr
     assert not (tmp_path / "models").exists() or not any((tmp_path / "models").rglob("*.pt"))
+
+
+def test_a_taken_port_is_a_clear_error(tmp_path: Path) -> None:
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        done = run_ds("gym/pendulum", "replay", "--replay_port", str(port), cwd=tmp_path, timeout=120)
+    assert done.returncode == 1, done.stderr
+    assert f"replay cannot listen on 127.0.0.1:{port}" in done.stderr and "--replay_port" in done.stderr
+    assert "Traceback" not in done.stderr
 
 
 # ---------------------------------------------------------------------- local runs
