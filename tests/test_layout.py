@@ -30,8 +30,7 @@ def test_envs_import_only_spaces_from_algorithm() -> None:
     for path in (ROOT / "envs").rglob("*.py"):
         if (path.parent / "config.yaml").exists():
             continue  # a task's model file (algorithm/nn/user.py): user code built on algorithm's models
-        bad = {n for n in imported_packages(path)
-               if not (n.startswith("envs") or n == "algorithm.spaces")}
+        bad = {n for n in imported_packages(path) if not (n.startswith("envs") or n == "algorithm.spaces")}
         assert not bad, f"{path.relative_to(ROOT)} imports {bad}"
 
 
