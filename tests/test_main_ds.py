@@ -127,8 +127,9 @@ def test_local_run_trains_to_its_budget_and_every_role_logs(tmp_path: Path) -> N
 def test_sigint_stops_every_child_and_the_same_command_resumes(tmp_path: Path) -> None:
     name = f"e2e_sigint_{os.getpid()}"
     log = tmp_path / "local.log"
-    proc = start_ds("gym/pendulum", "local", "--actors", "2", "-n", name, *TINY, "--override", "base.max_step=-1",
-                    cwd=tmp_path, log=log)  # fmt: skip
+    keep = ["--override", "replay.save_replay=true"]
+    proc = start_ds("gym/pendulum", "local", "--actors", "2", "-n", name, *TINY, *keep, "--override",
+                    "base.max_step=-1", cwd=tmp_path, log=log)  # fmt: skip
     run = tmp_path / "models/gym/pendulum" / name
     deadline = time.monotonic() + 180
     while not (event_files(run, "actor_0") and event_files(run, "actor_1") and "eval at" in log.read_text()):
@@ -143,12 +144,14 @@ def test_sigint_stops_every_child_and_the_same_command_resumes(tmp_path: Path) -
     assert no_process_mentions(name)
     steps = sorted(int(p.stem) for p in run.glob("model/*.pt"))
     assert steps, "the learner did not checkpoint on SIGINT"
+    assert (run / "replay/replay.npz").is_file(), "the replay did not save on SIGINT"
 
     budget = steps[-1] + 100
-    again = run_ds("gym/pendulum", "local", "--actors", "2", "-n", name, *TINY, "--override",
+    again = run_ds("gym/pendulum", "local", "--actors", "2", "-n", name, *TINY, *keep, "--override",
                    f"base.max_step={budget}", cwd=tmp_path)  # fmt: skip
     assert again.returncode == 0, again.stdout[-4000:] + again.stderr[-4000:]
     assert f"resumed from models/gym/pendulum/{name}/model/{steps[-1]}.pt" in again.stdout
+    assert "replay restored from" in again.stdout
     assert max(int(p.stem) for p in run.glob("model/*.pt")) >= budget
 
 
