@@ -210,8 +210,8 @@ class DistributedActor:
                 if time.monotonic() - last_metrics >= self.metrics_every_s:
                     writer.write(self._metrics(rate.mark(self.env_steps)), self.env_steps)
                     last_metrics = time.monotonic()
-            if self.stop.is_set():
-                loop.flush()  # one immediate try per open chunk (ReplaySink); what fails is counted
+            if not self.done:  # max_iter or a signal: open chunks go out (once stopping: one try each, counted)
+                loop.flush()
         finally:
             writer.write(self._metrics(rate.mark(self.env_steps)), self.env_steps)
             writer.close()
