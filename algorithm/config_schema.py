@@ -148,12 +148,38 @@ class NNConfig(Section):
 class ActorConfig(Section):
     chunk_length: int = Field(64, ge=1, description="Steps per trajectory chunk sent to replay.")
     random_steps: int = Field(0, ge=0, description="Uniform random actions for the first N env steps.")
+    update_policy_mode: bool = Field(
+        True,
+        description="Distributed actors act with the learner's published weights (true) or ask the "
+        "learner for every action over gRPC (false).",
+    )
+    noise_increasing_rate: float = Field(
+        0.0, ge=0.0, description="Distributed actor i explores with extra noise min(rate * i, noise_max)."
+    )
+    noise_max: float = Field(0.1, ge=0.0, description="Ceiling of the per-actor exploration noise.")
 
 
 class EvalConfig(Section):
     eval_per_step: int = Field(5000, ge=0, description="Evaluate every N env steps; 0 = never.")
     eval_episodes: int = Field(10, ge=1, description="Deterministic episodes per evaluation.")
     eval_envs: int = Field(5, ge=1, description="Parallel evaluation envs (separate from training envs).")
+
+
+class NetConfig(Section):
+    """Where the distributed roles find each other (main_ds.py); a host of null means this host."""
+
+    evolver_host: str | None = Field(None, description="Evolver address; null = this host.")
+    evolver_port: int = Field(61000, ge=0, le=65535)
+    learner_host: str | None = Field(None, description="Learner address actors connect to; null = this host.")
+    learner_port: int = Field(61001, ge=0, le=65535, description="Learner gRPC port (GetParams, GetAction).")
+    replay_host: str | None = Field(None, description="Replay address learners and actors connect to.")
+    replay_port: int = Field(61002, ge=0, le=65535)
+    params_port: int = Field(
+        61003, ge=0, le=65535, description="Learner's ZeroMQ parameter broadcast; 0 = any free port (announced)."
+    )
+    bind_host: str = Field(
+        "127.0.0.1", description="Interface servers listen on; 0.0.0.0 to accept other hosts (--in_k8s)."
+    )
 
 
 class Config(Section):
@@ -164,3 +190,4 @@ class Config(Section):
     nn_config: NNConfig = Field(default_factory=NNConfig)
     actor_config: ActorConfig = Field(default_factory=ActorConfig)
     eval_config: EvalConfig = Field(default_factory=EvalConfig)
+    net_config: NetConfig = Field(default_factory=NetConfig)

@@ -43,7 +43,12 @@ from algorithm.losses import (
     soft_value,
 )
 from algorithm.nn.builder import build_models
-from algorithm.nn.models import MASKED_LOG_PROB, SacModels, masked_branch_one_hot_argmax
+from algorithm.nn.models import (
+    MASKED_LOG_PROB,
+    SacModels,
+    masked_branch_one_hot_argmax,
+    squashed_gaussian_log_prob,
+)
 from algorithm.nn.noisy import NoisyLayer, reset_noise, set_noise
 from algorithm.nn.prediction import gated_gradients, observation_targets, prediction_losses
 from algorithm.nn.recurrent import RecurrentRepresentation
@@ -187,6 +192,11 @@ class SAC:
         # Hidden layers in bfloat16 (sac.compute_dtype): 2.2x faster matmuls on this project's AVX512-BF16
         # CPUs, 1.4x faster updates (bench/learner.py); output layers stay float32 (nn.layers.in_float32).
         self._low_precision = uses_bfloat16(sac.compute_dtype, self.device)
+        # Extra exploration of one distributed actor (SPEC C: min(noise_increasing_rate * i, noise_max)):
+        # stochastic acting widens the pre-tanh Gaussian to std' = sqrt(std^2 + noise^2) and mixes each
+        # discrete branch with the uniform distribution over allowed actions (weight min(noise, 1)).
+        # The log-prob returned is the widened policy's, so the stored behaviour mu stays exact.
+        self.exploration_noise = 0.0
         self.updates = 0  # applied (not skipped) updates
         self.nonfinite_skipped = 0
         self._consecutive_nonfinite = 0
@@ -279,24 +289,29 @@ class SAC:
         n, spec = state.shape[0], self.spec.action
         log_prob = torch.zeros(n, device=self.device)
         continuous = None
+        extra = 0.0 if deterministic else self.exploration_noise
         if self.models.policy is not None:
             noise = None
             if not deterministic:
                 noise = torch.randn(n, spec.continuous_dim, generator=self._act_rng, device=self.device)
-            continuous, log_prob = self.models.policy.sample(state, noise)
+            if noise is not None and extra > 0:
+                continuous, log_prob = self._widened_sample(state, noise, extra)
+            else:
+                continuous, log_prob = self.models.policy.sample(state, noise)
         parts = []
         if self._branches is not None:
             mask = self._mask(tensors)
+            allowed = torch.ones(n, spec.discrete_size, device=self.device) if mask is None else mask.float()
+            uniform = allowed / (allowed @ self._branches @ self._branches.T)
             if self.models.discrete_policy is not None:
                 probs = self.models.discrete_policy(state, mask).exp()
             else:
-                greedy = self._greedy(full_state, continuous, mask)
-                probs = greedy
+                probs = self._greedy(full_state, continuous, mask)
                 if not deterministic:
-                    allowed = torch.ones_like(greedy) if mask is None else mask.float()
-                    uniform = allowed / (allowed @ self._branches @ self._branches.T)
                     eps = self.sac.discrete_dqn_epsilon
-                    probs = (1.0 - eps) * greedy + eps * uniform
+                    probs = (1.0 - eps) * probs + eps * uniform
+            if extra > 0:
+                probs = (1.0 - min(extra, 1.0)) * probs + min(extra, 1.0) * uniform
             for branch_probs in probs.split(list(spec.discrete_branches), dim=-1):
                 if deterministic:
                     choice = branch_probs.argmax(dim=-1)
@@ -308,6 +323,16 @@ class SAC:
             parts.append(continuous)
         action = parts[0] if len(parts) == 1 else torch.cat(parts, dim=-1)
         return action, log_prob
+
+    def _widened_sample(self, state: Tensor, noise: Tensor, extra: float) -> tuple[Tensor, Tensor]:
+        """A policy sample with ``extra`` Gaussian noise added before the tanh: ``u ~ N(mean, std^2 +
+        extra^2)``, so the log-prob is that of the widened Gaussian, exact (log std' = logaddexp(2 log
+        std, 2 log extra) / 2)."""
+        assert self.models.policy is not None
+        mean, log_std = self.models.policy(state)
+        wide = 0.5 * torch.logaddexp(2.0 * log_std, torch.full_like(log_std, 2.0 * math.log(extra)))
+        pre_tanh = mean + wide.exp() * noise
+        return torch.tanh(pre_tanh), squashed_gaussian_log_prob(noise, wide, pre_tanh)
 
     def _normalize(self, obs: list[Tensor]) -> list[Tensor]:
         return obs if self.models.normalizer is None else self.models.normalizer(obs)

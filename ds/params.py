@@ -299,6 +299,12 @@ class ParamsPublisher:
         self.published += 1
         return sum(len(f) for f in frames)
 
+    @property
+    def frames(self) -> list[bytes] | None:
+        """The frames of the last published version (None before the first): what the learner's
+        ``GetParams`` hands to late joiners, so that a version is still serialised only once."""
+        return self._frames
+
     def republish(self) -> bool:
         """Send the last published version again, from the frames already built; False if none yet.
         Subscribers that already have it skip it; ones that missed it (full queue, late join) get it."""

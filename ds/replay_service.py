@@ -28,23 +28,21 @@ Errors map to gRPC status codes on the server and back to exceptions on the clie
 
 from __future__ import annotations
 
-import random
 import threading
-import time
 from collections.abc import Callable, Iterator, Sequence
 from concurrent import futures
 from contextlib import contextmanager
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, TypeVar
 
 import grpc
 import numpy as np
-from grpc_health.v1 import health, health_pb2, health_pb2_grpc
+from grpc_health.v1 import health, health_pb2_grpc
 
 from algorithm.replay import InsertTimeout, PrioritizedTable, SampleTimeout
 from algorithm.spaces import SensorSpec
 from algorithm.types import Batch, Chunk
+from ds import rpc
 from ds.replay_codec import (
     GRPC_DEFAULT_MESSAGE_BYTES,
     ReplaySpecs,
@@ -54,6 +52,7 @@ from ds.replay_codec import (
     message_limit_bytes,
     sample_reply_bytes,
 )
+from ds.rpc import RetryPolicy, call_with_retry, channel_options
 from ds.wire import TensorSpec, WireError, from_tensor, to_tensor
 from protos import replay_pb2, replay_pb2_grpc
 
@@ -71,13 +70,6 @@ __all__ = [
 
 SERVICE_NAME = "asac.ReplayService"
 _T = TypeVar("_T")
-
-
-def _channel_options(max_message_bytes: int) -> list[tuple[str, int]]:
-    return [
-        ("grpc.max_send_message_length", int(max_message_bytes)),
-        ("grpc.max_receive_message_length", int(max_message_bytes)),
-    ]
 
 
 # ---------------------------------------------------------------------- server
@@ -185,9 +177,7 @@ def _status_codes(context: grpc.ServicerContext) -> Iterator[None]:
 
 def set_serving(health_servicer: health.HealthServicer, serving: bool) -> None:
     """Report SERVING or NOT_SERVING for the server as a whole and for the replay service."""
-    status = health_pb2.HealthCheckResponse.SERVING if serving else health_pb2.HealthCheckResponse.NOT_SERVING
-    for name in ("", SERVICE_NAME):
-        health_servicer.set(name, status)
+    rpc.set_serving(health_servicer, SERVICE_NAME, serving)
 
 
 def serve_replay(
@@ -211,7 +201,7 @@ def serve_replay(
     """
     server = grpc.server(
         futures.ThreadPoolExecutor(max_workers=max_workers, thread_name_prefix="replay-rpc"),
-        options=_channel_options(max_message_bytes),
+        options=channel_options(max_message_bytes),
     )
     servicer = ReplayServicer(table, table.sensors, table.action_size, table.rnn_state_size, max_message_bytes)
     replay_pb2_grpc.add_ReplayServiceServicer_to_server(servicer, server)
@@ -238,18 +228,6 @@ class ReplayRpcError(RuntimeError):
 
 class ReplayRequestRejected(ReplayRpcError, ValueError):
     """The server refused the request's contents (INVALID_ARGUMENT); nothing was changed."""
-
-
-@dataclass(frozen=True)
-class RetryPolicy:
-    """Exponential backoff for UNAVAILABLE (server down or restarting): ``attempts`` tries in all,
-    sleeping ``initial_backoff_s * multiplier**k`` (at most ``max_backoff_s``, jittered down by up
-    to half so that many actors do not retry in step) between them."""
-
-    attempts: int = 6
-    initial_backoff_s: float = 0.1
-    max_backoff_s: float = 5.0
-    multiplier: float = 2.0
 
 
 class ReplayClient:
@@ -290,7 +268,7 @@ class ReplayClient:
         self.poll_s = float(poll_s)
         self.retry = retry or RetryPolicy()
         # The channel reconnects by itself; other services of the same server (health) may use it.
-        self.channel = grpc.insecure_channel(address, options=_channel_options(max_message_bytes))
+        self.channel = grpc.insecure_channel(address, options=channel_options(max_message_bytes))
         self._stub = replay_pb2_grpc.ReplayServiceStub(self.channel)
 
     def close(self) -> None:
@@ -410,17 +388,11 @@ class ReplayClient:
     def _call(self, method: str, rpc: Callable[..., _T], request: Any, deadline_s: float) -> _T:
         """One unary call with a deadline of ``deadline_s`` seconds, retrying UNAVAILABLE with
         backoff; other errors become :class:`ReplayRpcError` carrying the server's message."""
-        backoff = self.retry.initial_backoff_s
-        for attempt in range(1, self.retry.attempts + 1):
-            try:
-                return rpc(request, timeout=deadline_s)
-            except grpc.RpcError as e:
-                code, details = e.code(), e.details()
-                if code != grpc.StatusCode.UNAVAILABLE or attempt == self.retry.attempts:
-                    raise _client_error(code, f"replay {method} at {self.address}: {details}", attempt) from None
-            time.sleep(backoff * random.uniform(0.5, 1.0))
-            backoff = min(backoff * self.retry.multiplier, self.retry.max_backoff_s)
-        raise AssertionError("unreachable: the last attempt returns or raises")
+        try:
+            return call_with_retry(rpc, request, deadline_s, self.retry)
+        except grpc.RpcError as e:
+            message = f"replay {method} at {self.address}: {e.details()}"
+            raise _client_error(e.code(), message, self.retry.attempts) from None
 
 
 def _client_error(code: grpc.StatusCode, message: str, attempts: int) -> ReplayRpcError:

@@ -30,8 +30,7 @@ def test_envs_import_only_spaces_from_algorithm() -> None:
     for path in (ROOT / "envs").rglob("*.py"):
         if (path.parent / "config.yaml").exists():
             continue  # a task's model file (algorithm/nn/user.py): user code built on algorithm's models
-        bad = {n for n in imported_packages(path)
-               if not (n.startswith("envs") or n == "algorithm.spaces")}
+        bad = {n for n in imported_packages(path) if not (n.startswith("envs") or n == "algorithm.spaces")}
         assert not bad, f"{path.relative_to(ROOT)} imports {bad}"
 
 
@@ -47,4 +46,14 @@ def test_nothing_imports_the_launchers() -> None:
 def test_protos_import_only_protos() -> None:
     for path in (ROOT / "protos").rglob("*.py"):
         bad = {n for n in imported_packages(path) if not n.startswith("protos")}
+        assert not bad, f"{path.relative_to(ROOT)} imports {bad}"
+
+
+def test_only_roles_composes_the_network_with_the_envs() -> None:
+    """ARCHITECTURE.md 2: only main*.py and ds/roles.py compose everything; the other ds/ modules are
+    transports and role loops over algorithm/ interfaces (envs arrive as factories)."""
+    for path in (ROOT / "ds").rglob("*.py"):
+        if path.name == "roles.py":
+            continue
+        bad = {n for n in imported_packages(path) if n.startswith("envs") or n == "ds.roles"}
         assert not bad, f"{path.relative_to(ROOT)} imports {bad}"

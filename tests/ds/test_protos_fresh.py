@@ -29,10 +29,23 @@ def test_generated_code_is_fresh(tmp_path: Path) -> None:
     assert not stale, f"stale generated code {stale}: run python -m protos.generate from the repository root"
 
 
-def test_generated_modules_import_as_the_protos_package() -> None:
-    from protos import replay_pb2, replay_pb2_grpc
+def test_every_proto_is_generated() -> None:
+    assert {p.stem for p in generate.proto_files()} >= {"replay", "learner"}
 
-    assert replay_pb2.DESCRIPTOR.name == "protos/replay.proto"
-    assert replay_pb2_grpc.ReplayServiceStub.__module__ == "protos.replay_pb2_grpc"
-    service = replay_pb2.DESCRIPTOR.services_by_name["ReplayService"]
-    assert service.full_name == "asac.ReplayService"
+
+@pytest.mark.parametrize("name, service", [("replay", "ReplayService"), ("learner", "LearnerService")])
+def test_generated_modules_import_as_the_protos_package(name: str, service: str) -> None:
+    import importlib
+
+    pb2 = importlib.import_module(f"protos.{name}_pb2")
+    pb2_grpc = importlib.import_module(f"protos.{name}_pb2_grpc")
+    assert pb2.DESCRIPTOR.name == f"protos/{name}.proto"
+    assert getattr(pb2_grpc, f"{service}Stub").__module__ == f"protos.{name}_pb2_grpc"
+    assert pb2.DESCRIPTOR.services_by_name[service].full_name == f"asac.{service}"
+
+
+def test_learner_proto_shares_the_replay_tensor() -> None:
+    from protos import learner_pb2, replay_pb2
+
+    field = learner_pb2.GetActionRequest.DESCRIPTOR.fields_by_name["obs"]
+    assert field.message_type is replay_pb2.Tensor.DESCRIPTOR

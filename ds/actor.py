@@ -1,0 +1,318 @@
+"""The actor role: the single-process actor loop, fed with the learner's weights, feeding the replay.
+
+Usage (``ds/roles.py`` composes the parts)::
+
+    actor = DistributedActor(config, run_dir, make_env, sac, replay, learner, learner_host="10.0.0.2")
+    summary = actor.run()   # until the replay has seen base_config.max_step env steps, or stop is set
+
+What it does, in order: waits for the replay and the learner (logging what it waits for); registers
+with the learner, which gives it an id, an index and a lease; derives its env seeds and its
+exploration noise ``min(noise_increasing_rate * index, noise_max)`` (or ``--noise``) from the index;
+takes the latest weights with ``GetParams`` and then keeps the newest broadcast version between
+steps (``update_policy_mode: true``), or asks the learner for every action (``false``); and runs
+:class:`~algorithm.actor.ActorLoop` with a :class:`ReplaySink`, which never drops a chunk: the
+replay's rate limiter holding inserts back (the learner is behind) and an unreachable replay are
+waited out, counted and logged. Every few seconds it renews its lease; a learner that restarted
+(new id) or forgot it (lease expired) is registered with again, keeping the index.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import socket
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import grpc
+import numpy as np
+import torch
+
+from algorithm.actor import ActorLoop, VectorEnvLike
+from algorithm.config_schema import Config
+from algorithm.logging import MetricsWriter, RateMeter
+from algorithm.replay import InsertTimeout
+from algorithm.sac import SAC
+from algorithm.types import Chunk
+from ds import learner_service, replay_service
+from ds.learner_service import LearnerClient, LeaseExpired, Registration, RemotePolicy
+from ds.params import ParamsSubscriber, decode_params, params_spec
+from ds.replay_feeds import Throttle
+from ds.replay_service import ReplayClient, ReplayRpcError
+from ds.rpc import wait_until_serving
+
+log = logging.getLogger("asac.actor")
+ACTOR_SEED_STRIDE = 1000  # actor i's env j gets seed + 1000 * (i + 1) + j: never a training or eval seed
+
+
+def actor_noise(config: Config, index: int, override: float | None = None) -> float:
+    """SPEC C: ``min(noise_increasing_rate * index, noise_max)``, or ``override`` (``--noise``)."""
+    if override is not None:
+        return float(override)
+    actor = config.actor_config
+    return float(min(actor.noise_increasing_rate * index, actor.noise_max))
+
+
+class ReplaySink:
+    """The actor loop's sink: inserts each chunk into the replay and never drops one.
+
+    An insert held back by the rate limiter for ``timeout_s`` (``InsertTimeout``) or failing with
+    UNAVAILABLE is retried; between tries ``between()`` runs (heartbeats, done checks). Once
+    ``stopping()`` is true a chunk gets one more immediate try and is then counted in
+    ``unsent_steps`` (and logged)."""
+
+    def __init__(
+        self,
+        replay: ReplayClient,
+        stopping: Callable[[], bool],
+        between: Callable[[], None] = lambda: None,
+        timeout_s: float = 2.0,
+    ) -> None:
+        self.replay = replay
+        self.stopping = stopping
+        self.between = between
+        self.timeout_s = timeout_s
+        self.inserted_steps = 0
+        self.insert_waits = 0
+        self.wait_seconds = 0.0
+        self.unavailable = 0
+        self.unsent_steps = 0
+        self._log = Throttle(30.0)
+
+    def __call__(self, chunk: Chunk) -> None:
+        start = time.monotonic()
+        try:
+            while True:
+                timeout = 0.0 if self.stopping() else self.timeout_s
+                try:
+                    self.replay.insert(chunk, timeout=timeout)
+                    self.inserted_steps += len(chunk)
+                    return
+                except InsertTimeout as e:
+                    self.insert_waits += 1
+                    if self._log():
+                        log.info("replay holds inserts back (the learner is behind); waiting: %s", e)
+                except ReplayRpcError as e:
+                    if e.code != grpc.StatusCode.UNAVAILABLE:
+                        raise
+                    self.unavailable += 1
+                    if self._log():
+                        log.warning("replay unreachable; keeping the chunk and retrying: %s", e)
+                if self.stopping():
+                    self.unsent_steps += len(chunk)
+                    log.info("stopping: a chunk of %d steps could not be inserted", len(chunk))
+                    return
+                self.between()
+        finally:
+            self.wait_seconds += time.monotonic() - start
+
+
+@dataclass
+class ActorSummary:
+    index: int
+    env_steps: int
+    episodes: int
+    interrupted: bool
+
+
+class DistributedActor:
+    """One actor process; see the module docstring. ``make_env(num_envs, seed)`` builds its envs
+    once its index (hence its seed) is known; ``sac`` is a model built from the same config as the
+    learner's, which receives the published weights (unused with ``update_policy_mode: false``)."""
+
+    def __init__(
+        self,
+        config: Config,
+        run_dir: Path,
+        make_env: Callable[[int, int], VectorEnvLike],
+        sac: SAC,
+        replay: ReplayClient,
+        learner: LearnerClient,
+        learner_host: str,
+        *,
+        noise: float | None = None,
+        stop: threading.Event | None = None,
+        heartbeat_s: float = 3.0,
+        metrics_every_s: float = 10.0,
+        name: str | None = None,
+    ) -> None:
+        self.config = config
+        self.run_dir = Path(run_dir)
+        self.make_env = make_env
+        self.sac = sac
+        self.replay = replay
+        self.learner = learner
+        self.learner_host = learner_host
+        self.noise_override = noise
+        self.stop = stop or threading.Event()
+        self.heartbeat_s = heartbeat_s
+        self.metrics_every_s = metrics_every_s
+        self.name = name or f"actor on {socket.gethostname()} (pid {os.getpid()})"
+        self.update_mode = config.actor_config.update_policy_mode
+        self.registration: Registration | None = None
+        self.subscriber: ParamsSubscriber | None = None
+        self.params_version = -1
+        self.params_applied = 0
+        self.env_steps = 0
+        self.episodes = 0
+        self.done = False
+        self.sink = ReplaySink(replay, lambda: self.stop.is_set() or self.done, between=self._between)
+        self._last_beat = time.monotonic()
+        self._log_learner = Throttle(30.0)
+
+    # -- the loop ---------------------------------------------------------------------------
+    def run(self) -> ActorSummary:
+        if not self._wait_for_peers():
+            return ActorSummary(-1, 0, 0, True)
+        reg = self._register()
+        index = reg.index
+        noise = actor_noise(self.config, index, self.noise_override)
+        seed = int(self.config.sac_config.seed or 0) + ACTOR_SEED_STRIDE * (index + 1)
+        self.sac.exploration_noise = noise
+        policy = self.sac if self.update_mode else RemotePolicy(self.learner, noise)
+        if self.update_mode:
+            self._fetch_params()
+        env = self.make_env(self.config.base_config.n_agents, seed)
+        loop = ActorLoop(
+            env,
+            policy,
+            self.sink,
+            chunk_length=self.config.actor_config.chunk_length,
+            random_steps=self.config.actor_config.random_steps,
+            reset_on_iteration=self.config.base_config.reset_on_iteration,
+            seed=seed,
+        )
+        writer = MetricsWriter(self.run_dir / "log" / f"actor_{index}")
+        writer.write({"actor/noise": noise}, 0)
+        log.info("actor %s: index %d, noise %.3f, env seed %d, %d envs", reg.actor_id, index, noise, seed, env.num_envs)
+        rate, last_metrics, iterations = RateMeter(), time.monotonic(), 0
+        max_iter = self.config.base_config.max_iter
+        try:
+            while not self.stop.is_set() and not self.done:
+                try:
+                    stats = loop.step()
+                except grpc.RpcError as e:  # update_policy_mode false: the learner did not answer
+                    self._learner_unreachable(e)
+                    self.stop.wait(1.0)
+                    continue
+                self.env_steps += stats.env_steps
+                iterations += stats.iteration_ended
+                for ret, length in stats.finished:
+                    self.episodes += 1
+                    writer.write({"actor/episode_return": ret, "actor/episode_length": length}, self.env_steps)
+                if max_iter >= 0 and iterations >= max_iter:
+                    break
+                self._take_new_params()
+                self._between()
+                if time.monotonic() - last_metrics >= self.metrics_every_s:
+                    writer.write(self._metrics(rate.mark(self.env_steps)), self.env_steps)
+                    last_metrics = time.monotonic()
+            if not self.done:  # max_iter or a signal: open chunks go out (once stopping: one try each, counted)
+                loop.flush()
+        finally:
+            writer.write(self._metrics(rate.mark(self.env_steps)), self.env_steps)
+            writer.close()
+            env.close()
+            if self.subscriber is not None:
+                self.subscriber.close()
+        if self.sink.unsent_steps:
+            log.warning("%d collected steps were not inserted (stopped while replay was busy)", self.sink.unsent_steps)
+        return ActorSummary(index, self.env_steps, self.episodes, self.stop.is_set() and not self.done)
+
+    def _metrics(self, steps_per_s: float) -> dict[str, float]:
+        sink = self.sink
+        return {
+            "actor/env_steps": float(self.env_steps),
+            "actor/episodes": float(self.episodes),
+            "actor/inserted_steps": float(sink.inserted_steps),
+            "actor/insert_waits": float(sink.insert_waits),
+            "actor/insert_wait_seconds": sink.wait_seconds,
+            "actor/replay_unavailable": float(sink.unavailable),
+            "actor/params_version": float(self.params_version),
+            "actor/params_applied": float(self.params_applied),
+            "time/env_steps_per_second": steps_per_s,
+        }
+
+    # -- peers ------------------------------------------------------------------------------
+    def _wait_for_peers(self) -> bool:
+        return wait_until_serving(
+            self.replay.channel, replay_service.SERVICE_NAME, "replay", self.replay.address, self.stop
+        ) and wait_until_serving(
+            self.learner.channel, learner_service.SERVICE_NAME, "learner", self.learner.address, self.stop
+        )
+
+    def _register(self) -> Registration:
+        preferred = None if self.registration is None else self.registration.index
+        reg = self.learner.register(self.name, preferred)
+        if self.registration is not None and reg.learner_id != self.registration.learner_id:
+            log.info("learner restarted: registered again as %s (index %d)", reg.actor_id, reg.index)
+        if self.update_mode and (self.subscriber is None or self.registration is None
+                                 or reg.learner_id != self.registration.learner_id):  # fmt: skip
+            if self.subscriber is not None:
+                self.subscriber.close()  # a restarted learner's versions start over
+            address = f"tcp://{self.learner_host}:{reg.params_port}"
+            self.subscriber = ParamsSubscriber(address, params_spec(self.sac.acting_state_dict()))
+            self.params_version = -1
+        self.registration = reg
+        return reg
+
+    def _fetch_params(self) -> None:
+        """The latest weights over GetParams (a late joiner need not wait for the next broadcast)."""
+        version, frames = self.learner.get_params()
+        self._apply(*decode_params(frames, params_spec(self.sac.acting_state_dict())))
+
+    def _take_new_params(self) -> None:
+        if self.subscriber is None:
+            return
+        newer = self.subscriber.latest()
+        if newer is not None:
+            self._apply(*newer)
+
+    def _apply(self, version: int, params: dict[str, np.ndarray]) -> None:
+        if version <= self.params_version:
+            return  # GetParams may have been ahead of the broadcast
+        self.sac.load_acting_state_dict({k: torch.from_numpy(v) for k, v in params.items()})
+        self.params_version = version
+        self.params_applied += 1
+
+    def _between(self) -> None:
+        """Heartbeat and done check, every ``heartbeat_s`` seconds (also while an insert waits)."""
+        if time.monotonic() - self._last_beat < self.heartbeat_s:
+            return
+        self._last_beat = time.monotonic()
+        max_step = self.config.base_config.max_step
+        try:
+            if max_step >= 0 and self.replay.info()["inserted_steps"] >= max_step:
+                log.info("the replay has %d+ env steps (base_config.max_step): done", max_step)
+                self.done = True  # a waiting insert gives up: the run's budget is spent
+                return
+        except ReplayRpcError as e:
+            if e.code != grpc.StatusCode.UNAVAILABLE:
+                raise
+        assert self.registration is not None
+        try:
+            learner_id, _ = self.learner.heartbeat(self.registration.actor_id, self.env_steps)
+            known = learner_id == self.registration.learner_id
+        except LeaseExpired:
+            known = False
+        except grpc.RpcError as e:
+            self._learner_unreachable(e)
+            return
+        if known:
+            return
+        try:
+            self._register()
+            if self.update_mode:
+                self._fetch_params()
+        except grpc.RpcError as e:
+            self._learner_unreachable(e)
+
+    def _learner_unreachable(self, error: grpc.RpcError) -> None:
+        if error.code() not in (grpc.StatusCode.UNAVAILABLE, grpc.StatusCode.DEADLINE_EXCEEDED):
+            raise error
+        if self._log_learner():
+            code, version = error.code().name, self.params_version
+            log.warning("learner unreachable (%s); acting with parameter version %d meanwhile", code, version)

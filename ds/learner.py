@@ -1,0 +1,294 @@
+"""The learner role: SAC trained from a replay over the network, publishing its acting weights.
+
+Usage (``ds/roles.py`` composes the parts; tests pass an in-process table or a loopback client)::
+
+    learner = Learner(config, run_dir, sac, replay, publisher, store, eval_env=env, stop=stop_event)
+    summary = learner.run()     # until replay has seen base_config.max_step env steps, or stop is set
+
+Inside, three threads keep the update loop busy without ever dropping data (ds/replay_feeds.py):
+
+- :class:`BatchPrefetcher` samples the next batches from the replay into a bounded queue while the
+  main thread trains on the current one (a full queue blocks it, counted);
+- the main thread runs ``SAC.update`` and, every ``update_policy_variables_per_step`` updates,
+  publishes the acting weights once over ZeroMQ and to ``GetParams`` (:class:`ParamsStore`);
+- :class:`PriorityUpdater` sends the new priorities back to the replay in merged batches, from a
+  bounded queue (a full queue blocks the learner, counted).
+
+The learner counts env steps by the replay's ``inserted_steps`` (actors may come and go), evaluates
+its own policy every ``eval_per_step`` of them on its own envs (``evaluations.csv``, ``eval/*``),
+checkpoints like the single-process trainer (``model/<env_steps>.pt``) and resumes from the latest
+checkpoint when started again on the same run directory.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from algorithm.actor import VectorEnvLike
+from algorithm.checkpoint import (
+    capture_rng,
+    checkpoint_path,
+    list_checkpoints,
+    load_checkpoint,
+    restore_rng,
+    save_checkpoint,
+)
+from algorithm.config import config_to_yaml
+from algorithm.config_schema import Config
+from algorithm.evaluation import append_evaluation, evaluate
+from algorithm.logging import MetricsWriter, ProgressLine, RateMeter, Timers
+from algorithm.replay import ReplayTable
+from algorithm.sac import SAC
+from algorithm.trainer import EVAL_SEED_OFFSET, RunDir
+from ds.learner_service import ActingPolicy, ActorRegistry, ParamsStore
+from ds.params import ParamsPublisher
+from ds.replay_feeds import BatchPrefetcher, PriorityUpdater, Throttle, unavailable
+from ds.replay_service import ReplayRpcError
+
+log = logging.getLogger("asac.learner")
+
+
+class EnvSteps:
+    """Env steps of the whole run, counted from the replay's ``inserted_steps``. A replay restarted
+    without its saved contents counts from 0 again: what it inserts then is added, never lost."""
+
+    def __init__(self, total: int = 0, seen: int = 0) -> None:
+        self.total = int(total)
+        self.seen = int(seen)
+
+    def observe(self, inserted: int) -> int:
+        if inserted < self.seen:
+            log.warning("replay reports %d inserted steps after %d: it restarted; counting on", inserted, self.seen)
+            self.seen = 0
+        self.total += inserted - self.seen
+        self.seen = inserted
+        return self.total
+
+
+@dataclass
+class LearnerSummary:
+    env_steps: int
+    updates: int
+    wall_seconds: float
+    last_eval_mean: float | None
+    interrupted: bool
+
+
+class Learner:
+    """The learner loop; see the module docstring. ``stop`` ends it (then it checkpoints and closes)."""
+
+    def __init__(
+        self,
+        config: Config,
+        run_dir: Path,
+        sac: SAC,
+        replay: ReplayTable,
+        publisher: ParamsPublisher,
+        store: ParamsStore,
+        *,
+        acting: ActingPolicy | None = None,
+        registry: ActorRegistry | None = None,
+        eval_env: VectorEnvLike | None = None,
+        stop: threading.Event | None = None,
+        ckpt_step: int | None = None,
+        progress: bool = False,
+        prefetch_depth: int = 4,
+        info_every_s: float = 1.0,
+        republish_every_s: float = 2.0,
+    ) -> None:
+        self.config = config
+        self.paths = RunDir(Path(run_dir))
+        self.sac, self.replay, self.publisher, self.store = sac, replay, publisher, store
+        self.acting, self.registry, self.eval_env = acting, registry, eval_env
+        self.stop = stop or threading.Event()
+        self.progress = progress
+        self.info_every_s = info_every_s
+        self.republish_every_s = republish_every_s
+        self.prefetcher = BatchPrefetcher(replay, config.replay_config.batch_size, prefetch_depth)
+        self.priorities = PriorityUpdater(replay)
+        self.updates = 0
+        self.env_steps = EnvSteps()
+        self.wall_seconds = 0.0
+        self.next_eval = config.eval_config.eval_per_step
+        self.next_save = config.sac_config.save_model_per_step
+        self.evaluations = 0
+        self.last_eval_mean: float | None = None
+        self.timers = Timers()
+        self.eval_seed = int(config.sac_config.seed or 0) + EVAL_SEED_OFFSET
+        self._log_replay = Throttle(30.0)
+        if list_checkpoints(self.paths.model):
+            self.restore(ckpt_step)
+        self.writer = MetricsWriter(self.paths.log / "learner")
+        self.writer.text("config", config_to_yaml(config), self.env_steps.total)
+
+    # -- the loop ---------------------------------------------------------------------------
+    def run(self) -> LearnerSummary:
+        cfg = self.config
+        summary_every = cfg.sac_config.write_summary_per_step
+        publish_every = cfg.sac_config.update_policy_variables_per_step
+        priorities_matter = cfg.replay_config.alpha > 0
+        bar = ProgressLine(cfg.base_config.max_step) if self.progress else None
+        rate = RateMeter()
+        started = time.perf_counter() - self.wall_seconds
+        last_save = last_info = last_publish = time.perf_counter()
+        self.publish()
+        self.prefetcher.start()
+        self.priorities.start()
+        self._poll_replay()
+        try:
+            while not self.stop.is_set() and not self._done():
+                now = time.perf_counter()
+                self.wall_seconds = now - started
+                if now - last_info >= self.info_every_s:
+                    self._poll_replay()
+                    last_info = now
+                    self._maybe_evaluate()
+                    if (now - last_save) / 60 >= cfg.sac_config.save_model_per_minute or (
+                        self.env_steps.total >= self.next_save
+                    ):
+                        self.save()
+                        last_save = time.perf_counter()
+                    if bar is not None:
+                        bar.update(self.env_steps.total, self.updates, rate.mark(self.updates), self.last_eval_mean)
+                with self.timers.phase("wait"):
+                    batch = self.prefetcher.get(timeout=0.5)
+                if batch is None:
+                    if now - last_publish >= self.republish_every_s:
+                        self.publisher.republish()  # reaches subscribers that joined while we wait
+                        last_publish = now
+                    continue
+                with_metrics = self.updates % summary_every == 0
+                with self.timers.phase("update"):
+                    result = self.sac.update(batch, with_metrics=with_metrics)
+                if priorities_matter and not result.skipped:
+                    with self.timers.phase("priorities"):
+                        self.priorities.put(batch.keys, result.td_abs)
+                self.updates += 1
+                if self.updates % publish_every == 0:
+                    with self.timers.phase("publish"):
+                        self.publish()
+                    last_publish = time.perf_counter()
+                if with_metrics:
+                    self._write_summary(result.metrics, rate.mark(self.updates))
+        finally:
+            self.prefetcher.stop()
+            self.priorities.close()
+            if bar is not None:
+                bar.close()
+        interrupted = not self._done()
+        if self._done():
+            self._maybe_evaluate(final=True)
+        self.save()
+        self.writer.close()
+        return LearnerSummary(self.env_steps.total, self.updates, self.wall_seconds, self.last_eval_mean, interrupted)
+
+    def _done(self) -> bool:
+        max_step = self.config.base_config.max_step
+        return max_step >= 0 and self.env_steps.total >= max_step
+
+    def publish(self) -> None:
+        """Serialise the acting weights once; send them to subscribers, GetParams and GetAction."""
+        version = self.updates
+        if self.publisher.version is not None and version <= self.publisher.version:
+            return
+        state = self.sac.acting_state_dict()
+        self.publisher.publish(version, state)
+        assert self.publisher.frames is not None
+        self.store.put(version, self.publisher.frames)
+        if self.acting is not None:
+            self.acting.load(version, state)
+
+    def _poll_replay(self) -> None:
+        """Env steps from the replay's counters and, with use_normalization, its observation stats."""
+        try:
+            info = self.replay.info()
+        except ReplayRpcError as e:
+            if not unavailable(e):
+                raise
+            if self._log_replay():
+                log.warning("replay unreachable, waiting for it: %s", e)
+            return
+        self.env_steps.observe(int(info["inserted_steps"]))
+        if self.config.sac_config.use_normalization and info.get("normalizer"):
+            self.sac.load_normalizer_stats(info["normalizer"])
+
+    def _maybe_evaluate(self, final: bool = False) -> None:
+        every = self.config.eval_config.eval_per_step
+        if self.eval_env is None or every <= 0:
+            return
+        steps = self.env_steps.total
+        if steps < self.next_eval and not (final and self.evaluations == 0):
+            return
+        with self.timers.phase("eval"):
+            seed = self.eval_seed if not self.evaluations else None  # one seeded stream per process
+            result = evaluate(self.eval_env, self.sac, self.config.eval_config.eval_episodes, seed)
+        self.evaluations += 1
+        self.last_eval_mean = result.mean
+        append_evaluation(self.paths.evaluations, steps, self.updates, self.wall_seconds, result)
+        self.writer.write(
+            {
+                "eval/return_mean": result.mean,
+                "eval/return_std": result.std,
+                "eval/episode_length": result.lengths.mean(),
+            },
+            steps,
+        )
+        log.info("eval at %d env steps, %d updates: return %.1f +- %.1f", steps, self.updates, result.mean, result.std)
+        self.next_eval += every * max(1, math.ceil((steps - self.next_eval + 1) / every))
+
+    def _write_summary(self, learner_metrics: dict[str, float], updates_per_s: float) -> None:
+        metrics: dict[str, float] = {
+            **learner_metrics,
+            **self.prefetcher.metrics(),
+            **self.priorities.metrics(),
+            **{f"learner/{k}": float(v) for k, v in self.publisher.metrics().items()},
+            **self.timers.fractions(),
+            "learner/updates": float(self.updates),
+            "time/updates_per_second": updates_per_s,
+            "time/wall_seconds": self.wall_seconds,
+        }
+        if self.registry is not None:
+            metrics["learner/actors"] = float(len(self.registry.alive()))
+        self.writer.write(metrics, self.env_steps.total)
+
+    # -- checkpoints ------------------------------------------------------------------------
+    def counters(self) -> dict[str, Any]:
+        return {
+            "env_steps": self.env_steps.total,
+            "replay_inserted_seen": self.env_steps.seen,
+            "updates": self.updates,
+            "wall_seconds": self.wall_seconds,
+            "next_eval": self.next_eval,
+            "next_save": self.next_save,
+            "evaluations": self.evaluations,
+        }
+
+    def save(self) -> Path:
+        """Checkpoint the SAC state, counters and RNGs as ``model/<env_steps>.pt`` (the format of
+        ``main.py``, so ``main.py --run`` plays it)."""
+        while self.next_save <= self.env_steps.total:
+            self.next_save += self.config.sac_config.save_model_per_step
+        state = {"sac": self.sac.state_dict(), "counters": self.counters(), "rng": capture_rng()}
+        keep = self.config.sac_config.keep_checkpoints
+        path = save_checkpoint(self.paths.model, self.env_steps.total, state, keep=keep)
+        log.info("checkpoint %s (%d updates)", path, self.updates)
+        return path
+
+    def restore(self, step: int | None = None) -> None:
+        path = checkpoint_path(self.paths.model, step)
+        state = load_checkpoint(path)
+        self.sac.load_state_dict(state["sac"])
+        counters = state["counters"]
+        self.env_steps = EnvSteps(counters["env_steps"], counters["replay_inserted_seen"])
+        self.updates = int(counters["updates"])
+        self.wall_seconds = float(counters["wall_seconds"])
+        self.next_eval, self.next_save = int(counters["next_eval"]), int(counters["next_save"])
+        self.evaluations = int(counters["evaluations"])
+        restore_rng(state["rng"])
+        log.info("resumed from %s at %d env steps, %d updates", path, self.env_steps.total, self.updates)

@@ -1,0 +1,448 @@
+"""The learner's gRPC service (protos/learner.proto): actor registration with leases, the latest
+parameters for late joiners, and actions for actors that hold no weights.
+
+Usage, the learner's side (ds/learner.py feeds the store and the acting copy)::
+
+    registry, store = ActorRegistry(lease_s=15.0), ParamsStore()
+    acting = ActingPolicy(SAC(...)) if not update_policy_mode else None
+    servicer = LearnerServicer(spec, registry, store, params_port=publisher_port, acting=acting)
+    server, port, health = serve_learner(servicer, "127.0.0.1:61001", max_message_bytes=limit)
+    store.put(version, publisher.frames); acting.load(version, sac.acting_state_dict())
+    set_serving(health, True)                                  # after the first publication
+
+and an actor's::
+
+    learner = LearnerClient("learner:61001", spec, rnn_state_size, max_message_bytes=limit)
+    me = learner.register("actor on host-3")                   # id, index, params port, lease
+    learner.heartbeat(me.actor_id, env_steps)                  # every few seconds; LeaseExpired: register again
+    version, frames = learner.get_params()                     # decode with ds.params.decode_params
+    actions, logp, next_state = learner.act(obs, noise=0.05)   # update_policy_mode: false
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+import uuid
+from collections.abc import Callable, Iterator
+from concurrent import futures
+from contextlib import contextmanager
+from dataclasses import dataclass
+from typing import Any
+
+import grpc
+import numpy as np
+import torch
+from grpc_health.v1 import health, health_pb2_grpc
+
+from algorithm.sac import SAC
+from algorithm.spaces import EnvSpec
+from ds import rpc
+from ds.replay_codec import GRPC_DEFAULT_MESSAGE_BYTES
+from ds.wire import TensorSpec, WireError, from_tensor, to_tensor
+from protos import learner_pb2, learner_pb2_grpc
+
+SERVICE_NAME = "asac.LearnerService"
+_F32 = np.dtype(np.float32)
+# Framing of the frames and tensors of a message beyond their raw bytes (tags, lengths, JSON header).
+_FRAMING_BYTES = 64 * 1024
+
+
+def learner_message_limit(sac: SAC, max_actors_envs: int = 1024) -> int:
+    """The gRPC message limit for a learner and its clients: ``max(4 MiB, 2 * P + 1 MiB)`` where P is
+    the larger of the acting parameters (GetParams) and a GetAction of ``max_actors_envs`` envs."""
+    param_bytes = sum(t.numel() * t.element_size() for t in sac.acting_state_dict().values())
+    spec = sac.spec
+    obs_bytes = sum(int(np.prod(s.shape)) * s.dtype.itemsize for s in spec.sensors)
+    action_bytes = max_actors_envs * (obs_bytes + 4 * (2 * spec.action.size + 1 + 2 * sac.rnn_state_size))
+    return max(GRPC_DEFAULT_MESSAGE_BYTES, 2 * max(param_bytes, action_bytes) + _FRAMING_BYTES + 1024 * 1024)
+
+
+# ---------------------------------------------------------------------- the learner's state
+
+
+@dataclass
+class ActorLease:
+    actor_id: str
+    index: int
+    name: str
+    expires: float
+    env_steps: int = 0
+
+
+class ActorRegistry:
+    """Actors known to this learner, each with an index and a lease renewed by heartbeat.
+
+    An actor gets the lowest index no live actor holds (its ``preferred_index`` if that one is
+    free), so a restarted actor, or every actor after a learner restart, gets its old index back
+    and with it the same seeds and exploration noise. A lease not renewed within ``lease_s``
+    seconds expires and frees the index. Thread-safe."""
+
+    def __init__(self, lease_s: float = 15.0, clock: Callable[[], float] = time.monotonic) -> None:
+        self.lease_s = float(lease_s)
+        self._clock = clock
+        self._lock = threading.Lock()
+        self._actors: dict[str, ActorLease] = {}
+        self.registered = 0
+        self.expired = 0
+
+    def register(self, name: str, preferred_index: int | None = None) -> ActorLease:
+        with self._lock:
+            self._expire()
+            taken = {a.index for a in self._actors.values()}
+            if preferred_index is not None and preferred_index not in taken:
+                index = preferred_index
+            else:
+                index = next(i for i in range(len(taken) + 1) if i not in taken)
+            lease = ActorLease(f"actor-{index}-{uuid.uuid4().hex[:8]}", index, name, self._clock() + self.lease_s)
+            self._actors[lease.actor_id] = lease
+            self.registered += 1
+            return lease
+
+    def renew(self, actor_id: str, env_steps: int) -> bool:
+        """Extend ``actor_id``'s lease; False if it is unknown or already expired."""
+        with self._lock:
+            self._expire()
+            lease = self._actors.get(actor_id)
+            if lease is None:
+                return False
+            lease.expires = self._clock() + self.lease_s
+            lease.env_steps = int(env_steps)
+            return True
+
+    def alive(self) -> list[ActorLease]:
+        with self._lock:
+            self._expire()
+            return sorted(self._actors.values(), key=lambda a: a.index)
+
+    def _expire(self) -> None:
+        now = self._clock()
+        for actor_id in [a.actor_id for a in self._actors.values() if a.expires < now]:
+            del self._actors[actor_id]
+            self.expired += 1
+
+
+class ParamsStore:
+    """The latest published version and its frames (one serialisation, shared with ZeroMQ)."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._latest: tuple[int, list[bytes]] | None = None
+
+    def put(self, version: int, frames: list[bytes]) -> None:
+        with self._lock:
+            self._latest = (int(version), list(frames))
+
+    def get(self) -> tuple[int, list[bytes]] | None:
+        with self._lock:
+            return self._latest
+
+    @property
+    def version(self) -> int:
+        latest = self.get()
+        return -1 if latest is None else latest[0]
+
+
+class ActingPolicy:
+    """A copy of the learner's acting weights as of the last publication, for ``GetAction``.
+
+    The learner trains its own SAC and loads each published version here, so served actions
+    always come from a published version (never from weights halfway through an optimizer step).
+    One lock serialises acting and loading."""
+
+    def __init__(self, sac: SAC) -> None:
+        self.sac = sac
+        self.version = -1
+        self._lock = threading.Lock()
+
+    def load(self, version: int, state: dict[str, torch.Tensor]) -> None:
+        with self._lock:
+            self.sac.load_acting_state_dict(state)
+            self.version = int(version)
+
+    def act(
+        self,
+        obs: list[np.ndarray],
+        prev_actions: np.ndarray | None,
+        rnn_state: np.ndarray | None,
+        noise: float,
+        deterministic: bool,
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, int]:
+        with self._lock:
+            self.sac.exploration_noise = noise
+            if self.sac.rnn_state_size:
+                assert prev_actions is not None and rnn_state is not None
+                actions, logp, state = self.sac.act_recurrent(obs, prev_actions, rnn_state, deterministic)
+                return actions, logp, state, self.version
+            actions, logp = self.sac.act(obs, deterministic)
+            return actions, logp, None, self.version
+
+
+# ---------------------------------------------------------------------- server
+
+
+class LearnerServicer(learner_pb2_grpc.LearnerServiceServicer):
+    """Serves one learner's registry, parameter store and (optionally) acting copy."""
+
+    def __init__(
+        self,
+        spec: EnvSpec,
+        registry: ActorRegistry,
+        store: ParamsStore,
+        params_port: int,
+        acting: ActingPolicy | None = None,
+        rnn_state_size: int = 0,
+    ) -> None:
+        self.spec = spec
+        self.registry = registry
+        self.store = store
+        self.params_port = int(params_port)
+        self.acting = acting
+        self.rnn_state_size = int(rnn_state_size)
+        self.learner_id = uuid.uuid4().hex
+        self.actions_served = 0
+
+    def RegisterActor(
+        self, request: learner_pb2.RegisterActorRequest, context: grpc.ServicerContext
+    ) -> learner_pb2.RegisterActorReply:
+        preferred = request.preferred_index if request.HasField("preferred_index") else None
+        if preferred is not None and preferred < 0:
+            context.abort(grpc.StatusCode.INVALID_ARGUMENT, f"preferred_index must be >= 0, got {preferred}")
+        lease = self.registry.register(request.name, preferred)
+        return learner_pb2.RegisterActorReply(
+            actor_id=lease.actor_id,
+            index=lease.index,
+            learner_id=self.learner_id,
+            params_port=self.params_port,
+            lease_s=self.registry.lease_s,
+        )
+
+    def Heartbeat(
+        self, request: learner_pb2.HeartbeatRequest, context: grpc.ServicerContext
+    ) -> learner_pb2.HeartbeatReply:
+        if not self.registry.renew(request.actor_id, request.env_steps):
+            context.abort(grpc.StatusCode.NOT_FOUND, f"no live actor {request.actor_id!r} (lease expired?): register")
+        return learner_pb2.HeartbeatReply(learner_id=self.learner_id, params_version=self.store.version)
+
+    def GetParams(
+        self, request: learner_pb2.GetParamsRequest, context: grpc.ServicerContext
+    ) -> learner_pb2.GetParamsReply:
+        latest = self.store.get()
+        if latest is None:
+            context.abort(grpc.StatusCode.UNAVAILABLE, "no parameters published yet")
+        version, frames = latest  # type: ignore[misc]  # abort raises
+        return learner_pb2.GetParamsReply(version=version, frames=frames)
+
+    def GetAction(
+        self, request: learner_pb2.GetActionRequest, context: grpc.ServicerContext
+    ) -> learner_pb2.GetActionReply:
+        if self.acting is None:
+            context.abort(
+                grpc.StatusCode.FAILED_PRECONDITION,
+                "this learner keeps no acting copy (actor_config.update_policy_mode: true): "
+                "subscribe to its parameters instead",
+            )
+        assert self.acting is not None
+        if self.acting.version < 0:
+            context.abort(grpc.StatusCode.UNAVAILABLE, "no parameters published yet")
+        with _invalid_argument(context):
+            obs, prev_actions, rnn_state, noise = self._decode(request)
+        actions, logp, state, version = self.acting.act(obs, prev_actions, rnn_state, noise, request.deterministic)
+        self.actions_served += len(actions)
+        reply = learner_pb2.GetActionReply(
+            actions=to_tensor(actions.astype(np.float32)),
+            behaviour_logp=to_tensor(logp.astype(np.float32)),
+            params_version=version,
+        )
+        if state is not None:
+            reply.rnn_state.CopyFrom(to_tensor(state.astype(np.float32)))
+        return reply
+
+    def _decode(
+        self, request: learner_pb2.GetActionRequest
+    ) -> tuple[list[np.ndarray], np.ndarray | None, np.ndarray | None, float]:
+        sensors, dims = self.spec.sensors, dict[str, int]()
+        if len(request.obs) != len(sensors):
+            raise WireError("obs", f"has {len(request.obs)} sensors, the learner expects {len(sensors)}")
+        obs = [
+            from_tensor(t, TensorSpec(f"obs[{i}] ({s.name})", s.dtype, s.shape, finite=True, leading=("N",)), dims)
+            for i, (t, s) in enumerate(zip(request.obs, sensors, strict=True))
+        ]
+        prev_actions = rnn_state = None
+        recurrent = {"prev_actions": self.spec.action.size, "rnn_state": self.rnn_state_size}
+        for name in recurrent:
+            if self.rnn_state_size and not request.HasField(name):
+                raise WireError(name, "is required: this learner's policy is recurrent")
+            if not self.rnn_state_size and request.HasField(name):
+                raise WireError(name, "is set but this learner's policy is not recurrent")
+        if self.rnn_state_size:
+            specs = {name: TensorSpec(name, _F32, (width,), True, ("N",)) for name, width in recurrent.items()}
+            prev_actions = from_tensor(request.prev_actions, specs["prev_actions"], dims)
+            rnn_state = from_tensor(request.rnn_state, specs["rnn_state"], dims)
+        if not (np.isfinite(request.noise) and request.noise >= 0):
+            raise WireError("noise", f"must be finite and >= 0, got {request.noise}")
+        return obs, prev_actions, rnn_state, float(request.noise)
+
+
+@contextmanager
+def _invalid_argument(context: grpc.ServicerContext) -> Iterator[None]:
+    try:
+        yield
+    except ValueError as e:
+        context.abort(grpc.StatusCode.INVALID_ARGUMENT, str(e))
+
+
+def serve_learner(
+    servicer: LearnerServicer,
+    address: str = "127.0.0.1:0",
+    *,
+    max_message_bytes: int = GRPC_DEFAULT_MESSAGE_BYTES,
+    max_workers: int = 16,
+) -> tuple[grpc.Server, int, health.HealthServicer]:
+    """Start the learner's gRPC server on ``address`` (port 0: any free port); returns the server,
+    its port and its health servicer, which reports NOT_SERVING until the caller flips it with
+    ``ds.rpc.set_serving(health, SERVICE_NAME, True)`` (after the first publication)."""
+    server = grpc.server(
+        futures.ThreadPoolExecutor(max_workers=max_workers, thread_name_prefix="learner-rpc"),
+        options=rpc.channel_options(max_message_bytes),
+    )
+    learner_pb2_grpc.add_LearnerServiceServicer_to_server(servicer, server)
+    health_servicer = health.HealthServicer()
+    health_pb2_grpc.add_HealthServicer_to_server(health_servicer, server)
+    rpc.set_serving(health_servicer, SERVICE_NAME, False)
+    port = server.add_insecure_port(address)
+    server.start()
+    return server, port, health_servicer
+
+
+# ---------------------------------------------------------------------- client
+
+
+class LeaseExpired(RuntimeError):
+    """The learner does not know this actor id (lease expired, or the learner restarted): register again."""
+
+
+@dataclass(frozen=True)
+class Registration:
+    actor_id: str
+    index: int
+    learner_id: str
+    params_port: int
+    lease_s: float
+
+
+class LearnerClient:
+    """The actor's end of :class:`LearnerServicer`. Every call has a deadline of ``rpc_timeout_s``;
+    UNAVAILABLE is retried per ``retry`` and then raised as ``grpc.RpcError``, as is every other
+    status except the ones named per method. Thread-safe."""
+
+    def __init__(
+        self,
+        address: str,
+        spec: EnvSpec,
+        rnn_state_size: int = 0,
+        *,
+        max_message_bytes: int = GRPC_DEFAULT_MESSAGE_BYTES,
+        rpc_timeout_s: float = 10.0,
+        retry: rpc.RetryPolicy | None = None,
+    ) -> None:
+        self.address = address
+        self.spec = spec
+        self.rnn_state_size = int(rnn_state_size)
+        self.rpc_timeout_s = float(rpc_timeout_s)
+        self.retry = retry or rpc.RetryPolicy()
+        self.channel = grpc.insecure_channel(address, options=rpc.channel_options(max_message_bytes))
+        self._stub = learner_pb2_grpc.LearnerServiceStub(self.channel)
+
+    def close(self) -> None:
+        self.channel.close()
+
+    def register(self, name: str, preferred_index: int | None = None) -> Registration:
+        request = learner_pb2.RegisterActorRequest(name=name)
+        if preferred_index is not None:
+            request.preferred_index = int(preferred_index)
+        reply = self._call(self._stub.RegisterActor, request)
+        return Registration(reply.actor_id, reply.index, reply.learner_id, reply.params_port, reply.lease_s)
+
+    def heartbeat(self, actor_id: str, env_steps: int) -> tuple[str, int]:
+        """Renew the lease; returns ``(learner_id, latest params version)``; :class:`LeaseExpired`
+        when the learner no longer knows ``actor_id``."""
+        try:
+            request = learner_pb2.HeartbeatRequest(actor_id=actor_id, env_steps=env_steps)
+            reply = self._call(self._stub.Heartbeat, request)
+        except grpc.RpcError as e:
+            if e.code() == grpc.StatusCode.NOT_FOUND:
+                raise LeaseExpired(e.details()) from None
+            raise
+        return reply.learner_id, reply.params_version
+
+    def get_params(self) -> tuple[int, list[bytes]]:
+        """The latest published ``(version, frames)``; decode with :func:`ds.params.decode_params`."""
+        reply = self._call(self._stub.GetParams, learner_pb2.GetParamsRequest())
+        return reply.version, list(reply.frames)
+
+    def act(
+        self,
+        obs: list[np.ndarray],
+        noise: float = 0.0,
+        deterministic: bool = False,
+        prev_actions: np.ndarray | None = None,
+        rnn_state: np.ndarray | None = None,
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+        """Actions ``[N, A]``, behaviour log-probs ``[N]`` and (recurrent) next states from the learner."""
+        request = learner_pb2.GetActionRequest(
+            obs=[to_tensor(o, f"obs[{i}]") for i, o in enumerate(obs)], noise=noise, deterministic=deterministic
+        )
+        if prev_actions is not None:
+            request.prev_actions.CopyFrom(to_tensor(prev_actions.astype(np.float32)))
+        if rnn_state is not None:
+            request.rnn_state.CopyFrom(to_tensor(rnn_state.astype(np.float32)))
+        reply = self._call(self._stub.GetAction, request)
+        dims = {"N": len(obs[0])}
+        a = self.spec.action.size
+        actions = from_tensor(reply.actions, TensorSpec("actions", _F32, (a,), True, ("N",)), dims)
+        logp = from_tensor(reply.behaviour_logp, TensorSpec("behaviour_logp", _F32, (), True, ("N",)), dims)
+        state = None
+        if self.rnn_state_size:
+            spec = TensorSpec("rnn_state", _F32, (self.rnn_state_size,), True, ("N",))
+            state = from_tensor(reply.rnn_state, spec, dims)
+        return actions, logp, state
+
+    def _call(self, method: Callable[..., Any], request: Any) -> Any:
+        return rpc.call_with_retry(method, request, self.rpc_timeout_s, self.retry)
+
+
+class RemotePolicy:
+    """The :class:`~algorithm.actor.Policy` of an actor with ``update_policy_mode: false``: every
+    action comes from the learner (``GetAction``), with this actor's exploration noise."""
+
+    def __init__(self, learner: LearnerClient, noise: float = 0.0) -> None:
+        self.learner = learner
+        self.noise = float(noise)
+        self.rnn_state_size = learner.rnn_state_size
+
+    def act(self, obs: list[np.ndarray], deterministic: bool = False) -> tuple[np.ndarray, np.ndarray]:
+        actions, logp, _ = self.learner.act(obs, self.noise, deterministic)
+        return actions, logp
+
+    def act_recurrent(
+        self, obs: list[np.ndarray], prev_actions: np.ndarray, rnn_state: np.ndarray, deterministic: bool = False
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        actions, logp, state = self.learner.act(obs, self.noise, deterministic, prev_actions, rnn_state)
+        assert state is not None
+        return actions, logp, state
+
+
+__all__ = [
+    "SERVICE_NAME",
+    "ActingPolicy",
+    "ActorRegistry",
+    "LearnerClient",
+    "LearnerServicer",
+    "LeaseExpired",
+    "ParamsStore",
+    "Registration",
+    "RemotePolicy",
+    "learner_message_limit",
+    "serve_learner",
+]

@@ -1,0 +1,281 @@
+"""The learner's background traffic with the replay: batches prefetched into a bounded queue,
+priority updates sent back in merged batches. Neither ever drops data silently.
+
+Usage (ds/learner.py)::
+
+    prefetcher, priorities = BatchPrefetcher(replay, batch_size=256), PriorityUpdater(replay)
+    prefetcher.start(); priorities.start()
+    while training:
+        batch = prefetcher.get(timeout=0.5)           # None: nothing yet (replay short of data)
+        ...
+        priorities.put(batch.keys, td_abs)            # blocks (counted) while the queue is full
+    prefetcher.stop(); priorities.close(timeout=5)   # close sends what is queued first
+
+A replay that is short of data or unreachable (UNAVAILABLE) is waited out and logged now and then;
+any other replay error stops the thread and is raised in the learner's thread by the next
+``get``/``put`` (errors surface, they are not swallowed).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import queue
+import threading
+import time
+
+import grpc
+import numpy as np
+
+from algorithm.replay import ReplayTable, SampleTimeout
+from algorithm.types import Batch
+from ds.replay_service import ReplayRpcError
+
+log = logging.getLogger("asac.learner")
+
+
+class Throttle:
+    """True at most once every ``seconds`` (for log lines about a state that persists)."""
+
+    def __init__(self, seconds: float) -> None:
+        self.seconds = seconds
+        self._last = -math.inf
+
+    def __call__(self) -> bool:
+        now = time.monotonic()
+        if now - self._last < self.seconds:
+            return False
+        self._last = now
+        return True
+
+
+def unavailable(error: Exception) -> bool:
+    return isinstance(error, ReplayRpcError) and error.code == grpc.StatusCode.UNAVAILABLE
+
+
+class _Worker:
+    """A daemon thread running ``_run`` until :meth:`stop`; an exception it raises is kept and
+    re-raised in the owner's thread by :meth:`check` (errors surface, they are not swallowed)."""
+
+    name = "worker"
+
+    def __init__(self) -> None:
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._guarded, name=self.name, daemon=True)
+        self.error: BaseException | None = None
+
+    def start(self) -> None:
+        self._thread.start()
+
+    def stop(self, timeout: float = 5.0) -> None:
+        self._stop.set()
+        if self._thread.is_alive():
+            self._thread.join(timeout)
+
+    def check(self) -> None:
+        if self.error is not None:
+            raise RuntimeError(f"{self.name} thread failed: {self.error}") from self.error
+
+    def _guarded(self) -> None:
+        try:
+            self._run()
+        except BaseException as e:  # kept for check(): the owner decides
+            self.error = e
+            log.error("%s thread failed: %s", self.name, e)
+
+    def _run(self) -> None:
+        raise NotImplementedError
+
+
+class BatchPrefetcher(_Worker):
+    """Samples ``batch_size`` windows from ``replay`` on a background thread into a queue of
+    ``depth`` batches. The replay being short of data (SampleTimeout) or unreachable (UNAVAILABLE)
+    is waited out, logged now and then; a full queue blocks the thread (``full_waits`` counts the
+    blocked puts, ``full_wait_seconds`` their time); any other replay error stops it and
+    :meth:`get` raises it."""
+
+    name = "prefetch"
+
+    def __init__(self, replay: ReplayTable, batch_size: int, depth: int = 4, sample_timeout_s: float = 1.0) -> None:
+        super().__init__()
+        self.replay = replay
+        self.batch_size = int(batch_size)
+        self.sample_timeout_s = float(sample_timeout_s)
+        self._queue: queue.Queue[Batch] = queue.Queue(maxsize=depth)
+        self.sampled = 0
+        self.sample_waits = 0
+        self.unavailable = 0
+        self.full_waits = 0
+        self.full_wait_seconds = 0.0
+        self._log_wait = Throttle(30.0)
+
+    def get(self, timeout: float) -> Batch | None:
+        """The next batch, or None if none came within ``timeout`` seconds."""
+        self.check()
+        try:
+            return self._queue.get(timeout=timeout)
+        except queue.Empty:
+            self.check()
+            return None
+
+    def _run(self) -> None:
+        backoff = 0.1
+        while not self._stop.is_set():
+            try:
+                batch = self.replay.sample(self.batch_size, timeout=self.sample_timeout_s)
+            except SampleTimeout as e:  # too little data yet, or the learner is ahead of the actors
+                self.sample_waits += 1
+                if self._log_wait():
+                    log.info("waiting for data in replay: %s", e)
+                continue
+            except ReplayRpcError as e:
+                if not unavailable(e):
+                    raise
+                self.unavailable += 1
+                if self._log_wait():
+                    log.warning("replay unreachable, retrying: %s", e)
+                self._stop.wait(backoff)
+                backoff = min(2 * backoff, 5.0)
+                continue
+            backoff = 0.1
+            self.sampled += 1
+            self._put(batch)
+
+    def _put(self, batch: Batch) -> None:
+        try:
+            self._queue.put_nowait(batch)
+            return
+        except queue.Full:
+            self.full_waits += 1
+        start = time.monotonic()
+        while not self._stop.is_set():
+            try:
+                self._queue.put(batch, timeout=0.5)
+                break
+            except queue.Full:
+                continue
+        self.full_wait_seconds += time.monotonic() - start
+
+    def metrics(self) -> dict[str, float]:
+        return {
+            "learner/prefetch_queue": float(self._queue.qsize()),
+            "learner/prefetch_full_waits": float(self.full_waits),
+            "learner/prefetch_full_wait_seconds": self.full_wait_seconds,
+            "learner/sample_waits": float(self.sample_waits),
+            "learner/replay_unavailable": float(self.unavailable),
+        }
+
+
+class PriorityUpdater(_Worker):
+    """Sends priority updates to ``replay`` from a background thread.
+
+    :meth:`put` queues ``(keys, |TD|)`` of one batch (a full queue of ``depth`` blocks the caller
+    with a timeout loop, counted in ``full_waits``); the thread merges everything queued (up to
+    ``merge`` batches; a key updated twice keeps its newest priority) into one call. UNAVAILABLE is
+    retried with backoff, keeping the payload; :meth:`close` flushes what is left within its timeout
+    and logs how many updates it could not send."""
+
+    name = "priorities"
+
+    def __init__(self, replay: ReplayTable, depth: int = 64, merge: int = 16) -> None:
+        super().__init__()
+        self.replay = replay
+        self.merge = int(merge)
+        self._queue: queue.Queue[tuple[np.ndarray, np.ndarray]] = queue.Queue(maxsize=depth)
+        self.sent_calls = 0
+        self.sent_keys = 0
+        self.full_waits = 0
+        self.full_wait_seconds = 0.0
+        self.unavailable = 0
+        self.unsent = 0
+        self._closing = threading.Event()
+        self._log_wait = Throttle(30.0)
+
+    def put(self, keys: np.ndarray, priorities: np.ndarray) -> None:
+        self.check()
+        item = (np.asarray(keys), np.asarray(priorities, dtype=np.float64))
+        try:
+            self._queue.put_nowait(item)
+            return
+        except queue.Full:
+            self.full_waits += 1
+        start = time.monotonic()
+        while True:
+            self.check()
+            try:
+                self._queue.put(item, timeout=0.5)
+                break
+            except queue.Full:
+                if self._log_wait():
+                    log.warning("priority updates are backing up (replay slow or unreachable); learner waits")
+        self.full_wait_seconds += time.monotonic() - start
+
+    def close(self, timeout: float = 5.0) -> None:
+        """Send what is queued (for at most ``timeout`` seconds), then stop the thread."""
+        self._closing.set()
+        if self._thread.is_alive():
+            self._thread.join(timeout)
+        self.stop(0.1)
+        while True:
+            try:
+                keys, _ = self._queue.get_nowait()
+            except queue.Empty:
+                break
+            self.unsent += len(keys)
+        if self.unsent:
+            log.warning("%d priority updates were not sent before shutdown", self.unsent)
+
+    def pending(self) -> int:
+        return self._queue.qsize()
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            try:
+                first = self._queue.get(timeout=0.2)
+            except queue.Empty:
+                if self._closing.is_set():
+                    return
+                continue
+            items = [first]
+            while len(items) < self.merge:
+                try:
+                    items.append(self._queue.get_nowait())
+                except queue.Empty:
+                    break
+            keys, priorities = merge_priorities(items)
+            self._send(keys, priorities)
+
+    def _send(self, keys: np.ndarray, priorities: np.ndarray) -> None:
+        backoff = 0.1
+        while not self._stop.is_set():
+            try:
+                self.replay.update_priorities(keys, priorities)
+                self.sent_calls += 1
+                self.sent_keys += len(keys)
+                return
+            except ReplayRpcError as e:
+                if not unavailable(e):
+                    raise
+                self.unavailable += 1
+                if self._log_wait():
+                    log.warning("replay unreachable for priority updates, retrying: %s", e)
+                self._stop.wait(backoff)
+                backoff = min(2 * backoff, 5.0)
+        self.unsent += len(keys)
+
+    def metrics(self) -> dict[str, float]:
+        return {
+            "learner/priority_queue": float(self._queue.qsize()),
+            "learner/priority_calls": float(self.sent_calls),
+            "learner/priority_full_waits": float(self.full_waits),
+            "learner/priority_full_wait_seconds": self.full_wait_seconds,
+        }
+
+
+def merge_priorities(items: list[tuple[np.ndarray, np.ndarray]]) -> tuple[np.ndarray, np.ndarray]:
+    """One ``(keys, priorities)`` from several, in order; a key present twice keeps its last value."""
+    keys = np.concatenate([k for k, _ in items])
+    priorities = np.concatenate([p for _, p in items])
+    _, last_first = np.unique(keys[::-1], return_index=True)
+    keep = np.sort(len(keys) - 1 - last_first)
+    return keys[keep], priorities[keep]

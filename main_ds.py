@@ -1,0 +1,178 @@
+"""Distributed ASAC: ``python main_ds.py gym/pendulum {replay,learner,actor,local} ...`` runs one role.
+
+Thin by design, like main.py (whose flags it shares): parse, resolve the config and the run
+directory, call ds/roles.py (ARCHITECTURE.md 1). Exit codes: 0 done, 2 bad usage or config,
+130 stopped by Ctrl-C / SIGTERM, 1 a role failed.
+"""
+
+from __future__ import annotations
+
+import os
+
+# Before torch is imported (see main.py).
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
+import argparse
+import logging
+import random
+import sys
+import time
+from pathlib import Path
+
+from algorithm.checkpoint import CheckpointError
+from algorithm.config import ConfigError, apply_overrides, config_from_yaml, config_to_yaml, load_config
+from algorithm.config_schema import Config
+from algorithm.trainer import RunDir
+from ds import roles
+from main import UsageError, add_common_args, cli_overrides, copy_model_file, env_factory, play, run_model_builder
+from main import task_dir as resolve_task
+
+ROLES = {"replay": "replay", "r": "replay", "learner": "learner", "l": "learner", "actor": "actor", "a": "actor",
+         "evolver": "evolver", "e": "evolver", "local": "local"}  # fmt: skip
+log = logging.getLogger("asac")
+
+
+def port(text: str) -> int:
+    value = int(text) if text.isdigit() else -1
+    if not 0 <= value <= 65535:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a port number (0-65535)")
+    return value
+
+
+def noise_level(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        value = -1.0
+    if not 0.0 <= value < float("inf"):
+        raise argparse.ArgumentTypeError(f"{text!r} is not a noise level (a number >= 0)")
+    return value
+
+
+def positive(text: str) -> int:
+    value = int(text) if text.isdigit() else 0
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a positive integer")
+    return value
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="main_ds.py",
+        description="Run one role of distributed ASAC, or all of them as local subprocesses.",
+        epilog="examples:\n  python main_ds.py gym/pendulum local --actors 2\n"
+        "  python main_ds.py gym/pendulum replay\n"
+        "  python main_ds.py gym/pendulum learner --replay_host=10.0.0.2\n"
+        "  python main_ds.py gym/pendulum actor --learner_host=10.0.0.3 --replay_host=10.0.0.2 --noise 0.1",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    add_common_args(p)
+    p.add_argument("role", choices=sorted(ROLES), help="replay (r), learner (l), actor (a), evolver (e) or local")
+    for peer in ("evolver", "learner", "replay"):
+        p.add_argument(f"--{peer}_host", help=f"address of the {peer} (net_config.{peer}_host)")
+        p.add_argument(f"--{peer}_port", type=port, help=f"port of the {peer} (net_config.{peer}_port)")
+    p.add_argument("--noise", type=noise_level, help="this actor's exploration noise (default: from its index)")
+    p.add_argument("--in_k8s", action="store_true", help="servers listen on all interfaces (net_config.bind_host)")
+    p.add_argument("--actors", type=positive, default=1, help="with local: how many actor processes")
+    return p
+
+
+def resolve(args: argparse.Namespace) -> tuple[Config, Path]:
+    """The run's config (a resumed run's saved one wins; overrides and net flags still apply) and
+    its directory, with the seed resolved and the model file copied, as main.py does."""
+    task = resolve_task(args.env)
+    overrides = cli_overrides(args)
+    config = load_config(task, args.config, overrides).config
+    name = (args.name or config.base_config.name).replace("{time}", time.strftime("%Y%m%d%H%M%S"))
+    run_dir = Path(args.model_root) / args.env / name
+    saved = RunDir(run_dir).config
+    if saved.exists():
+        config = apply_overrides(config_from_yaml(saved.read_text(), str(saved)), overrides)
+    elif config.sac_config.seed is None:
+        config.sac_config.seed = random.SystemRandom().randrange(2**31)
+    config.base_config.name = name
+    net = config.net_config
+    for peer in ("evolver", "learner", "replay"):
+        if (host := getattr(args, f"{peer}_host")) is not None:
+            setattr(net, f"{peer}_host", host)
+        if (number := getattr(args, f"{peer}_port")) is not None:
+            setattr(net, f"{peer}_port", number)
+    if args.in_k8s:
+        net.bind_host = "0.0.0.0"
+    copy_model_file(task, config, run_dir, explicit=args.nn is not None)
+    return config, run_dir
+
+
+def setup_logging(run_dir: Path, role: str, in_file: bool) -> None:
+    handlers: list[logging.Handler] = [logging.StreamHandler(sys.stderr)]
+    if in_file:
+        run_dir.mkdir(parents=True, exist_ok=True)
+        handlers.append(logging.FileHandler(run_dir / f"log_{role}.txt"))
+    logging.basicConfig(
+        level=logging.INFO, format=f"%(asctime)s {role} %(levelname)s %(message)s", handlers=handlers, force=True
+    )
+
+
+def child_args(args: argparse.Namespace, config: Config) -> list[str]:
+    """What ``local`` passes on to each role: the run name and seed it resolved, and the user's flags."""
+    out = ["-n", config.base_config.name, "--model_root", args.model_root, "--device", args.device]
+    out += ["--override", f"sac.seed={config.sac_config.seed}"]
+    for flag in ("config", "nn", "agents"):
+        if (value := getattr(args, flag)) is not None:
+            out += [f"--{flag}", str(value)]
+    for override in args.override:
+        out += ["--override", override]
+    out += ["--logger_in_file"] * args.logger_in_file + ["--no_progress"] * args.no_progress
+    return out
+
+
+def run(args: argparse.Namespace) -> int:
+    role = ROLES[args.role]
+    if args.run:
+        return play(args)
+    if role == "evolver":
+        raise UsageError("the evolver role is not built yet (next issue); run replay, learner and actors")
+    if args.repeat != 1:
+        raise UsageError("--repeat is for main.py; start one distributed run per name")
+    if args.actors != 1 and role != "local":
+        raise UsageError("--actors is for the local role")
+    if args.ckpt is not None and role not in ("learner", "local"):
+        raise UsageError("--ckpt is for the learner (it resumes from that checkpoint)")
+    config, run_dir = resolve(args)
+    setup_logging(run_dir, role, args.logger_in_file)
+    if role in ("learner", "local"):
+        run_dir.mkdir(parents=True, exist_ok=True)
+        RunDir(run_dir).config.write_text(config_to_yaml(config))
+    if role == "local":
+        log.info("run %s (seed %s): replay, learner and %d actors", run_dir, config.sac_config.seed, args.actors)
+        extra = {
+            "learner": [] if args.ckpt is None else ["--ckpt", str(args.ckpt)],
+            "actor": [] if args.noise is None else ["--noise", str(args.noise)],
+        }
+        command = [sys.executable, str(Path(__file__).resolve()), args.env]
+        return roles.run_local(command, child_args(args, config), args.actors, extra)
+    context = roles.RoleContext(
+        config, run_dir, env_factory(config), run_model_builder(RunDir(run_dir)), args.device, roles.stop_on_signals()
+    )
+    log.info("%s of run %s (seed %s)", role, run_dir, config.sac_config.seed)
+    if role == "replay":
+        return roles.run_replay(context)
+    if role == "learner":
+        return roles.run_learner(context, args.ckpt, progress=not args.no_progress)
+    return roles.run_actor(context, args.noise)
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        return run(args)
+    except (UsageError, ConfigError, CheckpointError) as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    except roles.RoleError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

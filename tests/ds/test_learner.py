@@ -1,0 +1,261 @@
+"""The learner's background threads against a real loopback replay server, and the learner loop:
+batches are prefetched without loss, full queues block and are counted, priority updates arrive
+(merged, newest wins), an unreachable replay is waited out, and a stopped learner resumes."""
+
+from __future__ import annotations
+
+import socket
+import threading
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from algorithm.config import load_config
+from algorithm.replay import PrioritizedTable
+from algorithm.sac import SAC
+from ds.learner import EnvSteps, Learner
+from ds.learner_service import ParamsStore
+from ds.params import ParamsPublisher, decode_params, params_spec
+from ds.replay_feeds import BatchPrefetcher, PriorityUpdater, merge_priorities
+from ds.replay_service import ReplayClient, RetryPolicy, serve_replay
+from envs.make import make_vector_env
+from tests.algorithm.replay.chunks import VECTOR, make_chunk
+
+from .conftest import ServeOverGrpc
+
+pytestmark = pytest.mark.grpc
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def until(condition: Callable[[], bool], timeout_s: float = 20.0) -> None:
+    deadline = time.monotonic() + timeout_s
+    while not condition():
+        assert time.monotonic() < deadline, "timed out waiting for the condition"
+        time.sleep(0.02)
+
+
+def filled(capacity: int = 400, chunks: int = 5, t: int = 20) -> PrioritizedTable:
+    table = PrioritizedTable(capacity, (VECTOR,), 2, window=2, alpha=0.6, seed=0)
+    for i in range(chunks):
+        table.insert(make_chunk(t, i * (t + 1)))
+    return table
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def test_prefetcher_fills_its_queue_then_blocks_and_counts(over_grpc: ServeOverGrpc) -> None:
+    client = over_grpc(filled())
+    prefetcher = BatchPrefetcher(client, batch_size=8, depth=2)
+    prefetcher.start()
+    try:
+        until(lambda: prefetcher.full_waits >= 1)  # queue full: the thread waits instead of dropping
+        assert prefetcher.metrics()["learner/prefetch_queue"] == 2
+        batches = [prefetcher.get(timeout=5) for _ in range(5)]
+        assert all(b is not None and b.batch_size == 8 for b in batches)
+        until(lambda: prefetcher.full_waits >= 2)
+        # every batch drawn was delivered (5), is queued (2) or is held by the blocked thread (1)
+        assert prefetcher.sampled == 5 + 2 + 1
+    finally:
+        prefetcher.stop()
+
+
+def test_prefetcher_waits_for_data_and_for_an_unreachable_replay() -> None:
+    port = free_port()
+    client = ReplayClient(f"127.0.0.1:{port}", (VECTOR,), 2, retry=RetryPolicy(attempts=2, initial_backoff_s=0.05))
+    prefetcher = BatchPrefetcher(client, batch_size=4, depth=2, sample_timeout_s=0.2)
+    prefetcher.start()
+    try:
+        until(lambda: prefetcher.unavailable >= 1)  # no server yet: waited out, not fatal
+        assert prefetcher.get(timeout=0.1) is None
+        table = PrioritizedTable(400, (VECTOR,), 2, window=2, seed=0)
+        server, _ = serve_replay(table, f"127.0.0.1:{port}")
+        try:
+            until(lambda: prefetcher.sample_waits >= 1)  # up but empty: SampleTimeout, waited out
+            table.insert(make_chunk(10))
+            assert prefetcher.get(timeout=20) is not None
+            prefetcher.check()
+        finally:
+            server.stop(None)
+    finally:
+        prefetcher.stop()
+        client.close()
+
+
+def test_prefetcher_surfaces_other_replay_errors(over_grpc: ServeOverGrpc) -> None:
+    client = over_grpc(filled())
+    prefetcher = BatchPrefetcher(client, batch_size=0)  # INVALID_ARGUMENT from the server
+    prefetcher.start()
+    until(lambda: prefetcher.error is not None)
+    with pytest.raises(RuntimeError, match="prefetch thread failed"):
+        prefetcher.get(timeout=0.1)
+
+
+def test_priority_updates_reach_the_replay_merged(over_grpc: ServeOverGrpc) -> None:
+    table = filled()
+    client = over_grpc(table)
+    updater = PriorityUpdater(client, depth=16, merge=4)
+    batches = [client.sample(16) for _ in range(10)]
+    for b in batches:
+        updater.put(b.keys, np.full(16, 0.5))  # queued before the thread starts: merged 4 + 4 + 2
+    updater.start()
+    updater.close(timeout=20)
+    assert updater.unsent == 0 and updater.sent_calls == 3
+    groups = [batches[:4], batches[4:8], batches[8:]]
+    expected = sum(len(np.unique(np.concatenate([b.keys for b in g]))) for g in groups)
+    assert table.info()["priority_updates"] == updater.sent_keys == expected
+
+
+def test_merged_priorities_keep_the_newest_value_per_key() -> None:
+    keys, priorities = merge_priorities(
+        [
+            (np.array([3, 5, 7], np.uint64), np.array([1.0, 1.0, 1.0])),
+            (np.array([5, 9], np.uint64), np.array([2.0, 2.0])),
+        ]
+    )
+    assert dict(zip(keys.tolist(), priorities.tolist(), strict=True)) == {3: 1.0, 5: 2.0, 7: 1.0, 9: 2.0}
+
+
+class BlockingReplay:
+    """A replay whose update_priorities blocks until released (a slow or stuck server)."""
+
+    def __init__(self) -> None:
+        self.release = threading.Event()
+        self.calls = 0
+
+    def update_priorities(self, keys: np.ndarray, priorities: np.ndarray) -> None:
+        self.release.wait()
+        self.calls += 1
+
+
+def test_full_priority_queue_blocks_the_learner_and_counts() -> None:
+    replay = BlockingReplay()
+    updater = PriorityUpdater(replay, depth=1, merge=1)  # type: ignore[arg-type]
+    updater.start()
+    keys = np.arange(4, dtype=np.uint64)
+    updater.put(keys, np.ones(4))  # taken by the thread, which blocks in the call
+    until(lambda: updater.pending() == 0)
+    updater.put(keys, np.ones(4))  # fills the queue
+    done = threading.Event()
+    threading.Thread(target=lambda: (updater.put(keys, np.ones(4)), done.set()), daemon=True).start()
+    until(lambda: updater.full_waits == 1)
+    assert not done.wait(0.3)  # blocked, not dropped
+    replay.release.set()
+    assert done.wait(10)
+    updater.close(timeout=10)
+    assert replay.calls == 3 and updater.unsent == 0
+
+
+def test_priority_updates_wait_for_an_unreachable_replay() -> None:
+    port = free_port()
+    client = ReplayClient(f"127.0.0.1:{port}", (VECTOR,), 2, retry=RetryPolicy(attempts=2, initial_backoff_s=0.05))
+    updater = PriorityUpdater(client)
+    updater.start()
+    table = filled()
+    keys = table.sample(8).keys
+    updater.put(keys, np.full(8, 0.7))
+    until(lambda: updater.unavailable >= 1)
+    server, _ = serve_replay(table, f"127.0.0.1:{port}")
+    try:
+        until(lambda: updater.sent_calls == 1)
+        updater.close()
+        assert table.info()["priority_updates"] == len(np.unique(keys))
+    finally:
+        server.stop(None)
+        client.close()
+
+
+def test_env_steps_survive_a_replay_restart() -> None:
+    steps = EnvSteps()
+    assert [steps.observe(n) for n in (100, 250, 30, 80)] == [100, 250, 280, 330]
+
+
+SMALL = [
+    "sac.seed=0",
+    "nn.hidden_units=[16,16]",
+    "replay.batch_size=16",
+    "replay.samples_per_insert=null",
+    "replay.min_size_to_sample=50",
+    "eval.eval_per_step=0",
+    "base.max_step=-1",
+    "sac.write_summary_per_step=5",
+]
+
+
+def make_learner(tmp_path: Path, client: ReplayClient, stop: threading.Event, **kwargs: object) -> Learner:
+    config = load_config(ROOT / "envs/gym/pendulum", None, SMALL).config
+    spec = make_vector_env("Pendulum-v1", 1, seed=0).spec
+    sac = SAC(spec, config.sac_config, config.nn_config, config.replay_config)
+    publisher = ParamsPublisher("tcp://127.0.0.1:*")
+    return Learner(config, tmp_path, sac, client, publisher, ParamsStore(), stop=stop, **kwargs)  # type: ignore[arg-type]
+
+
+def pendulum_table(steps: int) -> PrioritizedTable:
+    env = make_vector_env("Pendulum-v1", 1, seed=0)
+    sensors, a = env.spec.sensors, env.spec.action.size
+    table = PrioritizedTable(10_000, sensors, a, window=3, seed=0)  # n_step 3
+    rng = np.random.default_rng(0)
+    for _ in range(steps // 50):
+        chunk = make_chunk(50, 0, sensors, a)
+        chunk.obs[0] = rng.normal(size=chunk.obs[0].shape).astype(np.float32)
+        chunk.actions = rng.uniform(-1, 1, chunk.actions.shape).astype(np.float32)
+        chunk.prev_actions = np.zeros_like(chunk.actions)
+        chunk.behaviour_logp = np.zeros_like(chunk.behaviour_logp)
+        table.insert(chunk)
+    return table
+
+
+def test_learner_trains_publishes_checkpoints_and_resumes(over_grpc: ServeOverGrpc, tmp_path: Path) -> None:
+    client = over_grpc(pendulum_table(300))
+    stop = threading.Event()
+    learner = make_learner(tmp_path, client, stop)
+    result: list = []
+    thread = threading.Thread(target=lambda: result.append(learner.run()))
+    thread.start()
+    until(lambda: learner.updates >= 30, timeout_s=60)
+    stop.set()
+    thread.join(30)
+    summary = result[0]
+    assert summary.interrupted and summary.updates >= 30 and summary.env_steps == 300
+    assert learner.store.version == learner.publisher.version == summary.updates  # published every update
+    assert sorted((tmp_path / "model").glob("*.pt")) == [tmp_path / "model/300.pt"]
+    assert any((tmp_path / "log/learner").iterdir())
+    learner.publisher.close()
+
+    again = make_learner(tmp_path, client, threading.Event())
+    assert again.updates == summary.updates and again.env_steps.total == 300
+    torch_state = again.sac.state_dict()["models"]
+    for name, value in learner.sac.state_dict()["models"].items():
+        assert (torch_state[name] == value).all(), name
+    again.publisher.close()
+
+
+def test_learner_takes_the_replays_normalizer_stats_and_publishes_them(
+    over_grpc: ServeOverGrpc, tmp_path: Path
+) -> None:
+    table = pendulum_table(300)
+    client = over_grpc(table)
+    stop = threading.Event()
+    config = load_config(ROOT / "envs/gym/pendulum", None, [*SMALL, "sac.use_normalization=true"]).config
+    spec = make_vector_env("Pendulum-v1", 1, seed=0).spec
+    sac = SAC(spec, config.sac_config, config.nn_config, config.replay_config)
+    publisher = ParamsPublisher("tcp://127.0.0.1:*")
+    learner = Learner(config, tmp_path, sac, client, publisher, ParamsStore(), stop=stop)
+    thread = threading.Thread(target=learner.run)
+    thread.start()
+    until(lambda: learner.updates >= 3, timeout_s=60)
+    stop.set()
+    thread.join(30)
+    publisher.close()
+    stats = table.normalizer_stats()["obs"]
+    latest = learner.store.get()
+    assert latest is not None
+    _, params = decode_params(latest[1], params_spec(sac.acting_state_dict()))
+    np.testing.assert_allclose(params["normalizer.mean_obs"], stats["mean"], rtol=1e-6)
+    assert int(params["normalizer.count"]) == stats["count"]

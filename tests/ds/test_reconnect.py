@@ -1,0 +1,148 @@
+"""Peers that disappear: an actor keeps acting while its learner or replay is gone, and reconnects
+when they come back on the same address (a restarted learner's versions start over; the actor
+registers again under its old index and takes them)."""
+
+from __future__ import annotations
+
+import socket
+import threading
+import time
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from pathlib import Path
+
+import pytest
+import torch
+
+from algorithm.config import load_config
+from algorithm.replay import PrioritizedTable
+from algorithm.sac import SAC
+from ds.actor import DistributedActor
+from ds.learner_service import SERVICE_NAME, ActorRegistry, LearnerClient, LearnerServicer, ParamsStore, serve_learner
+from ds.params import ParamsPublisher
+from ds.replay_service import ReplayClient, RetryPolicy, serve_replay
+from ds.rpc import set_serving
+from envs.make import vector_env_factory
+
+pytestmark = pytest.mark.grpc
+ROOT = Path(__file__).resolve().parents[2]
+CONFIG = load_config(
+    ROOT / "envs/gym/pendulum",
+    None,
+    ["sac.seed=0", "nn.hidden_units=[16,16]", "replay.samples_per_insert=null", "actor.chunk_length=16"],
+).config
+SPEC = vector_env_factory("Pendulum-v1")(1, 0).spec
+FAST_RETRY = RetryPolicy(attempts=2, initial_backoff_s=0.05, max_backoff_s=0.1)
+
+
+def until(condition: Callable[[], bool], timeout_s: float = 30.0) -> None:
+    deadline = time.monotonic() + timeout_s
+    while not condition():
+        assert time.monotonic() < deadline, "timed out waiting for the condition"
+        time.sleep(0.05)
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+class Learner:
+    """A learner service on ``port`` that has published ``version`` of a SAC initialised with ``seed``."""
+
+    def __init__(self, port: int, version: int, seed: int) -> None:
+        cfg = CONFIG.model_copy(deep=True)
+        cfg.sac_config.seed = seed
+        self.sac = SAC(SPEC, cfg.sac_config, cfg.nn_config, cfg.replay_config)
+        self.publisher = ParamsPublisher("tcp://127.0.0.1:*")
+        store = ParamsStore()
+        self.publisher.publish(version, self.sac.acting_state_dict())
+        assert self.publisher.frames is not None
+        store.put(version, self.publisher.frames)
+        params_port = int(self.publisher.address.rsplit(":", 1)[1])
+        self.servicer = LearnerServicer(SPEC, ActorRegistry(lease_s=30), store, params_port)
+        self.server, bound, health = serve_learner(self.servicer, f"127.0.0.1:{port}")
+        assert bound == port
+        set_serving(health, SERVICE_NAME, True)
+
+    def stop(self) -> None:
+        self.server.stop(None)
+        self.publisher.close()
+
+
+class Replay:
+    def __init__(self, port: int) -> None:
+        self.table = PrioritizedTable(100_000, SPEC.sensors, SPEC.action.size, window=3)
+        self.server, bound = serve_replay(self.table, f"127.0.0.1:{port}")
+        assert bound == port
+
+    def inserted(self) -> int:
+        return int(self.table.info()["inserted_steps"])
+
+    def stop(self) -> None:
+        self.server.stop(None)
+
+
+@contextmanager
+def running_actor(replay_port: int, learner_port: int, tmp_path: Path) -> Iterator[DistributedActor]:
+    replay = ReplayClient(f"127.0.0.1:{replay_port}", SPEC.sensors, SPEC.action.size, retry=FAST_RETRY)
+    learner = LearnerClient(f"127.0.0.1:{learner_port}", SPEC, retry=FAST_RETRY, rpc_timeout_s=2.0)
+    sac = SAC(SPEC, CONFIG.sac_config, CONFIG.nn_config, CONFIG.replay_config)
+    stop = threading.Event()
+    actor = DistributedActor(CONFIG, tmp_path, vector_env_factory("Pendulum-v1"), sac, replay, learner,
+                             "127.0.0.1", stop=stop, heartbeat_s=0.2)  # fmt: skip
+    thread = threading.Thread(target=actor.run, daemon=True)
+    thread.start()
+    try:
+        yield actor
+    finally:
+        stop.set()
+        thread.join(30)
+        replay.close()
+        learner.close()
+    assert not thread.is_alive()
+
+
+def same_weights(actor: DistributedActor, sac: SAC) -> bool:
+    mine = actor.sac.acting_state_dict()
+    return all(torch.equal(mine[k], v) for k, v in sac.acting_state_dict().items())
+
+
+def test_an_actor_reconnects_to_a_restarted_learner(tmp_path: Path) -> None:
+    replay_port, learner_port = free_port(), free_port()
+    replay, first = Replay(replay_port), Learner(learner_port, version=10, seed=1)
+    try:
+        with running_actor(replay_port, learner_port, tmp_path) as actor:
+            until(lambda: actor.params_version == 10 and same_weights(actor, first.sac))
+            first.stop()  # the learner dies: the actor acts on with what it has and fills the replay
+            steps = replay.inserted()
+            until(lambda: replay.inserted() > steps + 50)
+            second = Learner(learner_port, version=2, seed=2)  # restarted: its versions start over
+            try:
+                until(lambda: actor.params_version == 2 and same_weights(actor, second.sac))
+                assert actor.registration is not None
+                assert actor.registration.learner_id == second.servicer.learner_id
+                assert [a.index for a in second.servicer.registry.alive()] == [0]  # its old index
+            finally:
+                second.stop()
+    finally:
+        replay.stop()
+
+
+def test_an_actor_keeps_its_chunks_while_the_replay_restarts(tmp_path: Path) -> None:
+    replay_port, learner_port = free_port(), free_port()
+    learner, first = Learner(learner_port, version=1, seed=1), Replay(replay_port)
+    try:
+        with running_actor(replay_port, learner_port, tmp_path) as actor:
+            until(lambda: first.inserted() >= 32)
+            first.stop()
+            until(lambda: actor.sink.unavailable >= 1)  # inserts fail and are retried, not dropped
+            second = Replay(replay_port)
+            try:
+                until(lambda: second.inserted() >= 32)
+                assert actor.sink.unsent_steps == 0
+            finally:
+                second.stop()
+    finally:
+        learner.stop()
