@@ -100,7 +100,7 @@ class SB3Policy:
 def throughput(args: argparse.Namespace) -> None:
     torch.set_num_threads(args.threads)
     warmup = 1000
-    variants = {"ASAC": [], "ASAC bf16": ["sac.compute_dtype=bfloat16"]}
+    variants = {"ASAC float32": ["sac.compute_dtype=float32"], "ASAC bf16": ["sac.compute_dtype=bfloat16"]}
     rates: dict[str, list[float]] = {name: [] for name in [*variants, "SB3"]}
     for round_ in range(args.rounds):
         for name, extra in variants.items():
