@@ -504,10 +504,21 @@ class SAC:
                 return action_masks
             return action_masks[:, index] if isinstance(index, int) else gather_positions(action_masks, index)
 
+        # Computed once and shared below: the trained steps, the online state at the trained step
+        # (with gradients, for the critic), and, for curiosity and V-trace, the online states at
+        # every position (no gradients: both only read them).
+        valid = valid_steps(mask, terminated, truncated)
+        state = states_at(0, False)
+        online_all = None
+        if self.models.curiosity is not None or sac.use_n_step_is:
+            with torch.no_grad():
+                online_all = states_at(None, False)
+
         # Exploration models: curiosity rewards (targets only) and their training losses.
         aux_loss = torch.zeros((), device=dev)
         if self.models.curiosity is not None:
-            states = states_at(None, False).detach()
+            assert online_all is not None
+            states = online_all
             b, p = states.shape[:2]
             forward_error, inverse_error = (
                 e.view(b, p - 1)
@@ -515,23 +526,22 @@ class SAC:
                     states[:, :-1].flatten(0, 1), actions.flatten(0, 1), states[:, 1:].flatten(0, 1)
                 )
             )
-            trained = valid_steps(mask, terminated, truncated)
-            intrinsic = sac.curiosity_strength * torch.where(trained, forward_error.detach(), 0.0)
+            intrinsic = sac.curiosity_strength * torch.where(valid, forward_error.detach(), 0.0)
             rewards = rewards + intrinsic
-            aux_loss = aux_loss + ((forward_error + inverse_error) * trained).sum() / trained.sum()
+            aux_loss = aux_loss + ((forward_error + inverse_error) * valid).sum() / valid.sum()
             metrics["learner/curiosity_reward"] = intrinsic[:, 0]
         if self.models.rnd is not None:
-            novelty = self.models.rnd.novelty(states_at(0, False).detach(), actions[:, 0])
+            novelty = self.models.rnd.novelty(state.detach(), actions[:, 0])
             aux_loss = aux_loss + novelty.mean()
             metrics["learner/rnd_novelty"] = novelty.detach()
 
         # 1. Target y for the trained step: n-step return + gamma^m V(o_m)  (eq. 2, 3, 5), or the
         #    V-trace estimate over the window (returns.vtrace_target).
         with torch.no_grad():
-            valid = valid_steps(mask, terminated, truncated)
             if sac.use_n_step_is:
+                assert online_all is not None
                 values, log_pi = self._window_values(
-                    states_at(None, False), states_at(None, True), masks_at(None),
+                    online_all, states_at(None, True), masks_at(None),
                     actions, noise[:, 1:], alpha, alpha_d, target_heads,
                 )  # fmt: skip
                 y, rho = vtrace_target(
@@ -554,7 +564,6 @@ class SAC:
 
         # 2. Critic loss; the policy and alpha losses on the detached state; prediction losses on the
         #    live state (update() gates their gradient into the representation).
-        state = states_at(0, False)
         predictions: dict[str, Tensor] = {}
         if self.models.prediction is not None:
             with torch.no_grad():

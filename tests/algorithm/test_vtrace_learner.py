@@ -97,6 +97,10 @@ def test_vtrace_updates_continuous_and_mixed_actions(spec: EnvSpec) -> None:
     for seed in range(3):
         result = sac.update(make_batch(spec, seed=seed), with_metrics=True)
         assert not result.skipped and np.isfinite(result.metrics["learner/vtrace_rho"])
+    # behaviour far likelier than the current policy (log mu = +20): the ratios fall well below 1,
+    # so the continuous log pi of stored actions really enters the trace
+    unlikely = make_batch(spec, behaviour_logp=np.full((B, N_STEP), 20.0, np.float32))
+    assert sac.update(unlikely, with_metrics=True).metrics["learner/vtrace_rho"] < 0.01
 
 
 def test_policy_log_prob_of_its_own_sample_matches_the_sampling_log_prob() -> None:
