@@ -42,7 +42,7 @@ from ds.learner_service import LearnerClient, LeaseExpired, Registration, Remote
 from ds.params import ParamsSubscriber, decode_params, params_spec
 from ds.replay_feeds import Throttle
 from ds.replay_service import ReplayClient, ReplayRpcError
-from ds.rpc import wait_until_serving
+from ds.rpc import peer_gone, wait_until_serving
 
 log = logging.getLogger("asac.actor")
 ACTOR_SEED_STRIDE = 1000  # actor i's env j gets seed + 1000 * (i + 1) + j: never a training or eval seed
@@ -311,7 +311,7 @@ class DistributedActor:
             self._learner_unreachable(e)
 
     def _learner_unreachable(self, error: grpc.RpcError) -> None:
-        if error.code() not in (grpc.StatusCode.UNAVAILABLE, grpc.StatusCode.DEADLINE_EXCEEDED):
+        if not peer_gone(error.code()) and error.code() != grpc.StatusCode.DEADLINE_EXCEEDED:
             raise error
         if self._log_learner():
             code, version = error.code().name, self.params_version

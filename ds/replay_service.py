@@ -52,7 +52,7 @@ from ds.replay_codec import (
     message_limit_bytes,
     sample_reply_bytes,
 )
-from ds.rpc import RetryPolicy, call_with_retry, channel_options
+from ds.rpc import RetryPolicy, call_with_retry, channel_options, peer_gone
 from ds.wire import TensorSpec, WireError, from_tensor, to_tensor
 from protos import replay_pb2, replay_pb2_grpc
 
@@ -398,6 +398,6 @@ class ReplayClient:
 def _client_error(code: grpc.StatusCode, message: str, attempts: int) -> ReplayRpcError:
     if code == grpc.StatusCode.INVALID_ARGUMENT:
         return ReplayRequestRejected(code, message)
-    if code == grpc.StatusCode.UNAVAILABLE:
-        return ReplayRpcError(code, f"{message} (unavailable after {attempts} attempts)")
+    if peer_gone(code):  # callers handle one code for "the replay went away"
+        return ReplayRpcError(grpc.StatusCode.UNAVAILABLE, f"{message} (unavailable after {attempts} attempts)")
     return ReplayRpcError(code, f"{message} ({code.name})")

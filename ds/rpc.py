@@ -8,8 +8,9 @@ Usage::
     if not wait_until_serving(channel, "asac.ReplayService", "replay", address, stop):   # logs while waiting
         return  # stop was set
 
-A call always has a deadline (ARCHITECTURE.md 6); only UNAVAILABLE (peer down, restarting, or not
-listening yet) is retried, every other status surfaces at once.
+A call always has a deadline (ARCHITECTURE.md 6); only a peer that went away is retried: UNAVAILABLE
+(down, restarting, or not listening yet) and CANCELLED (a server shutting down cancels the calls it
+is still running; we never cancel our own calls). Every other status surfaces at once.
 """
 
 from __future__ import annotations
@@ -53,15 +54,25 @@ class RetryPolicy:
         return [min(self.initial_backoff_s * self.multiplier**k, self.max_backoff_s) for k in range(self.attempts - 1)]
 
 
+PEER_GONE = (grpc.StatusCode.UNAVAILABLE, grpc.StatusCode.CANCELLED)
+
+
+def peer_gone(code: grpc.StatusCode) -> bool:
+    """Whether a call failed because the server went away (retry later) rather than refused it."""
+    return code in PEER_GONE
+
+
 def call_with_retry(rpc: Callable[..., _T], request: Any, deadline_s: float, retry: RetryPolicy) -> _T:
     """One unary call with a deadline of ``deadline_s`` seconds, retried per ``retry`` while it
-    answers UNAVAILABLE. Raises the last ``grpc.RpcError`` (any other status: the first one)."""
+    fails because the server went away (:data:`PEER_GONE`). Raises the last ``grpc.RpcError`` (any
+    other status: the first one). A retried call may have taken effect before its server went
+    away: callers whose calls are not idempotent must tolerate a repeat."""
     delays = retry.delays()
     for attempt in range(retry.attempts):
         try:
             return rpc(request, timeout=deadline_s)
         except grpc.RpcError as e:
-            if e.code() != grpc.StatusCode.UNAVAILABLE or attempt == len(delays):
+            if not peer_gone(e.code()) or attempt == len(delays):
                 raise
         time.sleep(delays[attempt] * random.uniform(0.5, 1.0))
     raise AssertionError("unreachable: the last attempt returns or raises")

@@ -1,0 +1,58 @@
+"""Which failed calls are retried: a server that went away (UNAVAILABLE, or CANCELLED because it
+shut down with the call in flight) is retried; a refusal surfaces at once."""
+
+from __future__ import annotations
+
+import grpc
+import pytest
+
+from ds.rpc import RetryPolicy, call_with_retry
+
+NO_WAIT = RetryPolicy(attempts=3, initial_backoff_s=0.0, max_backoff_s=0.0)
+
+
+class Failure(grpc.RpcError):
+    def __init__(self, code: grpc.StatusCode) -> None:
+        self._code = code
+
+    def code(self) -> grpc.StatusCode:
+        return self._code
+
+
+class FlakyRpc:
+    """Fails with ``codes`` in turn, then answers "ok"; counts the calls."""
+
+    def __init__(self, *codes: grpc.StatusCode) -> None:
+        self.codes = list(codes)
+        self.calls = 0
+
+    def __call__(self, request: object, timeout: float) -> str:
+        self.calls += 1
+        if self.codes:
+            raise Failure(self.codes.pop(0))
+        return "ok"
+
+
+@pytest.mark.parametrize("code", [grpc.StatusCode.UNAVAILABLE, grpc.StatusCode.CANCELLED])
+def test_a_server_that_went_away_is_retried(code: grpc.StatusCode) -> None:
+    rpc = FlakyRpc(code, grpc.StatusCode.UNAVAILABLE)
+    assert call_with_retry(rpc, None, 1.0, NO_WAIT) == "ok"
+    assert rpc.calls == 3
+
+
+def test_retries_end_with_the_last_failure() -> None:
+    rpc = FlakyRpc(*[grpc.StatusCode.UNAVAILABLE] * 2, grpc.StatusCode.CANCELLED)
+    with pytest.raises(grpc.RpcError) as raised:
+        call_with_retry(rpc, None, 1.0, NO_WAIT)
+    assert raised.value.code() == grpc.StatusCode.CANCELLED
+    assert rpc.calls == 3
+
+
+@pytest.mark.parametrize(
+    "code", [grpc.StatusCode.INVALID_ARGUMENT, grpc.StatusCode.DEADLINE_EXCEEDED, grpc.StatusCode.RESOURCE_EXHAUSTED]
+)
+def test_a_refusal_is_not_retried(code: grpc.StatusCode) -> None:
+    rpc = FlakyRpc(code)
+    with pytest.raises(grpc.RpcError):
+        call_with_retry(rpc, None, 1.0, NO_WAIT)
+    assert rpc.calls == 1
