@@ -99,8 +99,23 @@ def resolve(args: argparse.Namespace) -> tuple[Config, Path]:
             setattr(net, f"{peer}_port", number)
     if args.in_k8s:
         net.bind_host = "0.0.0.0"
+    read_token(config)  # a missing or empty secret stops here, before anything starts
     copy_model_file(task, config, run_dir, explicit=args.nn is not None)
     return config, run_dir
+
+
+def read_token(config: Config) -> bytes | None:
+    """The shared secret in ``net_config.token_file`` (surrounding whitespace dropped), or None."""
+    path = config.net_config.token_file
+    if path is None:
+        return None
+    try:
+        token = Path(path).read_bytes().strip()
+    except OSError as e:
+        raise ConfigError(f"net_config.token_file: cannot read {path!r} ({e.strerror})") from None
+    if not token:
+        raise ConfigError(f"net_config.token_file: {path!r} is empty; put the run's shared secret in it")
+    return token
 
 
 def setup_logging(run_dir: Path, role: str, in_file: bool) -> None:
@@ -152,7 +167,13 @@ def run(args: argparse.Namespace) -> int:
         command = [sys.executable, str(Path(__file__).resolve()), args.env]
         return roles.run_local(command, child_args(args, config), args.actors, extra)
     context = roles.RoleContext(
-        config, run_dir, env_factory(config), run_model_builder(RunDir(run_dir)), args.device, roles.stop_on_signals()
+        config,
+        run_dir,
+        env_factory(config),
+        run_model_builder(RunDir(run_dir)),
+        args.device,
+        roles.stop_on_signals(),
+        token=read_token(config),
     )
     log.info("%s of run %s (seed %s)", role, run_dir, config.sac_config.seed)
     if role == "replay":

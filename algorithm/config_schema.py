@@ -180,6 +180,12 @@ class NetConfig(Section):
     bind_host: str = Field(
         "127.0.0.1", description="Interface servers listen on; 0.0.0.0 to accept other hosts (--in_k8s)."
     )
+    token_file: str | None = Field(
+        None,
+        description="File holding the run's shared secret (e.g. a mounted Kubernetes Secret); the learner "
+        "signs its ZeroMQ parameter stream with it (HMAC-SHA256) and actors drop frames that do not verify. "
+        "Every role of a run must name the same secret; null = unsigned.",
+    )
 
 
 class Config(Section):

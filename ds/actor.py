@@ -39,7 +39,7 @@ from algorithm.sac import SAC
 from algorithm.types import Chunk
 from ds import learner_service, replay_service
 from ds.learner_service import LearnerClient, LeaseExpired, Registration, RemotePolicy
-from ds.params import ParamsSubscriber, decode_params, params_spec
+from ds.params import ParamsError, ParamsSubscriber, decode_params, params_spec
 from ds.replay_feeds import Throttle
 from ds.replay_service import ReplayClient, ReplayRpcError
 from ds.rpc import peer_gone, wait_until_serving
@@ -121,7 +121,8 @@ class ActorSummary:
 class DistributedActor:
     """One actor process; see the module docstring. ``make_env(num_envs, seed)`` builds its envs
     once its index (hence its seed) is known; ``sac`` is a model built from the same config as the
-    learner's, which receives the published weights (unused with ``update_policy_mode: false``)."""
+    learner's, which receives the published weights (unused with ``update_policy_mode: false``);
+    with ``token`` those weights must carry the learner's HMAC (ds/params.py), else they are dropped."""
 
     def __init__(
         self,
@@ -135,6 +136,7 @@ class DistributedActor:
         *,
         noise: float | None = None,
         stop: threading.Event | None = None,
+        token: bytes | None = None,
         heartbeat_s: float = 3.0,
         metrics_every_s: float = 10.0,
         name: str | None = None,
@@ -147,6 +149,7 @@ class DistributedActor:
         self.learner = learner
         self.learner_host = learner_host
         self.noise_override = noise
+        self.token = token
         self.stop = stop or threading.Event()
         self.heartbeat_s = heartbeat_s
         self.metrics_every_s = metrics_every_s
@@ -254,7 +257,7 @@ class DistributedActor:
             if self.subscriber is not None:
                 self.subscriber.close()  # a restarted learner's versions start over
             address = f"tcp://{self.learner_host}:{reg.params_port}"
-            self.subscriber = ParamsSubscriber(address, params_spec(self.sac.acting_state_dict()))
+            self.subscriber = ParamsSubscriber(address, params_spec(self.sac.acting_state_dict()), token=self.token)
             self.params_version = -1
         self.registration = reg
         return reg
@@ -262,7 +265,13 @@ class DistributedActor:
     def _fetch_params(self) -> None:
         """The latest weights over GetParams (a late joiner need not wait for the next broadcast)."""
         version, frames = self.learner.get_params()
-        self._apply(*decode_params(frames, params_spec(self.sac.acting_state_dict())))
+        try:
+            self._apply(*decode_params(frames, params_spec(self.sac.acting_state_dict()), token=self.token))
+        except ParamsError as e:  # the same check the broadcast gets; here it is a setup error, not noise
+            raise ParamsError(
+                f"parameters from the learner at {self.learner.address} are not usable: {e}. Do the learner and "
+                "this actor run the same task config and name the same secret (net_config.token_file)?"
+            ) from None
 
     def _take_new_params(self) -> None:
         if self.subscriber is None:

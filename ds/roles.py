@@ -79,7 +79,8 @@ def _listen(what: str, address: str, flag: str, start: Callable[[], _T]) -> _T:
 @dataclass
 class RoleContext:
     """What every role needs: the resolved config, its run directory, an env factory
-    ``make_env(num_envs, seed)``, the model builder of the run, the torch device and a stop event."""
+    ``make_env(num_envs, seed)``, the model builder of the run, the torch device, a stop event and
+    the run's shared secret (``net_config.token_file``; None: parameters travel unsigned)."""
 
     config: Config
     run_dir: Path
@@ -87,6 +88,7 @@ class RoleContext:
     build: ModelBuilder
     device: str = "cpu"
     stop: threading.Event = field(default_factory=threading.Event)
+    token: bytes | None = None
 
     @property
     def seed(self) -> int:
@@ -219,7 +221,7 @@ def run_learner(role: RoleContext, ckpt_step: int | None = None, progress: bool 
         return 130
     params_address = f"tcp://{net.bind_host}:{net.params_port or '*'}"
     publisher = _listen("learner's parameter broadcast", params_address, "--override net.params_port=PORT",
-                        lambda: ParamsPublisher(params_address))  # fmt: skip
+                        lambda: ParamsPublisher(params_address, token=role.token))  # fmt: skip
     params_port = int(publisher.address.rsplit(":", 1)[1])
     store, registry = ParamsStore(), ActorRegistry()
     acting = None if cfg.actor_config.update_policy_mode else ActingPolicy(role.sac(spec))
@@ -273,7 +275,7 @@ def run_actor(role: RoleContext, noise: float | None = None) -> int:
     )
     try:
         actor = DistributedActor(role.config, role.run_dir, role.make_env, sac, replay, learner, learner_host,
-                                 noise=noise, stop=role.stop)  # fmt: skip
+                                 noise=noise, stop=role.stop, token=role.token)  # fmt: skip
         summary = actor.run()
     finally:
         replay.close()

@@ -76,6 +76,7 @@ def event_files(run: Path, role: str) -> list[Path]:
         (["gym/pendlum", "replay"], "unknown task 'gym/pendlum'"),
         (["gym/pendulum", "learner", "--actors", "3"], "--actors is for the local role"),
         (["gym/pendulum", "replay", "--override", "net.replay_prot=5"], "did you mean 'replay_port'"),
+        (["gym/pendulum", "learner", "--override", "net.token_file=absent.key"], "net_config.token_file: cannot read"),
     ],
 )
 def test_bad_input_is_a_one_line_error_with_exit_2(args: list[str], message: str, tmp_path: Path) -> None:

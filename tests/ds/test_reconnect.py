@@ -19,7 +19,7 @@ from algorithm.replay import PrioritizedTable
 from algorithm.sac import SAC
 from ds.actor import DistributedActor
 from ds.learner_service import SERVICE_NAME, ActorRegistry, LearnerClient, LearnerServicer, ParamsStore, serve_learner
-from ds.params import ParamsPublisher
+from ds.params import ParamsError, ParamsPublisher
 from ds.replay_service import ReplayClient, RetryPolicy, serve_replay
 from ds.rpc import set_serving
 from envs.make import vector_env_factory
@@ -51,20 +51,24 @@ def free_port() -> int:
 class Learner:
     """A learner service on ``port`` that has published ``version`` of a SAC initialised with ``seed``."""
 
-    def __init__(self, port: int, version: int, seed: int) -> None:
+    def __init__(self, port: int, version: int, seed: int, token: bytes | None = None) -> None:
         cfg = CONFIG.model_copy(deep=True)
         cfg.sac_config.seed = seed
         self.sac = SAC(SPEC, cfg.sac_config, cfg.nn_config, cfg.replay_config)
-        self.publisher = ParamsPublisher("tcp://127.0.0.1:*")
-        store = ParamsStore()
-        self.publisher.publish(version, self.sac.acting_state_dict())
-        assert self.publisher.frames is not None
-        store.put(version, self.publisher.frames)
+        self.publisher = ParamsPublisher("tcp://127.0.0.1:*", token=token)
+        self.store = store = ParamsStore()
+        self.publish(version)
         params_port = int(self.publisher.address.rsplit(":", 1)[1])
         self.servicer = LearnerServicer(SPEC, ActorRegistry(lease_s=30), store, params_port)
         self.server, bound, health = serve_learner(self.servicer, f"127.0.0.1:{port}")
         assert bound == port
         set_serving(health, SERVICE_NAME, True)
+
+    def publish(self, version: int) -> None:
+        """Publish the SAC's acting weights as ``version`` (ZeroMQ and GetParams)."""
+        self.publisher.publish(version, self.sac.acting_state_dict())
+        assert self.publisher.frames is not None
+        self.store.put(version, self.publisher.frames)
 
     def stop(self) -> None:
         self.server.stop(None)
@@ -85,13 +89,15 @@ class Replay:
 
 
 @contextmanager
-def running_actor(replay_port: int, learner_port: int, tmp_path: Path) -> Iterator[DistributedActor]:
+def running_actor(
+    replay_port: int, learner_port: int, tmp_path: Path, token: bytes | None = None
+) -> Iterator[DistributedActor]:
     replay = ReplayClient(f"127.0.0.1:{replay_port}", SPEC.sensors, SPEC.action.size, retry=FAST_RETRY)
     learner = LearnerClient(f"127.0.0.1:{learner_port}", SPEC, retry=FAST_RETRY, rpc_timeout_s=2.0)
     sac = SAC(SPEC, CONFIG.sac_config, CONFIG.nn_config, CONFIG.replay_config)
     stop = threading.Event()
     actor = DistributedActor(CONFIG, tmp_path, vector_env_factory("Pendulum-v1"), sac, replay, learner,
-                             "127.0.0.1", stop=stop, heartbeat_s=0.2)  # fmt: skip
+                             "127.0.0.1", stop=stop, heartbeat_s=0.2, token=token)  # fmt: skip
     thread = threading.Thread(target=actor.run, daemon=True)
     thread.start()
     try:
@@ -146,3 +152,34 @@ def test_an_actor_keeps_its_chunks_while_the_replay_restarts(tmp_path: Path) -> 
                 second.stop()
     finally:
         learner.stop()
+
+
+def test_an_actor_takes_only_parameters_signed_with_the_runs_token(tmp_path: Path) -> None:
+    replay_port, learner_port = free_port(), free_port()
+    replay, learner = Replay(replay_port), Learner(learner_port, version=1, seed=1, token=b"run secret")
+    try:
+        with running_actor(replay_port, learner_port, tmp_path, token=b"run secret") as actor:
+            until(lambda: actor.params_version == 1)  # GetParams at registration, MAC checked
+            with torch.no_grad():
+                for p in learner.sac.models.parameters():
+                    p.add_(0.5)
+            version = 1
+            while actor.params_version == 1:  # a subscriber that joined late misses early versions
+                version += 1
+                learner.publish(version)
+                time.sleep(0.1)
+                assert version < 300, "the actor never took a signed broadcast"
+            assert same_weights(actor, learner.sac)
+
+        replay_client = ReplayClient(f"127.0.0.1:{replay_port}", SPEC.sensors, SPEC.action.size)
+        learner_client = LearnerClient(f"127.0.0.1:{learner_port}", SPEC)
+        sac = SAC(SPEC, CONFIG.sac_config, CONFIG.nn_config, CONFIG.replay_config)
+        for token in (b"another secret", None):
+            stranger = DistributedActor(CONFIG, tmp_path, vector_env_factory("Pendulum-v1"), sac, replay_client,
+                                        learner_client, "127.0.0.1", token=token)  # fmt: skip
+            with pytest.raises(ParamsError, match="net_config.token_file"):
+                stranger.run()
+            assert stranger.params_version == -1
+    finally:
+        learner.stop()
+        replay.stop()
