@@ -10,6 +10,7 @@ from the largest message the configuration produces.
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 from typing import Any
@@ -28,6 +29,9 @@ PROTOBUF_MAX_MESSAGE_BYTES = 2**31 - 1
 # Framing of one Tensor inside a message: tags, length prefixes, dtype name, up to ~6 shape varints.
 TENSOR_FRAMING_BYTES = 128
 
+# Specs are built per received tensor with the same arguments over and over (field names carry the
+# chunk index): cache them, as building one costs several microseconds on the servers' hot path.
+_spec = functools.lru_cache(maxsize=4096)(TensorSpec)
 _F32, _F64, _BOOL, _U64 = np.dtype(np.float32), np.dtype(np.float64), np.dtype(bool), np.dtype(np.uint64)
 # Per-step fields shared by Chunk and Batch, with their dtypes; actions also have a trailing A.
 _STEP_FIELDS = (
@@ -69,13 +73,13 @@ class ReplaySpecs:
         steps["rewards"] = rewards
         rnn_state = None
         if self.rnn_state_size:
-            rnn_spec = TensorSpec(f"{where}.rnn_state", _F32, (self.rnn_state_size,), finite=True, leading=("T",))
+            rnn_spec = _spec(f"{where}.rnn_state", _F32, (self.rnn_state_size,), finite=True, leading=("T",))
             rnn_state = _required(msg, "rnn_state", rnn_spec, dims)
         elif msg.HasField("rnn_state"):
             raise WireError(f"{where}.rnn_state", "is set but the table stores no recurrent state (rnn_state_size=0)")
         priorities = None
         if msg.HasField("priorities"):
-            spec = TensorSpec(f"{where}.priorities", _F64, finite=True, nonnegative=True, leading=("T",))
+            spec = _spec(f"{where}.priorities", _F64, finite=True, nonnegative=True, leading=("T",))
             priorities = from_tensor(msg.priorities, spec, dims)
         return Chunk(obs=obs, rnn_state=rnn_state, **steps), priorities
 
@@ -84,8 +88,8 @@ class ReplaySpecs:
     def priorities_from_proto(self, msg: replay_pb2.UpdatePrioritiesRequest) -> tuple[np.ndarray, np.ndarray]:
         """Decode and check ``(keys uint64 [N], raw priorities float64 [N], finite, >= 0)``."""
         dims: dict[str, int] = {}
-        keys = _required(msg, "keys", TensorSpec("keys", _U64, leading=("N",)), dims)
-        spec = TensorSpec("priorities", _F64, finite=True, nonnegative=True, leading=("N",))
+        keys = _required(msg, "keys", _spec("keys", _U64, leading=("N",)), dims)
+        spec = _spec("priorities", _F64, finite=True, nonnegative=True, leading=("N",))
         return keys, _required(msg, "priorities", spec, dims)
 
     # ------------------------------------------------------------------ batches (server -> learner)
@@ -93,18 +97,18 @@ class ReplaySpecs:
     def batch_from_proto(self, msg: replay_pb2.SampleReply, batch_size: int) -> Batch:
         """Decode and check a sampled batch of ``batch_size`` windows (``L`` read from its mask)."""
         dims = {"B": int(batch_size)}
-        mask = _required(msg, "mask", TensorSpec("mask", _BOOL, leading=("B", "L")), dims)
+        mask = _required(msg, "mask", _spec("mask", _BOOL, leading=("B", "L")), dims)
         steps = {name: _required(msg, name, self._window_spec(name, dtype), dims) for name, dtype in _STEP_FIELDS}
         if len(msg.obs) != len(self.sensors):
             raise WireError("obs", f"has {len(msg.obs)} observation sensors, expected {len(self.sensors)}")
         rnn_state = None
         if self.rnn_state_size:
-            spec = TensorSpec("rnn_state", _F32, (self.rnn_state_size,), finite=True, leading=("B",))
+            spec = _spec("rnn_state", _F32, (self.rnn_state_size,), finite=True, leading=("B",))
             rnn_state = _required(msg, "rnn_state", spec, dims)
         return Batch(
-            keys=_required(msg, "keys", TensorSpec("keys", _U64, leading=("B",)), dims),
+            keys=_required(msg, "keys", _spec("keys", _U64, leading=("B",)), dims),
             probabilities=_required(
-                msg, "probabilities", TensorSpec("probabilities", _F64, finite=True, leading=("B",)), dims
+                msg, "probabilities", _spec("probabilities", _F64, finite=True, leading=("B",)), dims
             ),
             table_size=int(msg.table_size),
             obs=[from_tensor(t, self._obs_spec("", i, "B", "L+1"), dims) for i, t in enumerate(msg.obs)],
@@ -131,8 +135,8 @@ class ReplaySpecs:
             if name not in shapes:
                 raise WireError(f"normalizer[{name!r}]", f"names no sensor of this replay ({sorted(shapes)})")
             where = f"normalizer[{name!r}]"
-            mean = _required(stats, "mean", TensorSpec(f"{where}.mean", _F64, shapes[name], finite=True), {})
-            var = _required(stats, "var", TensorSpec(f"{where}.var", _F64, shapes[name], finite=True), {})
+            mean = _required(stats, "mean", _spec(f"{where}.mean", _F64, shapes[name], finite=True), {})
+            var = _required(stats, "var", _spec(f"{where}.var", _F64, shapes[name], finite=True), {})
             out[name] = {"count": int(stats.count), "mean": mean, "var": var}
         return out
 
@@ -141,16 +145,16 @@ class ReplaySpecs:
     def _obs_spec(self, where: str, i: int, *leading: str) -> TensorSpec:
         s = self.sensors[i]
         name = f"{where}.obs[{i}] ({s.name})" if where else f"obs[{i}] ({s.name})"
-        return TensorSpec(name, s.dtype, s.shape, finite=np.dtype(s.dtype).kind == "f", leading=leading)
+        return _spec(name, s.dtype, s.shape, finite=np.dtype(s.dtype).kind == "f", leading=leading)
 
     def _step_spec(self, where: str, name: str) -> TensorSpec:
         dtype = dict(_STEP_FIELDS)[name]
         suffix = (self.action_size,) if name in ("actions", "prev_actions") else ()
-        return TensorSpec(f"{where}.{name}", dtype, suffix, finite=dtype.kind == "f", leading=("T",))
+        return _spec(f"{where}.{name}", dtype, suffix, finite=dtype.kind == "f", leading=("T",))
 
     def _window_spec(self, name: str, dtype: np.dtype) -> TensorSpec:
         suffix = (self.action_size,) if name in ("actions", "prev_actions") else ()
-        return TensorSpec(name, dtype, suffix, finite=dtype.kind == "f", leading=("B", "L"))
+        return _spec(name, dtype, suffix, finite=dtype.kind == "f", leading=("B", "L"))
 
 
 def _required(msg: Any, name: str, spec: TensorSpec, dims: dict[str, int]) -> np.ndarray:

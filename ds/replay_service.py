@@ -297,6 +297,23 @@ class ReplayClient:
         Raises :class:`~ds.replay_codec.WireError` (a ``ValueError``) before sending if a field is
         not a numpy array or the request is over ``max_message_bytes``.
         """
+        request = self._insert_request(chunks, priorities)
+        reply = self._blocking("Insert", self._stub.Insert, request, timeout, InsertTimeout)
+        return _inserted_keys(reply, chunks)
+
+    def insert_async(self, chunks: Sequence[Chunk], timeout: float = 0.0) -> PendingInsert:
+        """Send one insert of ``chunks`` (all or nothing) without waiting for the answer: the
+        caller goes on (an actor steps its envs) and collects it with :meth:`PendingInsert.result`.
+        One attempt, no retries: the caller keeps the chunks until the result says they are stored.
+        ``timeout`` is how long the server's rate limiter may hold the insert back."""
+        request = self._insert_request(chunks, None)
+        request.timeout_s = max(0.0, float(timeout))
+        future = self._stub.Insert.future(request, timeout=request.timeout_s + self.rpc_timeout_s)
+        return PendingInsert(self.address, future, list(chunks))
+
+    def _insert_request(
+        self, chunks: Sequence[Chunk], priorities: Sequence[np.ndarray | None] | None
+    ) -> replay_pb2.InsertRequest:
         if priorities is not None and len(priorities) != len(chunks):
             raise ValueError(f"insert: {len(priorities)} priority arrays for {len(chunks)} chunks")
         request = replay_pb2.InsertRequest(
@@ -306,13 +323,7 @@ class ReplayClient:
             ]
         )
         self._check_size(request, f"{len(chunks)} chunks of {sum(len(c) for c in chunks)} steps")
-        reply = self._blocking("Insert", self._stub.Insert, request, timeout, InsertTimeout)
-        if len(reply.keys) != len(chunks):
-            raise WireError("keys", f"has {len(reply.keys)} tensors for {len(chunks)} chunks")
-        return [
-            from_tensor(k, TensorSpec(f"keys[{i}]", np.dtype(np.uint64), leading=("T",)), {"T": len(c)})
-            for i, (k, c) in enumerate(zip(reply.keys, chunks, strict=True))
-        ]
+        return request
 
     def sample(self, batch_size: int, timeout: float | None = None) -> Batch:
         """Draw ``batch_size`` windows; raises :class:`SampleTimeout` after ``timeout`` seconds
@@ -393,6 +404,42 @@ class ReplayClient:
         except grpc.RpcError as e:
             message = f"replay {method} at {self.address}: {e.details()}"
             raise _client_error(e.code(), message, self.retry.attempts) from None
+
+
+class PendingInsert:
+    """An insert on its way (:meth:`ReplayClient.insert_async`); ``chunks`` are what it carries.
+    ``final`` is the sender's mark for a last try (the actor's sink sets it once stopping)."""
+
+    def __init__(self, address: str, future: grpc.Future, chunks: list[Chunk]) -> None:
+        self.address = address
+        self.chunks = chunks
+        self.final = False
+        self._future = future
+
+    def steps(self) -> int:
+        return sum(len(c) for c in self.chunks)
+
+    def result(self) -> list[np.ndarray]:
+        """Wait for the answer: each chunk's keys, or the exceptions :meth:`ReplayClient.insert_many`
+        raises (:class:`InsertTimeout` when the rate limiter held it back for its whole timeout,
+        :class:`ReplayRpcError` with UNAVAILABLE when the replay is gone, ``ValueError`` if refused)."""
+        try:
+            reply = self._future.result()
+        except grpc.RpcError as e:
+            message = f"replay Insert at {self.address}: {e.details()}"
+            if e.code() == grpc.StatusCode.DEADLINE_EXCEEDED:
+                raise InsertTimeout(message) from None
+            raise _client_error(e.code(), message, 1) from None
+        return _inserted_keys(reply, self.chunks)
+
+
+def _inserted_keys(reply: replay_pb2.InsertReply, chunks: Sequence[Chunk]) -> list[np.ndarray]:
+    if len(reply.keys) != len(chunks):
+        raise WireError("keys", f"has {len(reply.keys)} tensors for {len(chunks)} chunks")
+    return [
+        from_tensor(k, TensorSpec(f"keys[{i}]", np.dtype(np.uint64), leading=("T",)), {"T": len(c)})
+        for i, (k, c) in enumerate(zip(reply.keys, chunks, strict=True))
+    ]
 
 
 def _client_error(code: grpc.StatusCode, message: str, attempts: int) -> ReplayRpcError:
