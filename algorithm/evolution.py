@@ -314,8 +314,9 @@ def cem_distribution(
     each tensor's dtype. The std is the population std (ddof=0): it is the maximum-likelihood fit
     CEM prescribes (Rubinstein 1999), and it stays defined for a single elite (std 0: everyone
     gets the best weights) where the sample std (ddof=1) would not. The cap keeps elites that
-    drifted far apart from scattering the next generation across weight space; CEM-RL instead
-    adds a decaying noise floor, which is unnecessary here because the learners keep training.
+    drifted far apart from scattering the next generation across weight space. Unlike CEM-RL, no
+    noise floor is added to the std: a collapsed fit copies the elites' mean, and the learners'
+    own training (with their different hyper-parameters) moves them apart again.
 
     Tensors that are not floating point (step counters, masks) are not sampled: their mean is the
     best elite's tensor and their std is zero.
