@@ -25,6 +25,7 @@ import yaml
 from pydantic import BaseModel, ValidationError
 
 from algorithm.config_schema import Config
+from algorithm.evolution import ParamSpecError
 
 DEFAULT_CONFIG_PATH = Path(__file__).with_name("default_config.yaml")
 
@@ -111,7 +112,10 @@ def _merge(base: dict[str, Any], layer: Any, source: str, sources: dict[str, str
 
 
 def _is_section_path(dotted: str) -> bool:
-    """Mappings that are config sections merge key by key; dict-valued keys (env_kwargs) replace."""
+    """Mappings that are config sections merge key by key, and so do ``random_params``' sections (a
+    variant can add one key's spec); dict-valued keys (env_kwargs) and single specs replace."""
+    if dotted.startswith("random_params."):
+        return dotted.count(".") == 1
     return "." not in dotted and dotted in Config.model_fields
 
 
@@ -136,6 +140,10 @@ def _format_errors(err: ValidationError, sources: dict[str, str]) -> str:
     lines = []
     for e in err.errors():
         loc = [str(p) for p in e["loc"]]
+        spec_error = e.get("ctx", {}).get("error")
+        if isinstance(spec_error, ParamSpecError):  # raised for the whole config; it knows its key
+            lines.append(f"{spec_error.path} ({_source_of(spec_error.path.split('.'), sources)}): {spec_error.problem}")
+            continue
         dotted = ".".join(loc)
         source = _source_of(loc, sources)
         msg = e["msg"]

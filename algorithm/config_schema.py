@@ -10,7 +10,9 @@ from __future__ import annotations
 
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+
+from algorithm.evolution import parse_random_params
 
 
 class Section(BaseModel):
@@ -32,6 +34,37 @@ class BaseConfig(Section):
     max_step_each_iter: int = Field(-1, ge=-1, description="Time limit per episode in steps; -1 = env's own.")
     reset_on_iteration: bool = Field(True, description="Reset every env when an iteration ends.")
     torch_threads: int = Field(0, ge=0, description="torch.set_num_threads; 0 leaves torch's default.")
+    evolver_enabled: bool = Field(False, description="Run an evolver: a population of learners improved by CEM.")
+    evolver_cem_length: int = Field(
+        50, ge=1, description="A CEM round runs when every learner has posted this many evaluation returns."
+    )
+    evolver_cem_best: float = Field(
+        0.3, gt=0.0, le=1.0, description="Elite fraction of the population (at least one learner)."
+    )
+    evolver_cem_min_length: int = Field(
+        2, ge=1, description="Returns each learner needs before a time-triggered round (evolver_cem_time)."
+    )
+    evolver_cem_time: float = Field(
+        3.0, gt=0, description="Minutes after the last round when a round runs with evolver_cem_min_length returns."
+    )
+    evolver_remove_worst: int = Field(
+        4, ge=-1, description="Retire a learner after this many CEM rounds without ever being elite; -1 = off."
+    )
+    evolver_cem_std_max: float = Field(
+        0.1,
+        gt=0.0,
+        description="Cap on the per-weight std of the Gaussian fitted to the elites' weights, so a CEM round "
+        "never scatters weights wider than this (a new key, not in the original system).",
+    )
+    max_actors_each_learner: int = Field(10, ge=1, description="Distributed actors one learner accepts.")
+
+    @model_validator(mode="after")
+    def _check_evolver(self) -> BaseConfig:
+        if self.evolver_cem_min_length > self.evolver_cem_length:
+            raise ValueError("evolver_cem_min_length must be <= evolver_cem_length")
+        if self.evolver_remove_worst == 0:
+            raise ValueError("evolver_remove_worst must be -1 (off) or >= 1")
+        return self
 
 
 class ReplayConfig(Section):
@@ -197,3 +230,19 @@ class Config(Section):
     actor_config: ActorConfig = Field(default_factory=ActorConfig)
     eval_config: EvalConfig = Field(default_factory=EvalConfig)
     net_config: NetConfig = Field(default_factory=NetConfig)
+    random_params: dict[str, dict[str, dict[str, Any]]] = Field(
+        default_factory=dict,
+        description="Hyper-parameters the evolver samples per learner, as {section: {key: spec}} with spec "
+        "{in: [...]}, {truncated: [lo, hi]}, {std: s} or {std: s, truncated: [lo, hi]} (algorithm/evolution.py); "
+        "main.py's single learner ignores it.",
+    )
+
+    @field_validator("random_params", mode="before")
+    @classmethod
+    def _empty_random_params(cls, value: Any) -> Any:
+        return {} if value is None else value  # a bare `random_params:` in YAML reads as null
+
+    @model_validator(mode="after")
+    def _check_random_params(self) -> Config:
+        parse_random_params(self.random_params, self)  # raises ParamSpecError naming the key path
+        return self
