@@ -7,7 +7,7 @@ and wall-clock to a Pendulum return with local roles against the single-process 
         one thread), the distributed Learner on the in-process table, and the Learner fed over
         gRPC by a replay server process (prefetch and priority threads as deployed).
         Goal: over gRPC >= 0.9x the plain loop.
-    python -m bench.distributed actor [--seconds 10] [--rounds 2] [--agents 1 8 32]
+    python -m bench.distributed actor [--seconds 10] [--rounds 2] [--agents 1 8 32 64]
         HalfCheetah env steps/s of one actor process: the bare vector-env loop (uniform random
         actions, nothing stored) against the actor loop with the policy acting and every chunk
         inserted into a replay server process over gRPC. Goal: >= 0.8x the bare loop.
@@ -279,7 +279,7 @@ def main() -> None:
     p = sub.add_parser("actor")
     p.add_argument("--seconds", type=float, default=10.0)
     p.add_argument("--rounds", type=int, default=2)
-    p.add_argument("--agents", type=int, nargs="+", default=[1, 8, 32])
+    p.add_argument("--agents", type=int, nargs="+", default=[1, 8, 32, 64])
     p = sub.add_parser("pendulum")
     p.add_argument("--seeds", type=int, nargs="+", default=[0, 1])
     p.add_argument("--actors", type=int, nargs="+", default=[1, 2, 4])
