@@ -239,7 +239,12 @@ class Evolver:
                 with self._set_aside(skip):
                     wanted = self.population.elites()
                     if all(i in fetched for i in wanted):
-                        result = self.population.run_round(fetched, self._rng)
+                        try:
+                            result = self.population.run_round(fetched, self._rng)
+                        except ValueError as e:  # the elites' weights do not match (names, shapes): say so
+                            log.error("CEM round failed, next try in %.0f s: %s", self.retry_round_s, e)
+                            self._round_retry_at = self._clock() + self.retry_round_s
+                            return None
                         self.registry.apply_round(result, self.population)
                         self._last_round_wall = self._wall()
                         self._event(_round_metrics(result))

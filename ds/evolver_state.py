@@ -4,12 +4,12 @@ it keeps, and how they persist: ``<state_dir>/state.json`` plus one ``.npz`` per
 
 Every file is written atomically (temp file, fsync, rename; :func:`algorithm.files.atomic_write`),
 samples before the state that names them, so a crash at any point leaves a state whose files exist;
-files no state names (a crash between the two writes, or an acknowledged sample) are deleted by the
-next :func:`load_state`. Nothing is unpickled: the state is JSON and samples load with
-``allow_pickle=False``. A state or sample that cannot be read raises :class:`EvolverStateError`
-naming the file, and nothing is overwritten.
+files no state names (a crash between the two writes, or an acknowledged sample) are deleted when the
+state is next loaded (:func:`remove_unreferenced`). Nothing is unpickled: the state is JSON and
+samples load with ``allow_pickle=False``. A state or sample that cannot be read raises
+:class:`EvolverStateError` naming the file, and nothing is overwritten.
 
-Usage (ds/evolver.py is the only caller)::
+Usage of the files (by ds/evolver.py only)::
 
     saved = load_state(state_dir)                    # None for a fresh directory
     write_sample(state_dir, pending)                 # a CEM round's sample for one learner
