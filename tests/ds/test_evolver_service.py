@@ -165,7 +165,7 @@ def test_post_reward_answers_at_once_while_a_round_waits_for_slow_weights(setup:
     latencies = []
     for k in range(20):
         start = time.perf_counter()
-        assert client.post_reward(b, 3.0 + k, 200)
+        assert client.post_reward(b, -float(k), 200)
         client.heartbeat(b, 200)
         latencies.append(time.perf_counter() - start)
     assert client.info().rounds == 0, "the round finished before the posts: they did not overlap it"
