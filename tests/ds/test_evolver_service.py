@@ -10,7 +10,7 @@ import threading
 import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import grpc
 import numpy as np
@@ -94,8 +94,8 @@ class Setup:
         self._stops: list[Callable[[], None]] = []
 
     def evolver(self, config: Config, real_clock: bool = False, **kwargs: Any) -> tuple[Evolver, EvolverClient]:
-        clock = {} if real_clock else {"clock": self.clock}
-        evolver = Evolver(config, self.state_dir, "exp", lease_s=LEASE_S, **clock, **kwargs)
+        clock = time.monotonic if real_clock else self.clock
+        evolver = Evolver(config, self.state_dir, "exp", lease_s=LEASE_S, clock=clock, **kwargs)
         server, port, _ = serve_evolver(evolver)
         client = EvolverClient(f"127.0.0.1:{port}", retry=FAST_RETRY, rpc_timeout_s=5.0)
         self._stops += [evolver.stop, lambda: server.stop(None), client.close]
@@ -219,7 +219,7 @@ def test_a_learner_never_elite_is_retired_and_told_so(setup: Setup) -> None:
         assert result is not None and result.elites == [best]
         for i in result.samples_for:
             loaded[i] = round_
-    assert result.retired == [worst]  # middle was never elite either, but the population keeps 2
+    assert result is not None and result.retired == [worst]  # middle was never elite either, but the population keeps 2
     assert client.heartbeat(worst, 50).instruction is Instruction.RETIRE
     assert client.heartbeat(middle, 50, loaded_round=2).instruction is Instruction.CONTINUE
     with pytest.raises(LearnerRetired, match=f"learner {worst} was retired in round 2"):
@@ -342,7 +342,8 @@ def test_bad_requests_get_clear_status_codes_and_the_server_keeps_serving(setup:
         (stub.GetSample, evolver_pb2.GetSampleRequest(learner_id=7), grpc.StatusCode.NOT_FOUND, "learner 7"),
         (stub.Assign, evolver_pb2.AssignRequest(name="x"), grpc.StatusCode.INVALID_ARGUMENT,
          "role: must be ACTOR or REPLAY, got ROLE_UNSPECIFIED"),
-        (stub.Assign, evolver_pb2.AssignRequest(role=7, name="x"), grpc.StatusCode.INVALID_ARGUMENT, "got 7"),
+        (stub.Assign, evolver_pb2.AssignRequest(role=cast(Any, 7), name="x"), grpc.StatusCode.INVALID_ARGUMENT,
+         "got 7"),
         (stub.AssignmentHeartbeat, evolver_pb2.AssignmentHeartbeatRequest(assignment_id="actor-9"),
          grpc.StatusCode.NOT_FOUND, "assignment 'actor-9' is unknown"),
         (stub.RegisterLearner, evolver_pb2.RegisterLearnerRequest(host="h", learner_port=0),
