@@ -1,11 +1,13 @@
 """The learner's gRPC service (protos/learner.proto): actor registration with leases, the latest
-parameters for late joiners, and actions for actors that hold no weights.
+parameters for late joiners, actions for actors that hold no weights, and the full model weights
+for the evolver.
 
 Usage, the learner's side (ds/learner.py feeds the store and the acting copy)::
 
     registry, store = ActorRegistry(lease_s=15.0), ParamsStore()
     acting = ActingPolicy(SAC(...)) if not update_policy_mode else None
-    servicer = LearnerServicer(spec, registry, store, params_port=publisher_port, acting=acting)
+    servicer = LearnerServicer(spec, registry, store, params_port=publisher_port, acting=acting,
+                               weights=latest_full_weights)  # with an evolver: () -> (version, frames) | None
     server, port, health = serve_learner(servicer, "127.0.0.1:61001", max_message_bytes=limit)
     store.put(version, publisher.frames); acting.load(version, sac.acting_state_dict())
     set_serving(health, True)                                  # after the first publication
@@ -17,6 +19,10 @@ and an actor's::
     learner.heartbeat(me.actor_id, env_steps)                  # every few seconds; LeaseExpired: register again
     version, frames = learner.get_params()                     # decode with ds.params.decode_params
     actions, logp, next_state = learner.act(obs, noise=0.05)   # update_policy_mode: false
+
+and the evolver's (ds/evolver.py), which needs no EnvSpec::
+
+    version, frames = LearnerClient("learner:61001").get_weights()   # decode with ds.params.decode_params
 """
 
 from __future__ import annotations
@@ -28,7 +34,7 @@ from collections.abc import Callable, Iterator
 from concurrent import futures
 from contextlib import contextmanager
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, TypeAlias
 
 import grpc
 import numpy as np
@@ -47,15 +53,24 @@ _F32 = np.dtype(np.float32)
 # Framing of the frames and tensors of a message beyond their raw bytes (tags, lengths, JSON header).
 _FRAMING_BYTES = 64 * 1024
 
+WeightsSource: TypeAlias = Callable[[], tuple[int, list[bytes]] | None]
+"""What serves GetWeights: ``() -> (version, frames)`` of the learner's full model weights, encoded with
+:func:`ds.params.encode_params` (signed with the run's token), or None while there is no snapshot yet."""
+
 
 def learner_message_limit(sac: SAC, max_actors_envs: int = 1024) -> int:
     """The gRPC message limit for a learner and its clients: ``max(4 MiB, 2 * P + 1 MiB)`` where P is
-    the larger of the acting parameters (GetParams) and a GetAction of ``max_actors_envs`` envs."""
-    param_bytes = sum(t.numel() * t.element_size() for t in sac.acting_state_dict().values())
+    the largest of the acting parameters (GetParams), the full models (GetWeights) and a GetAction of
+    ``max_actors_envs`` envs."""
+    param_bytes = max(_nbytes(sac.acting_state_dict()), _nbytes(sac.models.state_dict()))
     spec = sac.spec
     obs_bytes = sum(int(np.prod(s.shape)) * s.dtype.itemsize for s in spec.sensors)
     action_bytes = max_actors_envs * (obs_bytes + 4 * (2 * spec.action.size + 1 + 2 * sac.rnn_state_size))
     return max(GRPC_DEFAULT_MESSAGE_BYTES, 2 * max(param_bytes, action_bytes) + _FRAMING_BYTES + 1024 * 1024)
+
+
+def _nbytes(state: dict[str, torch.Tensor]) -> int:
+    return sum(t.numel() * t.element_size() for t in state.values())
 
 
 # ---------------------------------------------------------------------- the learner's state
@@ -182,7 +197,11 @@ class ActingPolicy:
 
 
 class LearnerServicer(learner_pb2_grpc.LearnerServiceServicer):
-    """Serves one learner's registry, parameter store and (optionally) acting copy."""
+    """Serves one learner's registry, parameter store and (optionally) acting copy and full weights.
+
+    ``weights`` serves GetWeights (the evolver's CEM round); it runs on an RPC thread while the
+    learner trains, so it must return a consistent snapshot (frames built between updates, say),
+    never weights halfway through an optimizer step. Without it GetWeights is UNIMPLEMENTED."""
 
     def __init__(
         self,
@@ -192,8 +211,10 @@ class LearnerServicer(learner_pb2_grpc.LearnerServiceServicer):
         params_port: int,
         acting: ActingPolicy | None = None,
         rnn_state_size: int = 0,
+        weights: WeightsSource | None = None,
     ) -> None:
         self.spec = spec
+        self.weights = weights
         self.registry = registry
         self.store = store
         self.params_port = int(params_port)
@@ -231,6 +252,20 @@ class LearnerServicer(learner_pb2_grpc.LearnerServiceServicer):
         if latest is None:
             context.abort(grpc.StatusCode.UNAVAILABLE, "no parameters published yet")
         version, frames = latest  # type: ignore[misc]  # abort raises
+        return learner_pb2.GetParamsReply(version=version, frames=frames)
+
+    def GetWeights(
+        self, request: learner_pb2.GetWeightsRequest, context: grpc.ServicerContext
+    ) -> learner_pb2.GetParamsReply:
+        if self.weights is None:
+            context.abort(
+                grpc.StatusCode.UNIMPLEMENTED, "this learner runs without an evolver and does not serve its weights"
+            )
+        assert self.weights is not None
+        snapshot = self.weights()
+        if snapshot is None:
+            context.abort(grpc.StatusCode.UNAVAILABLE, "no snapshot of the weights yet")
+        version, frames = snapshot  # type: ignore[misc]  # abort raises
         return learner_pb2.GetParamsReply(version=version, frames=frames)
 
     def GetAction(
@@ -332,14 +367,15 @@ class Registration:
 
 
 class LearnerClient:
-    """The actor's end of :class:`LearnerServicer`. Every call has a deadline of ``rpc_timeout_s``;
-    UNAVAILABLE is retried per ``retry`` and then raised as ``grpc.RpcError``, as is every other
-    status except the ones named per method. Thread-safe."""
+    """The actor's (and the evolver's) end of :class:`LearnerServicer`. Every call has a deadline of
+    ``rpc_timeout_s``; UNAVAILABLE is retried per ``retry`` and then raised as ``grpc.RpcError``, as
+    is every other status except the ones named per method. ``spec`` is needed by :meth:`act` only.
+    Thread-safe."""
 
     def __init__(
         self,
         address: str,
-        spec: EnvSpec,
+        spec: EnvSpec | None = None,
         rnn_state_size: int = 0,
         *,
         max_message_bytes: int = GRPC_DEFAULT_MESSAGE_BYTES,
@@ -381,6 +417,12 @@ class LearnerClient:
         reply = self._call(self._stub.GetParams, learner_pb2.GetParamsRequest())
         return reply.version, list(reply.frames)
 
+    def get_weights(self) -> tuple[int, list[bytes]]:
+        """The learner's full model weights as ``(version, frames)`` (the evolver's CEM round);
+        decode with :func:`ds.params.decode_params`. UNIMPLEMENTED when it runs without an evolver."""
+        reply = self._call(self._stub.GetWeights, learner_pb2.GetWeightsRequest())
+        return reply.version, list(reply.frames)
+
     def act(
         self,
         obs: list[np.ndarray],
@@ -390,6 +432,8 @@ class LearnerClient:
         rnn_state: np.ndarray | None = None,
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
         """Actions ``[N, A]``, behaviour log-probs ``[N]`` and (recurrent) next states from the learner."""
+        if self.spec is None:
+            raise ValueError("LearnerClient.act needs the EnvSpec: pass spec when creating the client")
         request = learner_pb2.GetActionRequest(
             obs=[to_tensor(o, f"obs[{i}]") for i, o in enumerate(obs)], noise=noise, deterministic=deterministic
         )
@@ -443,6 +487,7 @@ __all__ = [
     "ParamsStore",
     "Registration",
     "RemotePolicy",
+    "WeightsSource",
     "learner_message_limit",
     "serve_learner",
 ]

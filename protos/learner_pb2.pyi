@@ -57,6 +57,10 @@ class GetParamsReply(_message.Message):
     frames: _containers.RepeatedScalarFieldContainer[bytes]
     def __init__(self, version: _Optional[int] = ..., frames: _Optional[_Iterable[bytes]] = ...) -> None: ...
 
+class GetWeightsRequest(_message.Message):
+    __slots__ = ()
+    def __init__(self) -> None: ...
+
 class GetActionRequest(_message.Message):
     __slots__ = ("obs", "prev_actions", "rnn_state", "noise", "deterministic")
     OBS_FIELD_NUMBER: _ClassVar[int]

@@ -50,6 +50,11 @@ class LearnerServiceStub:
                 request_serializer=protos_dot_learner__pb2.GetParamsRequest.SerializeToString,
                 response_deserializer=protos_dot_learner__pb2.GetParamsReply.FromString,
                 _registered_method=True)
+        self.GetWeights = channel.unary_unary(
+                '/asac.LearnerService/GetWeights',
+                request_serializer=protos_dot_learner__pb2.GetWeightsRequest.SerializeToString,
+                response_deserializer=protos_dot_learner__pb2.GetParamsReply.FromString,
+                _registered_method=True)
         self.GetAction = channel.unary_unary(
                 '/asac.LearnerService/GetAction',
                 request_serializer=protos_dot_learner__pb2.GetActionRequest.SerializeToString,
@@ -86,6 +91,18 @@ class LearnerServiceServicer:
         context.set_details('Method not implemented!')
         raise NotImplementedError('Method not implemented!')
 
+    def GetWeights(self, request, context):
+        """Returns the learner's full model weights (representation, Q ensemble, policy and auxiliary
+        models, not only the acting ones), for the evolver: it fits its CEM Gaussian to the elite
+        learners' weights (protos/evolver.proto). Same frame format as GetParams; the version is the
+        learner's update count when the snapshot was taken. Called by the evolver once per CEM round
+        for each elite learner. Errors: UNIMPLEMENTED (this learner runs without an evolver and does
+        not serve its weights), UNAVAILABLE (no snapshot yet; retry).
+        """
+        context.set_code(grpc.StatusCode.UNIMPLEMENTED)
+        context.set_details('Method not implemented!')
+        raise NotImplementedError('Method not implemented!')
+
     def GetAction(self, request, context):
         """Acts for N observations with the latest published weights and the given noise; the actor
         stores the returned behaviour log-probabilities. Called every env step by actors with
@@ -113,6 +130,11 @@ def add_LearnerServiceServicer_to_server(servicer, server):
             'GetParams': grpc.unary_unary_rpc_method_handler(
                     servicer.GetParams,
                     request_deserializer=protos_dot_learner__pb2.GetParamsRequest.FromString,
+                    response_serializer=protos_dot_learner__pb2.GetParamsReply.SerializeToString,
+            ),
+            'GetWeights': grpc.unary_unary_rpc_method_handler(
+                    servicer.GetWeights,
+                    request_deserializer=protos_dot_learner__pb2.GetWeightsRequest.FromString,
                     response_serializer=protos_dot_learner__pb2.GetParamsReply.SerializeToString,
             ),
             'GetAction': grpc.unary_unary_rpc_method_handler(
@@ -202,6 +224,33 @@ class LearnerService:
             target,
             '/asac.LearnerService/GetParams',
             protos_dot_learner__pb2.GetParamsRequest.SerializeToString,
+            protos_dot_learner__pb2.GetParamsReply.FromString,
+            options,
+            channel_credentials,
+            insecure,
+            call_credentials,
+            compression,
+            wait_for_ready,
+            timeout,
+            metadata,
+            _registered_method=True)
+
+    @staticmethod
+    def GetWeights(request,
+            target,
+            options=(),
+            channel_credentials=None,
+            call_credentials=None,
+            insecure=False,
+            compression=None,
+            wait_for_ready=None,
+            timeout=None,
+            metadata=None):
+        return grpc.experimental.unary_unary(
+            request,
+            target,
+            '/asac.LearnerService/GetWeights',
+            protos_dot_learner__pb2.GetWeightsRequest.SerializeToString,
             protos_dot_learner__pb2.GetParamsReply.FromString,
             options,
             channel_credentials,

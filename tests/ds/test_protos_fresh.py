@@ -30,10 +30,12 @@ def test_generated_code_is_fresh(tmp_path: Path) -> None:
 
 
 def test_every_proto_is_generated() -> None:
-    assert {p.stem for p in generate.proto_files()} >= {"replay", "learner"}
+    assert {p.stem for p in generate.proto_files()} >= {"replay", "learner", "evolver"}
 
 
-@pytest.mark.parametrize("name, service", [("replay", "ReplayService"), ("learner", "LearnerService")])
+@pytest.mark.parametrize(
+    "name, service", [("replay", "ReplayService"), ("learner", "LearnerService"), ("evolver", "EvolverService")]
+)
 def test_generated_modules_import_as_the_protos_package(name: str, service: str) -> None:
     import importlib
 

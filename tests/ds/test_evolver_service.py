@@ -1,0 +1,481 @@
+"""The evolver on loopback: registration with sampled configs, PostReward that never waits for a round,
+CEM rounds over the elites' weights fetched from real learner servers, retirement, actor and replay
+assignment, leases, restart from the saved state, and clear status codes for bad input."""
+
+from __future__ import annotations
+
+import re
+import shutil
+import threading
+import time
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any, cast
+
+import grpc
+import numpy as np
+import pytest
+
+from algorithm.config import config_from_yaml
+from algorithm.config_schema import Config
+from algorithm.spaces import ActionSpec, EnvSpec, SensorSpec
+from ds.evolver import Evolver
+from ds.evolver_service import EvolverClient, EvolverRequestRejected, serve_evolver
+from ds.evolver_state import (
+    SAMPLES_DIR,
+    STATE_FILE,
+    EvolverStateError,
+    Instruction,
+    LearnerRetired,
+    NoWorkYet,
+    UnknownAssignment,
+    UnknownLearner,
+)
+from ds.learner_service import ActorRegistry, LearnerClient, LearnerServicer, ParamsStore, serve_learner
+from ds.params import decode_params, encode_params, params_spec
+from ds.rpc import RetryPolicy
+from protos import evolver_pb2, evolver_pb2_grpc
+
+pytestmark = pytest.mark.grpc
+SPEC = EnvSpec((SensorSpec("state", (3,)),), ActionSpec(continuous_dim=1, low=(-2.0,), high=(2.0,)))
+FAST_RETRY = RetryPolicy(attempts=2, initial_backoff_s=0.02, max_backoff_s=0.05)
+LEASE_S = 10.0
+
+
+def evolver_config(**base: Any) -> Config:
+    settings = {"evolver_cem_length": 2, "evolver_cem_min_length": 1, "evolver_cem_best": 0.5,
+                "evolver_cem_time": 60.0, "evolver_remove_worst": -1, "max_actors_each_learner": 2}  # fmt: skip
+    return Config.model_validate(
+        {
+            "base_config": settings | base,
+            "sac_config": {"seed": 0},
+            "random_params": {"sac_config": {"n_step": {"in": [1, 3, 5]}, "gamma": {"truncated": [0.9, 0.99]}}},
+        }
+    )
+
+
+def weights_of(value: float) -> dict[str, np.ndarray]:
+    return {
+        "q.weight": np.full((3, 4), value, np.float32),
+        "policy.bias": np.full((2,), value, np.float64),
+        "normalizer.count": np.array([7], np.int64),
+    }
+
+
+class FakeClock:
+    def __init__(self) -> None:
+        self.t = 1000.0
+
+    def __call__(self) -> float:
+        return self.t
+
+
+class FakeLearner:
+    """A real learner server whose GetWeights serves a fixed weight dict, optionally slowly."""
+
+    def __init__(self, value: float, delay_s: float = 0.0) -> None:
+        self.weights, self.delay_s = weights_of(value), delay_s
+        self.fetching = threading.Event()
+        servicer = LearnerServicer(SPEC, ActorRegistry(), ParamsStore(), params_port=0, weights=self.snapshot)
+        self.server, self.port, _ = serve_learner(servicer)
+
+    def snapshot(self) -> tuple[int, list[bytes]]:
+        self.fetching.set()
+        time.sleep(self.delay_s)
+        return 5, encode_params(5, self.weights)
+
+
+class Setup:
+    """Evolvers (each with a server and a client) on one state directory; all stopped at the end."""
+
+    def __init__(self, state_dir: Path) -> None:
+        self.state_dir = state_dir
+        self.clock = FakeClock()
+        self._stops: list[Callable[[], None]] = []
+
+    def evolver(self, config: Config, real_clock: bool = False, **kwargs: Any) -> tuple[Evolver, EvolverClient]:
+        clock = time.monotonic if real_clock else self.clock
+        evolver = Evolver(config, self.state_dir, "exp", lease_s=LEASE_S, clock=clock, **kwargs)
+        server, port, _ = serve_evolver(evolver)
+        client = EvolverClient(f"127.0.0.1:{port}", retry=FAST_RETRY, rpc_timeout_s=5.0)
+        self._stops += [evolver.stop, lambda: server.stop(None), client.close]
+        return evolver, client
+
+    def learner(self, value: float, delay_s: float = 0.0) -> FakeLearner:
+        fake = FakeLearner(value, delay_s)
+        self._stops.append(lambda: fake.server.stop(None))
+        return fake
+
+    def close(self) -> None:
+        while self._stops:
+            self._stops.pop()()
+
+
+@pytest.fixture
+def setup(tmp_path: Path) -> Iterator[Setup]:
+    s = Setup(tmp_path / "evolver")
+    yield s
+    s.close()
+
+
+def register(client: EvolverClient, fakes: list[FakeLearner]) -> list[int]:
+    """Register each fake learner, each with its own replay; their ids."""
+    return [
+        client.register_learner(f"l{k}", "127.0.0.1", f.port, 0, f"replay-{k}:1").learner_id
+        for k, f in enumerate(fakes)
+    ]
+
+
+def until(condition: Callable[[], bool], timeout_s: float = 10.0) -> None:
+    deadline = time.monotonic() + timeout_s
+    while not condition():
+        assert time.monotonic() < deadline, "condition not met in time"
+        time.sleep(0.02)
+
+
+# ---------------------------------------------------------------------- learners
+
+
+def test_registration_gives_distinct_ids_and_configs_with_their_draws(setup: Setup) -> None:
+    _, client = setup.evolver(evolver_config())
+    registrations = [client.register_learner(f"l{k}", "", 61001 + k) for k in range(4)]
+    assert [r.learner_id for r in registrations] == [0, 1, 2, 3]
+    for r in registrations:
+        config = config_from_yaml(r.config_yaml, f"learner {r.learner_id}")
+        assert set(r.params) == {"sac_config.n_step", "sac_config.gamma"}
+        assert config.sac_config.n_step == r.params["sac_config.n_step"] in (1, 3, 5)
+        assert config.sac_config.gamma == r.params["sac_config.gamma"] and 0.9 <= config.sac_config.gamma <= 0.99
+        assert config.random_params == {} and r.experiment == "exp" and r.lease_s == LEASE_S
+    assert len({r.params["sac_config.gamma"] for r in registrations}) == 4
+    info = client.info()
+    assert [(x.host, x.learner_port, x.live) for x in info.learners] == [
+        ("127.0.0.1", 61001 + k, True) for k in range(4)
+    ]
+
+
+def test_post_reward_answers_at_once_while_a_round_waits_for_slow_weights(setup: Setup) -> None:
+    slow, fast = setup.learner(2.0, delay_s=1.5), setup.learner(1.0)
+    evolver, client = setup.evolver(evolver_config(), real_clock=True, check_every_s=0.05, save_every_s=0.05)
+    evolver.start()
+    a, b = register(client, [slow, fast])
+    for value_a, value_b in [(10.0, 1.0), (12.0, 2.0)]:
+        client.post_reward(a, value_a, 100)
+        client.post_reward(b, value_b, 100)
+    assert slow.fetching.wait(5.0), "no round started"
+    latencies = []
+    for k in range(20):
+        start = time.perf_counter()
+        assert client.post_reward(b, -float(k), 200)
+        client.heartbeat(b, 200)
+        latencies.append(time.perf_counter() - start)
+    assert client.info().rounds == 0, "the round finished before the posts: they did not overlap it"
+    assert max(latencies) < 0.25, latencies
+    until(lambda: client.heartbeat(b, 300).instruction is Instruction.LOAD_WEIGHTS)
+    assert client.info().last_elites == [a]
+
+
+def test_a_round_sends_every_non_elite_a_sample_between_the_elites(setup: Setup) -> None:
+    fakes = [setup.learner(v) for v in (0.0, 5.0, 1.0, 3.0)]
+    evolver, client = setup.evolver(evolver_config())
+    ids = register(client, fakes)
+    for i, mean in zip(ids, (-5.0, -4.0, 10.0, 20.0), strict=True):
+        client.post_reward(i, mean - 1, 10)
+        client.post_reward(i, mean + 1, 20)
+    result = evolver.run_round_if_due()
+    assert result is not None and result.elites == [ids[3], ids[2]]
+    expected = params_spec(weights_of(0.0))
+    for i in ids[:2]:
+        orders = client.heartbeat(i, 30)
+        assert (orders.instruction, orders.sample_round) == (Instruction.LOAD_WEIGHTS, 1)
+        assert not client.post_reward(i, 99.0, 30), "a return of the replaced weights was accepted"
+        sample = client.get_sample(i, expected)
+        assert sample is not None and sample.round == 1
+        for name in ("q.weight", "policy.bias"):  # elites at 1.0 and 3.0: mean 2, std capped at 0.1
+            assert 1.0 < sample.weights[name].mean() < 3.0 and abs(sample.weights[name].mean() - 2.0) < 0.2
+            assert sample.weights[name].std() > 0
+        np.testing.assert_array_equal(sample.weights["normalizer.count"], [7])  # not floating: the best elite's
+        assert client.heartbeat(i, 40, loaded_round=1).instruction is Instruction.CONTINUE
+        assert client.get_sample(i) is None
+        assert client.post_reward(i, 1.0, 40, weights_round=1)
+    for i in ids[2:]:
+        assert client.heartbeat(i, 30).instruction is Instruction.CONTINUE and client.get_sample(i) is None
+    info = client.info()
+    assert (info.rounds, info.last_elites) == (1, [ids[3], ids[2]])
+    assert [(x.rounds, x.times_elite, x.returns) for x in info.learners] == [(1, 0, 1), (1, 0, 1), (1, 1, 0), (1, 1, 0)]
+
+
+def test_a_learner_never_elite_is_retired_and_told_so(setup: Setup) -> None:
+    fakes = [setup.learner(v) for v in (0.0, 1.0, 2.0)]
+    evolver, client = setup.evolver(evolver_config(evolver_cem_best=0.3, evolver_remove_worst=2))
+    worst, middle, best = register(client, fakes)
+    job = client.assign_actor("a0")
+    assert job.learner_id == worst
+    loaded = {i: 0 for i in (worst, middle, best)}
+    for round_ in (1, 2):
+        for i, mean in ((worst, -9.0), (middle, 0.0), (best, 9.0)):
+            for _ in range(2):
+                assert client.post_reward(i, mean, 10, weights_round=loaded[i])
+        result = evolver.run_round_if_due()
+        assert result is not None and result.elites == [best]
+        for i in result.samples_for:
+            loaded[i] = round_
+    assert result is not None and result.retired == [worst]  # middle was never elite either, but the population keeps 2
+    assert client.heartbeat(worst, 50).instruction is Instruction.RETIRE
+    assert client.heartbeat(middle, 50, loaded_round=2).instruction is Instruction.CONTINUE
+    with pytest.raises(LearnerRetired, match=f"learner {worst} was retired in round 2"):
+        client.post_reward(worst, 1.0, 60)
+    with pytest.raises(LearnerRetired, match=f"learner {worst} was retired"):
+        client.register_learner("back", "127.0.0.1", fakes[0].port, previous_id=worst)
+    with pytest.raises(UnknownAssignment):
+        client.renew_assignment(job.assignment_id)
+    info = client.info()
+    assert [(x.retired, x.live) for x in info.learners] == [(True, False), (False, True), (False, True)]
+    assert client.assign_actor("a1").learner_id != worst
+
+
+# ---------------------------------------------------------------------- actors and replays
+
+
+def test_assign_spreads_actors_least_loaded_up_to_the_maximum(setup: Setup) -> None:
+    _, client = setup.evolver(evolver_config(max_actors_each_learner=2))
+    with pytest.raises(NoWorkYet, match="0 live learners"):
+        client.assign_actor("early")
+    ids = [client.register_learner(f"l{k}", "10.0.0.1", 61001, 61003, f"replay-{k}:61002").learner_id for k in range(2)]
+    client.register_learner("no replay yet", "10.0.0.2", 61001)
+    jobs = [client.assign_actor(f"a{k}") for k in range(4)]
+    assert [j.learner_id for j in jobs] == [ids[0], ids[1], ids[0], ids[1]]
+    assert (jobs[1].learner_host, jobs[1].learner_port, jobs[1].params_port) == ("10.0.0.1", 61001, 61003)
+    assert jobs[1].replay_address == "replay-1:61002" and jobs[1].learner_live
+    assert (
+        config_from_yaml(jobs[1].config_yaml).sac_config.n_step == client.info().learners[1].params["sac_config.n_step"]
+    )
+    with pytest.raises(NoWorkYet, match="1 of them without a replay yet, the others at max_actors_each_learner=2"):
+        client.assign_actor("a4")
+    assert client.assign_actor("a0 again", previous=jobs[0].assignment_id).assignment_id == jobs[0].assignment_id
+    assert [x.actors for x in client.info().learners] == [2, 2, 0]
+    setup.clock.t += 0.6 * LEASE_S  # everyone but actor 3 renews; then actor 3's lease runs out
+    for k in range(3):
+        client.renew_assignment(jobs[k].assignment_id)
+    for i in range(3):
+        client.heartbeat(i, 0)
+    setup.clock.t += 0.6 * LEASE_S
+    with pytest.raises(UnknownAssignment):
+        client.renew_assignment(jobs[3].assignment_id)
+    assert client.assign_actor("a5").learner_id == ids[1]
+
+
+def test_replay_assignment_pairs_one_replay_with_each_learner(setup: Setup) -> None:
+    _, client = setup.evolver(evolver_config())
+    ids = [client.register_learner(f"l{k}", "127.0.0.1", 61001 + k).learner_id for k in range(2)]
+    with pytest.raises(NoWorkYet, match="without a replay yet"):
+        client.assign_actor("a0")
+    r0 = client.assign_replay("r0", "10.0.0.7:61002")
+    r1 = client.assign_replay("r1", "10.0.0.8:61002")
+    assert (r0.learner_id, r1.learner_id) == (ids[0], ids[1])
+    assert r0.config_yaml == client.register_learner("l0", "127.0.0.1", 61001, previous_id=ids[0]).config_yaml
+    assert client.heartbeat(ids[0], 0).replay_address == "10.0.0.7:61002"
+    with pytest.raises(NoWorkYet, match="each has one"):
+        client.assign_replay("r2", "10.0.0.9:61002")
+    assert client.assign_replay("r0 restarted", "10.0.0.7:61002").assignment_id == r0.assignment_id
+    assert client.assign_actor("a0").replay_address in ("10.0.0.7:61002", "10.0.0.8:61002")
+    with pytest.raises(EvolverRequestRejected, match="address: a replay must say where it serves"):
+        client.assign_replay("r3", "")
+    setup.clock.t += 0.6 * LEASE_S  # replay r0 stops renewing; the learners and r1 go on
+    for _ in range(2):
+        client.renew_assignment(r1.assignment_id)
+        for i in ids:
+            client.heartbeat(i, 0)
+        setup.clock.t += 0.6 * LEASE_S
+    moved = client.assign_replay("r0 elsewhere", "10.0.0.9:61002")
+    assert moved.learner_id == ids[0] and client.heartbeat(ids[0], 0).replay_address == "10.0.0.9:61002"
+
+
+# ---------------------------------------------------------------------- leases and failures
+
+
+def test_a_gone_learner_neither_holds_up_nor_joins_a_round_and_can_come_back(setup: Setup) -> None:
+    fakes = [setup.learner(v) for v in (0.0, 1.0, 2.0)]
+    evolver, client = setup.evolver(evolver_config())
+    a, b, gone = register(client, fakes)
+    client.post_reward(gone, 50.0, 10)
+    setup.clock.t += LEASE_S / 2
+    for i in (a, b):
+        client.post_reward(i, float(i), 10)
+        client.post_reward(i, float(i), 20)
+    assert evolver.run_round_if_due() is None, "the gone learner's lease has not expired yet"
+    setup.clock.t += LEASE_S * 0.6
+    with pytest.raises(UnknownLearner, match="lease expired"):
+        client.heartbeat(gone, 30)
+    result = evolver.run_round_if_due()
+    assert result is not None and set(result.mean_returns) == {a, b} and result.elites == [b]
+    back = client.register_learner("back", "127.0.0.1", fakes[2].port, previous_id=gone)
+    assert back.learner_id == gone and back.replay_address == "replay-2:1"
+    info = client.info().learners[gone]
+    assert (info.live, info.returns, info.rounds, info.pending_round) == (True, 1, 0, 0)
+
+
+def test_an_elite_that_does_not_answer_sits_the_round_out(setup: Setup) -> None:
+    fakes = [setup.learner(v) for v in (0.0, 1.0, 2.0)]
+    evolver, client = setup.evolver(evolver_config(evolver_cem_best=0.3), weights_timeout_s=1.0)
+    low, mid, silent = register(client, fakes)
+    for i in (low, mid, silent):
+        client.post_reward(i, float(i), 10)
+        client.post_reward(i, float(i), 20)
+    fakes[2].server.stop(None)
+    result = evolver.run_round_if_due()
+    assert result is not None and result.elites == [mid] and set(result.samples_for) == {low}
+    info = client.info().learners
+    assert (info[silent].returns, info[silent].rounds, info[silent].pending_round) == (2, 0, 0)
+
+
+def test_bad_requests_get_clear_status_codes_and_the_server_keeps_serving(setup: Setup) -> None:
+    _, client = setup.evolver(evolver_config())
+    me = client.register_learner("l0", "127.0.0.1", 61001).learner_id
+    stub = evolver_pb2_grpc.EvolverServiceStub(client.channel)
+    bad: list[tuple[Callable[..., Any], Any, grpc.StatusCode, str]] = [
+        (stub.LearnerHeartbeat, evolver_pb2.LearnerHeartbeatRequest(learner_id=42), grpc.StatusCode.NOT_FOUND,
+         "learner 42 is not registered"),
+        (stub.PostReward, evolver_pb2.PostRewardRequest(learner_id=me, mean_return=float("nan")),
+         grpc.StatusCode.INVALID_ARGUMENT, "mean_return: must be finite"),
+        (stub.PostReward, evolver_pb2.PostRewardRequest(learner_id=me, mean_return=1.0, env_steps=-1),
+         grpc.StatusCode.INVALID_ARGUMENT, "env_steps: must be >= 0"),
+        (stub.GetSample, evolver_pb2.GetSampleRequest(learner_id=7), grpc.StatusCode.NOT_FOUND, "learner 7"),
+        (stub.Assign, evolver_pb2.AssignRequest(name="x"), grpc.StatusCode.INVALID_ARGUMENT,
+         "role: must be ACTOR or REPLAY, got ROLE_UNSPECIFIED"),
+        (stub.Assign, evolver_pb2.AssignRequest(role=cast(Any, 7), name="x"), grpc.StatusCode.INVALID_ARGUMENT,
+         "got 7"),
+        (stub.AssignmentHeartbeat, evolver_pb2.AssignmentHeartbeatRequest(assignment_id="actor-9"),
+         grpc.StatusCode.NOT_FOUND, "assignment 'actor-9' is unknown"),
+        (stub.RegisterLearner, evolver_pb2.RegisterLearnerRequest(host="h", learner_port=0),
+         grpc.StatusCode.INVALID_ARGUMENT, "learner_port: must be in 1..65535"),
+        (stub.RegisterLearner, evolver_pb2.RegisterLearnerRequest(host="h", learner_port=1, previous_id=99),
+         grpc.StatusCode.NOT_FOUND, "learner 99 is not known to this evolver"),
+    ]  # fmt: skip
+    for method, request, code, message in bad:
+        with pytest.raises(grpc.RpcError) as e:
+            method(request, timeout=5.0)
+        assert (e.value.code(), message in e.value.details()) == (code, True), e.value.details()
+    with pytest.raises(UnknownLearner):
+        client.heartbeat(42, 0)
+    with pytest.raises(EvolverRequestRejected, match="loaded_round: must be >= 0"):
+        client.heartbeat(me, 0, loaded_round=-1)
+    assert client.post_reward(me, 1.0, 10) and len(client.info().learners) == 1
+
+
+# ---------------------------------------------------------------------- persistence
+
+
+def test_a_restarted_evolver_carries_on_where_it_stopped(setup: Setup) -> None:
+    fakes = [setup.learner(v) for v in (0.0, 1.0, 2.0)]
+    evolver, client = setup.evolver(evolver_config())
+    ids = register(client, fakes)
+    for i in ids:
+        client.post_reward(i, float(i), 10)
+        client.post_reward(i, float(i), 20)
+    assert evolver.run_round_if_due() is not None
+    job = client.assign_actor("a0")
+    before = client.get_sample(ids[0])
+    client.post_reward(ids[2], 5.0, 30)  # after the round: the thread has not saved it, stop() does
+    info_before = client.info()
+    setup.close()
+
+    evolver, client = setup.evolver(evolver_config())
+    info = client.info()
+    assert (info.rounds, info.last_elites) == (info_before.rounds, info_before.last_elites)
+    assert info.learners == info_before.learners and info.assignments == info_before.assignments
+    orders = client.heartbeat(ids[0], 40)
+    assert (orders.instruction, orders.sample_round) == (Instruction.LOAD_WEIGHTS, 1)
+    after = client.get_sample(ids[0])
+    assert before is not None and after is not None and after.round == before.round
+    for name, array in before.weights.items():
+        np.testing.assert_array_equal(after.weights[name], array)
+    again = client.register_learner("l1 restarted", "127.0.0.1", fakes[1].port, previous_id=ids[1])
+    assert again.learner_id == ids[1] and again.params == info.learners[1].params
+    assert client.renew_assignment(job.assignment_id).learner_id == job.learner_id
+    assert client.register_learner("new", "127.0.0.1", 61009).learner_id == 3
+
+    client.heartbeat(ids[0], 50, loaded_round=1)
+    evolver.save()
+    assert sorted(p.name for p in (setup.state_dir / SAMPLES_DIR).iterdir()) == [], "the loaded sample's file stayed"
+
+
+def test_a_killed_evolver_loses_at_most_the_last_save_interval(setup: Setup, tmp_path: Path) -> None:
+    evolver, client = setup.evolver(evolver_config(), real_clock=True, save_every_s=0.05)
+    evolver.start()
+    me = client.register_learner("l0", "127.0.0.1", 61001).learner_id
+    client.post_reward(me, 3.0, 10)
+    time.sleep(0.5)
+    copy = tmp_path / "copy"  # the directory as a kill -9 now would leave it
+    shutil.copytree(setup.state_dir, copy)
+    revived = Evolver(evolver_config(), copy, "exp")
+    assert [x.returns for x in revived.info().learners] == [1]
+
+
+def test_an_unreadable_state_is_an_error_naming_the_file_and_nothing_is_overwritten(setup: Setup) -> None:
+    fakes = [setup.learner(v) for v in (0.0, 1.0)]
+    evolver, client = setup.evolver(evolver_config())
+    for i in register(client, fakes):
+        client.post_reward(i, float(i), 10)
+        client.post_reward(i, float(i), 20)
+    assert evolver.run_round_if_due() is not None
+    setup.close()
+    state = setup.state_dir / STATE_FILE
+    good = state.read_bytes()
+    state.write_bytes(good[: len(good) // 2])
+    with pytest.raises(EvolverStateError, match=re.escape(f"evolver state {state} is unreadable or truncated")):
+        Evolver(evolver_config(), setup.state_dir, "exp")
+    assert state.read_bytes() == good[: len(good) // 2]
+    state.write_bytes(good)
+    with pytest.raises(EvolverStateError, match="belongs to experiment 'exp', not 'other'"):
+        Evolver(evolver_config(), setup.state_dir, "other")
+    (sample,) = (setup.state_dir / SAMPLES_DIR).iterdir()
+    sample.write_bytes(b"not a zip file")
+    with pytest.raises(EvolverStateError, match=re.escape(f"pending sample {sample} ") + ".* is unreadable"):
+        Evolver(evolver_config(), setup.state_dir, "exp")
+
+
+# ---------------------------------------------------------------------- the learner's GetWeights and metrics
+
+
+def test_learner_get_weights_serves_the_hook_or_is_unimplemented(setup: Setup) -> None:
+    fake = setup.learner(2.5)
+    with_hook = LearnerClient(f"127.0.0.1:{fake.port}")
+    version, frames = with_hook.get_weights()
+    with_hook.close()
+    assert version == 5
+    np.testing.assert_array_equal(
+        decode_params(frames, params_spec(fake.weights))[1]["q.weight"], fake.weights["q.weight"]
+    )
+    server, port, _ = serve_learner(LearnerServicer(SPEC, ActorRegistry(), ParamsStore(), params_port=0))
+    without_hook = LearnerClient(f"127.0.0.1:{port}")
+    try:
+        with pytest.raises(grpc.RpcError) as e:
+            without_hook.get_weights()
+        assert e.value.code() == grpc.StatusCode.UNIMPLEMENTED and "without an evolver" in e.value.details()
+    finally:
+        without_hook.close()
+        server.stop(None)
+
+
+def test_metrics_reach_tensorboard(setup: Setup, tmp_path: Path) -> None:
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    from algorithm.logging import MetricsWriter
+
+    fakes = [setup.learner(v) for v in (0.0, 1.0)]
+    metrics = MetricsWriter(tmp_path / "log" / "evolver")
+    evolver, client = setup.evolver(evolver_config(evolver_cem_best=1.0), metrics=metrics)
+    ids = register(client, fakes)
+    for i in ids:
+        client.post_reward(i, float(i), 10)
+        client.post_reward(i, float(i) + 2, 20)
+    assert evolver.run_round_if_due() is not None
+    evolver.stop()
+    metrics.close()
+    events = EventAccumulator(str(tmp_path / "log" / "evolver"))
+    events.Reload()
+    scalars = set(events.Tags()["scalars"])
+    assert {"evolver/learner_1/mean_return", "evolver/cem_std", "evolver/learner_0/elite"} <= scalars
+    assert [e.value for e in events.Scalars("evolver/learner_1/mean_return")] == [1.0, 2.0]
+    assert events.Scalars("evolver/cem_std")[0].value == pytest.approx(0.1)  # elites 0 and 1: std 0.5, capped
+    assert "evolver/learner_0/params/text_summary" in events.Tags()["tensors"]
