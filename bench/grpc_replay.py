@@ -37,8 +37,7 @@ import numpy as np
 
 from algorithm.replay import PrioritizedTable
 from algorithm.spaces import SensorSpec
-from algorithm.types import Chunk
-from bench.replay import ACT, BATCH, OBS
+from bench.replay import ACT, BATCH, OBS, random_chunk
 from ds.replay_codec import message_limit_bytes
 
 CAPACITY, PREFILL, CHUNK = 1_000_000, 100_000, 64
@@ -51,19 +50,6 @@ GOAL = {"insert": 10.0, "sample": 2.0}  # x Reverb's upper figure
 def make_table(sensors: tuple[SensorSpec, ...] = SENSORS, action_size: int = ACT) -> PrioritizedTable:
     """A prioritized table without the actor/learner rate limiter: benches measure capacity."""
     return PrioritizedTable(CAPACITY, sensors, action_size, window=1, alpha=0.6, seed=0)
-
-
-def random_chunk(sensors: tuple[SensorSpec, ...], action_size: int, t: int, rng: np.random.Generator) -> Chunk:
-    """A chunk of ``t`` steps of random data shaped like an actor's (float sensors only)."""
-    return Chunk(
-        obs=[rng.standard_normal((t + 1, *s.shape), dtype=np.float32) for s in sensors],
-        actions=rng.uniform(-1, 1, (t, action_size)).astype(np.float32),
-        prev_actions=rng.uniform(-1, 1, (t, action_size)).astype(np.float32),
-        rewards=rng.standard_normal(t, dtype=np.float32),
-        terminated=np.zeros(t, dtype=bool),
-        truncated=np.zeros(t, dtype=bool),
-        behaviour_logp=rng.standard_normal(t, dtype=np.float32),
-    )
 
 
 def serve(

@@ -36,16 +36,21 @@ CAPACITY = 1_000_000
 OBS, ACT, BATCH = 17, 6, 256
 
 
-def make_chunk(rng: np.random.Generator, t: int) -> Chunk:
+def random_chunk(sensors: tuple[SensorSpec, ...], action_size: int, t: int, rng: np.random.Generator) -> Chunk:
+    """A chunk of ``t`` steps of random data shaped like an actor's (float sensors only)."""
     return Chunk(
-        obs=[rng.standard_normal((t + 1, OBS), dtype=np.float32)],
-        actions=rng.uniform(-1, 1, (t, ACT)).astype(np.float32),
-        prev_actions=rng.uniform(-1, 1, (t, ACT)).astype(np.float32),
+        obs=[rng.standard_normal((t + 1, *s.shape), dtype=np.float32) for s in sensors],
+        actions=rng.uniform(-1, 1, (t, action_size)).astype(np.float32),
+        prev_actions=rng.uniform(-1, 1, (t, action_size)).astype(np.float32),
         rewards=rng.standard_normal(t, dtype=np.float32),
         terminated=np.zeros(t, dtype=bool),
         truncated=np.zeros(t, dtype=bool),
         behaviour_logp=rng.standard_normal(t, dtype=np.float32),
     )
+
+
+def make_chunk(rng: np.random.Generator, t: int) -> Chunk:
+    return random_chunk((SensorSpec("obs", (OBS,)),), ACT, t, rng)
 
 
 def make_transitions(rng: np.random.Generator, t: int) -> dict[str, np.ndarray]:
