@@ -22,6 +22,7 @@ from __future__ import annotations
 import copy
 import math
 from collections.abc import Callable, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -82,6 +83,9 @@ class UpdateResult:
     td_abs: np.ndarray
     metrics: dict[str, float] = field(default_factory=dict)
     skipped: bool = False
+    # sac_config.refresh_rnn_states: (row keys [M] uint64, recurrent states [M, S] float32) of every
+    # valid window row, computed with the weights before this update, to write back into replay.
+    refreshed_rnn_states: tuple[np.ndarray, np.ndarray] | None = None
 
 
 class SAC:
@@ -189,6 +193,8 @@ class SAC:
         # torch.compile of the loss computation (forward and, through AOTAutograd, backward);
         # its first update compiles for ~20 s on CPU. See bench/learner.py for what it gains.
         self._compute_losses = torch.compile(self._losses) if compile else self._losses
+        # sac.target_thread: one worker thread computes the bootstrapped target of each update.
+        self._target_pool = ThreadPoolExecutor(1, thread_name_prefix="sac-target") if sac.target_thread else None
         # Hidden layers in bfloat16 (sac.compute_dtype): 2.2x faster matmuls on this project's AVX512-BF16
         # CPUs, 1.4x faster updates (bench/learner.py); output layers stay float32 (nn.layers.in_float32).
         self._low_precision = uses_bfloat16(sac.compute_dtype, self.device)
@@ -426,10 +432,11 @@ class SAC:
 
     def _sequence_states(
         self, obs: list[Tensor], actions: Tensor, prev_actions: Tensor, mask: Tensor, rnn_state: Tensor
-    ) -> tuple[Tensor, Tensor]:
+    ) -> tuple[Tensor, Tensor, Tensor]:
         """``use_rnn``: online and target states ``[B, L + 1, H]`` at every obs position of the window,
-        from the stored state at its first valid row. Position ``L`` (after the last step) reads the
-        last action as its previous action; positions before the first valid row keep the state."""
+        from the stored state at its first valid row, and the online recurrent state fed in at each
+        position ``[B, L + 1, S]``. Position ``L`` (after the last step) reads the last action as its
+        previous action; positions before the first valid row keep the state."""
         first = mask.long().argmax(dim=1)  # the first valid step (look-back rows before it are masked)
         positions = torch.arange(mask.shape[1] + 1, device=mask.device)
         valid = positions[None, :] >= first[:, None]
@@ -437,10 +444,10 @@ class SAC:
         rep, target_rep = self.models.representation, self.target_representation
         assert isinstance(rep, RecurrentRepresentation) and isinstance(target_rep, RecurrentRepresentation)
         burn_in = self.sac.burn_in_step
-        online = rep.sequence(obs, prev, rnn_state, valid, burn_in, self.sac.burn_in_gradient)
+        online, fed = rep.sequence_with_states(obs, prev, rnn_state, valid, burn_in, self.sac.burn_in_gradient)
         with torch.no_grad():
             target = target_rep.sequence(obs, prev, rnn_state, valid, burn_in)
-        return online, target
+        return online, target, fed
 
     def _losses(
         self,
@@ -457,12 +464,14 @@ class SAC:
         noise: Tensor,
         target_heads: Tensor | None,
         policy_heads: Tensor | None,
-    ) -> tuple[Tensor, Tensor, Tensor, Tensor, dict[str, Tensor], Tensor, Metrics]:
+    ) -> tuple[Tensor, Tensor, Tensor, Tensor, dict[str, Tensor], Tensor, Metrics, Tensor | None]:
         """The SAC losses from the current parameters: ``(q_loss, policy_loss, alpha_loss,
-        auxiliary_loss, prediction_losses, td_abs, metrics)``. Batch tensors are ``[B, L(+1), ...]``; the trained step
-        is step ``burn_in_step`` of each window (the sampled key; earlier steps only warm up a recurrent state). ``noise
-        [B, n_step + 2, A]`` feeds the action samples: position 0 the policy loss's, 1.. the
-        target's (only ``noise[:, 1]`` without V-trace, the value at the bootstrap observation)."""
+        auxiliary_loss, prediction_losses, td_abs, metrics, fed_states)``, where ``fed_states`` is
+        the online recurrent state fed in at each window step ``[B, L, S]`` (None without
+        ``use_rnn``). Batch tensors are ``[B, L(+1), ...]``; the trained step is step
+        ``burn_in_step`` of each window (the sampled key; earlier steps only warm up a recurrent
+        state). ``noise [B, n_step + 2, A]`` feeds the action samples: position 0 the policy loss's,
+        1.. the target's (only ``noise[:, 1]`` without V-trace, the value at the bootstrap observation)."""
         sac, dev, branches = self.sac, self.device, self._branches
         q = self.models.q
         alpha = self.log_alpha.detach().exp()
@@ -475,9 +484,10 @@ class SAC:
         #    representation runs over the whole window (burn-in first); otherwise states are computed
         #    only where they are needed: at the trained step and at the bootstrap position.
         burn_in = sac.burn_in_step
-        sequences = None
+        sequences, fed_states = None, None
         if rnn_state is not None:
-            online_seq, target_seq = self._sequence_states(obs, actions, prev_actions, mask, rnn_state)
+            online_seq, target_seq, fed = self._sequence_states(obs, actions, prev_actions, mask, rnn_state)
+            fed_states = fed[:, :-1]
             sequences = (online_seq[:, burn_in:], target_seq[:, burn_in:])
         obs = [o[:, burn_in:] for o in obs]
         actions, rewards, terminated, truncated, mask, behaviour_logp = (
@@ -537,6 +547,21 @@ class SAC:
 
         # 1. Target y for the trained step: n-step return + gamma^m V(o_m)  (eq. 2, 3, 5), or the
         #    V-trace estimate over the window (returns.vtrace_target).
+        def bootstrapped_target() -> tuple[Tensor, Tensor]:
+            """``(y [B], V(o_m) [B])`` without gradients; may run on the target thread (whose grad
+            mode and autocast state are its own, hence set here)."""
+            with torch.no_grad(), torch.autocast(dev.type, dtype=torch.bfloat16, enabled=self._low_precision):
+                m = bootstrap_index(valid)
+                next_pi = self._policy(states_at(m, False), noise[:, 1], masks_at(m))
+                next_q = self.target_q(states_at(m, True), next_pi.continuous, target_heads)
+                v = soft_value(next_q.min(dim=0).values, next_pi, alpha, alpha_d, branches)
+                return n_step_target(rewards, terminated, valid, v, sac.gamma), v
+
+        # With sac.target_thread the target is computed on a second core while this thread runs the
+        # online forward passes below; both only read the weights (the optimizers step after both).
+        pending_target = None
+        if self._target_pool is not None and not sac.use_n_step_is:
+            pending_target = self._target_pool.submit(bootstrapped_target)
         with torch.no_grad():
             if sac.use_n_step_is:
                 assert online_all is not None
@@ -551,12 +576,8 @@ class SAC:
                 weighted = rho > 0
                 metrics["learner/vtrace_rho"] = rho[weighted] if weighted.any() else torch.ones(1, device=dev)
                 v = values[:, 1]
-            else:
-                m = bootstrap_index(valid)
-                next_pi = self._policy(states_at(m, False), noise[:, 1], masks_at(m))
-                next_q = self.target_q(states_at(m, True), next_pi.continuous, target_heads)
-                v = soft_value(next_q.min(dim=0).values, next_pi, alpha, alpha_d, branches)
-                y = n_step_target(rewards, terminated, valid, v, sac.gamma)
+            elif pending_target is None:
+                y, v = bootstrapped_target()
             action0 = actions[:, 0]
             old_q = None
             if sac.clip_epsilon is not None:
@@ -574,10 +595,13 @@ class SAC:
                 torch.cat(targets, dim=-1) if targets else None, sac.transition_kl,
             )  # fmt: skip
             metrics.update({f"learner/prediction_{k}": v.detach() for k, v in predictions.items()})
-        q_loss, td_abs, q_metrics = critic_loss(self._q_taken(q, state, action0), y, weights, sac.clip_epsilon, old_q)
+        q_taken = self._q_taken(q, state, action0)
         pi = self._policy(state.detach(), noise[:, 0], masks_at(0))
         q_pi = q(state.detach(), pi.continuous, policy_heads, detach_params=True).min(dim=0).values
         pi_loss, pi_metrics = policy_loss(q_pi, pi, alpha, alpha_d, branches)
+        if pending_target is not None:
+            y, v = pending_target.result()
+        q_loss, td_abs, q_metrics = critic_loss(q_taken, y, weights, sac.clip_epsilon, old_q)
         a_loss = torch.zeros((), device=dev)
         if self.alpha_optimizer is not None:
             if pi.continuous_log_prob is not None:
@@ -586,7 +610,7 @@ class SAC:
                 expected = expected_log_prob(pi, branches)
                 a_loss = a_loss + alpha_loss(self.log_alpha_discrete, expected, self.discrete_target_entropy)[0]
         metrics.update({**q_metrics, **pi_metrics, "learner/next_value": v, "learner/auxiliary_loss": aux_loss})
-        return q_loss, pi_loss, a_loss, aux_loss, predictions, td_abs, metrics
+        return q_loss, pi_loss, a_loss, aux_loss, predictions, td_abs, metrics, fed_states
 
     def update(self, batch: Batch, with_metrics: bool = False) -> UpdateResult:
         """One gradient step on every part from one batch (ARCHITECTURE.md 4).
@@ -613,7 +637,7 @@ class SAC:
             batch.batch_size, samples, self.spec.action.continuous_dim, generator=self._learn_rng, device=dev
         )
         with torch.autocast(dev.type, dtype=torch.bfloat16, enabled=self._low_precision):
-            q_loss, pi_loss, a_loss, aux_loss, predictions, td_abs, metric_tensors = self._compute_losses(
+            q_loss, pi_loss, a_loss, aux_loss, predictions, td_abs, metric_tensors, fed = self._compute_losses(
                 self._normalize([torch.from_numpy(o).to(dev) for o in batch.obs]),
                 torch.from_numpy(batch.actions).to(dev),
                 torch.from_numpy(batch.prev_actions).to(dev),
@@ -678,7 +702,19 @@ class SAC:
                     "learner/updates": float(self.updates),
                 }
             )
-        return UpdateResult(td_abs=td.cpu().numpy(), metrics=metrics, skipped=skipped)
+        refreshed = None
+        if sac.refresh_rnn_states and fed is not None and not skipped:
+            refreshed = self._window_rows(batch, fed)
+        return UpdateResult(td_abs=td.cpu().numpy(), metrics=metrics, skipped=skipped, refreshed_rnn_states=refreshed)
+
+    def _window_rows(self, batch: Batch, fed_states: Tensor) -> tuple[np.ndarray, np.ndarray]:
+        """Row keys and fed states of every valid window step: window step ``j`` of a window whose
+        trained step has key ``k`` is row ``k - burn_in_step + j`` (masked steps, before the chunk
+        or past its end, are left out)."""
+        offsets = np.arange(batch.mask.shape[1], dtype=np.int64) - self.sac.burn_in_step
+        keys = batch.keys.astype(np.int64)[:, None] + offsets[None, :]
+        valid = batch.mask
+        return keys[valid].astype(np.uint64), fed_states.float().cpu().numpy()[valid]
 
     def _apply_prediction_gradients(self, predictions: dict[str, Tensor], metrics: Metrics) -> None:
         """Prediction models get their losses' full gradients; the representation gets each loss's

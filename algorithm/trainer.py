@@ -210,6 +210,8 @@ class EmbeddedTrainer:
                     if priorities_matter and not result.skipped:
                         with self.timers.phase("priorities"):
                             self.table.update_priorities(batch.keys, result.td_abs)
+                    if result.refreshed_rnn_states is not None:
+                        self.table.update_rnn_states(*result.refreshed_rnn_states)
                     self.owed_updates -= 1.0
                     self.updates += 1
                     if self.acting_policy is not self.sac and self.updates % publish_every == 0:

@@ -92,6 +92,15 @@ class ReplaySpecs:
         spec = _spec("priorities", _F64, finite=True, nonnegative=True, leading=("N",))
         return keys, _required(msg, "priorities", spec, dims)
 
+    def rnn_states_from_proto(self, msg: replay_pb2.UpdateRnnStatesRequest) -> tuple[np.ndarray, np.ndarray]:
+        """Decode and check ``(keys uint64 [N], states float32 [N, H], finite)``."""
+        if not self.rnn_state_size:
+            raise WireError("states", "cannot be stored: this replay keeps no recurrent state (rnn_state_size=0)")
+        dims: dict[str, int] = {}
+        keys = _required(msg, "keys", _spec("keys", _U64, leading=("N",)), dims)
+        spec = _spec("states", _F32, (self.rnn_state_size,), finite=True, leading=("N",))
+        return keys, _required(msg, "states", spec, dims)
+
     # ------------------------------------------------------------------ batches (server -> learner)
 
     def batch_from_proto(self, msg: replay_pb2.SampleReply, batch_size: int) -> Batch:

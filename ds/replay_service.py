@@ -128,6 +128,13 @@ class ReplayServicer(replay_pb2_grpc.ReplayServiceServicer):
             self.table.update_priorities(*self.specs.priorities_from_proto(request))
         return replay_pb2.UpdatePrioritiesReply()
 
+    def UpdateRnnStates(
+        self, request: replay_pb2.UpdateRnnStatesRequest, context: grpc.ServicerContext
+    ) -> replay_pb2.UpdateRnnStatesReply:
+        with _status_codes(context):
+            self.table.update_rnn_states(*self.specs.rnn_states_from_proto(request))
+        return replay_pb2.UpdateRnnStatesReply()
+
     def Info(self, request: replay_pb2.InfoRequest, context: grpc.ServicerContext) -> replay_pb2.InfoReply:
         return info_to_proto(self.table.info())
 
@@ -344,6 +351,14 @@ class ReplayClient:
         )
         self._check_size(request, f"{k.shape[0]} priorities")
         self._call("UpdatePriorities", self._stub.UpdatePriorities, request, self.rpc_timeout_s)
+
+    def update_rnn_states(self, keys: np.ndarray, states: np.ndarray) -> None:
+        """Overwrite the stored recurrent states of ``keys`` (see :meth:`PrioritizedTable.update_rnn_states`)."""
+        request = replay_pb2.UpdateRnnStatesRequest(
+            keys=to_tensor(np.asarray(keys).astype(np.uint64), "keys"), states=to_tensor(np.asarray(states), "states")
+        )
+        self._check_size(request, f"{len(keys)} recurrent states")
+        self._call("UpdateRnnStates", self._stub.UpdateRnnStates, request, self.rpc_timeout_s)
 
     def info(self) -> dict[str, Any]:
         """The server table's ``info()``: the same keys, ``int`` counters and ``float`` values."""

@@ -24,7 +24,7 @@ _sym_db = _symbol_database.Default()
 
 
 
-DESCRIPTOR = _descriptor_pool.Default().AddSerializedFile(b'\n\x13protos/replay.proto\x12\x04\x61sac\"4\n\x06Tensor\x12\r\n\x05\x64type\x18\x01 \x01(\t\x12\r\n\x05shape\x18\x02 \x03(\x03\x12\x0c\n\x04\x64\x61ta\x18\x03 \x01(\x0c\"\xd7\x02\n\x05\x43hunk\x12\x19\n\x03obs\x18\x01 \x03(\x0b\x32\x0c.asac.Tensor\x12\x1d\n\x07\x61\x63tions\x18\x02 \x01(\x0b\x32\x0c.asac.Tensor\x12\"\n\x0cprev_actions\x18\x03 \x01(\x0b\x32\x0c.asac.Tensor\x12\x1d\n\x07rewards\x18\x04 \x01(\x0b\x32\x0c.asac.Tensor\x12 \n\nterminated\x18\x05 \x01(\x0b\x32\x0c.asac.Tensor\x12\x1f\n\ttruncated\x18\x06 \x01(\x0b\x32\x0c.asac.Tensor\x12$\n\x0e\x62\x65haviour_logp\x18\x07 \x01(\x0b\x32\x0c.asac.Tensor\x12$\n\trnn_state\x18\x08 \x01(\x0b\x32\x0c.asac.TensorH\x00\x88\x01\x01\x12%\n\npriorities\x18\t \x01(\x0b\x32\x0c.asac.TensorH\x01\x88\x01\x01\x42\x0c\n\n_rnn_stateB\r\n\x0b_priorities\"R\n\rInsertRequest\x12\x1b\n\x06\x63hunks\x18\x01 \x03(\x0b\x32\x0b.asac.Chunk\x12\x16\n\ttimeout_s\x18\x02 \x01(\x01H\x00\x88\x01\x01\x42\x0c\n\n_timeout_s\")\n\x0bInsertReply\x12\x1a\n\x04keys\x18\x01 \x03(\x0b\x32\x0c.asac.Tensor\"I\n\rSampleRequest\x12\x12\n\nbatch_size\x18\x01 \x01(\x05\x12\x16\n\ttimeout_s\x18\x02 \x01(\x01H\x00\x88\x01\x01\x42\x0c\n\n_timeout_s\"\x98\x03\n\x0bSampleReply\x12\x1a\n\x04keys\x18\x01 \x01(\x0b\x32\x0c.asac.Tensor\x12#\n\rprobabilities\x18\x02 \x01(\x0b\x32\x0c.asac.Tensor\x12\x12\n\ntable_size\x18\x03 \x01(\x03\x12\x19\n\x03obs\x18\x04 \x03(\x0b\x32\x0c.asac.Tensor\x12\x1d\n\x07\x61\x63tions\x18\x05 \x01(\x0b\x32\x0c.asac.Tensor\x12\"\n\x0cprev_actions\x18\x06 \x01(\x0b\x32\x0c.asac.Tensor\x12\x1d\n\x07rewards\x18\x07 \x01(\x0b\x32\x0c.asac.Tensor\x12 \n\nterminated\x18\x08 \x01(\x0b\x32\x0c.asac.Tensor\x12\x1f\n\ttruncated\x18\t \x01(\x0b\x32\x0c.asac.Tensor\x12$\n\x0e\x62\x65haviour_logp\x18\n \x01(\x0b\x32\x0c.asac.Tensor\x12\x1a\n\x04mask\x18\x0b \x01(\x0b\x32\x0c.asac.Tensor\x12$\n\trnn_state\x18\x0c \x01(\x0b\x32\x0c.asac.TensorH\x00\x88\x01\x01\x42\x0c\n\n_rnn_state\"W\n\x17UpdatePrioritiesRequest\x12\x1a\n\x04keys\x18\x01 \x01(\x0b\x32\x0c.asac.Tensor\x12 \n\npriorities\x18\x02 \x01(\x0b\x32\x0c.asac.Tensor\"\x17\n\x15UpdatePrioritiesReply\"\r\n\x0bInfoRequest\"W\n\x0fNormalizerStats\x12\r\n\x05\x63ount\x18\x01 \x01(\x03\x12\x1a\n\x04mean\x18\x02 \x01(\x0b\x32\x0c.asac.Tensor\x12\x19\n\x03var\x18\x03 \x01(\x0b\x32\x0c.asac.Tensor\"\xc8\x02\n\tInfoReply\x12/\n\x08\x63ounters\x18\x01 \x03(\x0b\x32\x1d.asac.InfoReply.CountersEntry\x12+\n\x06values\x18\x02 \x03(\x0b\x32\x1b.asac.InfoReply.ValuesEntry\x12\x33\n\nnormalizer\x18\x03 \x03(\x0b\x32\x1f.asac.InfoReply.NormalizerEntry\x1a/\n\rCountersEntry\x12\x0b\n\x03key\x18\x01 \x01(\t\x12\r\n\x05value\x18\x02 \x01(\x03:\x02\x38\x01\x1a-\n\x0bValuesEntry\x12\x0b\n\x03key\x18\x01 \x01(\t\x12\r\n\x05value\x18\x02 \x01(\x01:\x02\x38\x01\x1aH\n\x0fNormalizerEntry\x12\x0b\n\x03key\x18\x01 \x01(\t\x12$\n\x05value\x18\x02 \x01(\x0b\x32\x15.asac.NormalizerStats:\x02\x38\x01\"\x1b\n\x0bSaveRequest\x12\x0c\n\x04path\x18\x01 \x01(\t\"\x0b\n\tSaveReply\"\x1b\n\x0bLoadRequest\x12\x0c\n\x04path\x18\x01 \x01(\t\"\x0b\n\tLoadReply2\xc7\x02\n\rReplayService\x12\x30\n\x06Insert\x12\x13.asac.InsertRequest\x1a\x11.asac.InsertReply\x12\x30\n\x06Sample\x12\x13.asac.SampleRequest\x1a\x11.asac.SampleReply\x12N\n\x10UpdatePriorities\x12\x1d.asac.UpdatePrioritiesRequest\x1a\x1b.asac.UpdatePrioritiesReply\x12*\n\x04Info\x12\x11.asac.InfoRequest\x1a\x0f.asac.InfoReply\x12*\n\x04Save\x12\x11.asac.SaveRequest\x1a\x0f.asac.SaveReply\x12*\n\x04Load\x12\x11.asac.LoadRequest\x1a\x0f.asac.LoadReplyb\x06proto3')
+DESCRIPTOR = _descriptor_pool.Default().AddSerializedFile(b'\n\x13protos/replay.proto\x12\x04\x61sac\"4\n\x06Tensor\x12\r\n\x05\x64type\x18\x01 \x01(\t\x12\r\n\x05shape\x18\x02 \x03(\x03\x12\x0c\n\x04\x64\x61ta\x18\x03 \x01(\x0c\"\xd7\x02\n\x05\x43hunk\x12\x19\n\x03obs\x18\x01 \x03(\x0b\x32\x0c.asac.Tensor\x12\x1d\n\x07\x61\x63tions\x18\x02 \x01(\x0b\x32\x0c.asac.Tensor\x12\"\n\x0cprev_actions\x18\x03 \x01(\x0b\x32\x0c.asac.Tensor\x12\x1d\n\x07rewards\x18\x04 \x01(\x0b\x32\x0c.asac.Tensor\x12 \n\nterminated\x18\x05 \x01(\x0b\x32\x0c.asac.Tensor\x12\x1f\n\ttruncated\x18\x06 \x01(\x0b\x32\x0c.asac.Tensor\x12$\n\x0e\x62\x65haviour_logp\x18\x07 \x01(\x0b\x32\x0c.asac.Tensor\x12$\n\trnn_state\x18\x08 \x01(\x0b\x32\x0c.asac.TensorH\x00\x88\x01\x01\x12%\n\npriorities\x18\t \x01(\x0b\x32\x0c.asac.TensorH\x01\x88\x01\x01\x42\x0c\n\n_rnn_stateB\r\n\x0b_priorities\"R\n\rInsertRequest\x12\x1b\n\x06\x63hunks\x18\x01 \x03(\x0b\x32\x0b.asac.Chunk\x12\x16\n\ttimeout_s\x18\x02 \x01(\x01H\x00\x88\x01\x01\x42\x0c\n\n_timeout_s\")\n\x0bInsertReply\x12\x1a\n\x04keys\x18\x01 \x03(\x0b\x32\x0c.asac.Tensor\"I\n\rSampleRequest\x12\x12\n\nbatch_size\x18\x01 \x01(\x05\x12\x16\n\ttimeout_s\x18\x02 \x01(\x01H\x00\x88\x01\x01\x42\x0c\n\n_timeout_s\"\x98\x03\n\x0bSampleReply\x12\x1a\n\x04keys\x18\x01 \x01(\x0b\x32\x0c.asac.Tensor\x12#\n\rprobabilities\x18\x02 \x01(\x0b\x32\x0c.asac.Tensor\x12\x12\n\ntable_size\x18\x03 \x01(\x03\x12\x19\n\x03obs\x18\x04 \x03(\x0b\x32\x0c.asac.Tensor\x12\x1d\n\x07\x61\x63tions\x18\x05 \x01(\x0b\x32\x0c.asac.Tensor\x12\"\n\x0cprev_actions\x18\x06 \x01(\x0b\x32\x0c.asac.Tensor\x12\x1d\n\x07rewards\x18\x07 \x01(\x0b\x32\x0c.asac.Tensor\x12 \n\nterminated\x18\x08 \x01(\x0b\x32\x0c.asac.Tensor\x12\x1f\n\ttruncated\x18\t \x01(\x0b\x32\x0c.asac.Tensor\x12$\n\x0e\x62\x65haviour_logp\x18\n \x01(\x0b\x32\x0c.asac.Tensor\x12\x1a\n\x04mask\x18\x0b \x01(\x0b\x32\x0c.asac.Tensor\x12$\n\trnn_state\x18\x0c \x01(\x0b\x32\x0c.asac.TensorH\x00\x88\x01\x01\x42\x0c\n\n_rnn_state\"W\n\x17UpdatePrioritiesRequest\x12\x1a\n\x04keys\x18\x01 \x01(\x0b\x32\x0c.asac.Tensor\x12 \n\npriorities\x18\x02 \x01(\x0b\x32\x0c.asac.Tensor\"\x17\n\x15UpdatePrioritiesReply\"R\n\x16UpdateRnnStatesRequest\x12\x1a\n\x04keys\x18\x01 \x01(\x0b\x32\x0c.asac.Tensor\x12\x1c\n\x06states\x18\x02 \x01(\x0b\x32\x0c.asac.Tensor\"\x16\n\x14UpdateRnnStatesReply\"\r\n\x0bInfoRequest\"W\n\x0fNormalizerStats\x12\r\n\x05\x63ount\x18\x01 \x01(\x03\x12\x1a\n\x04mean\x18\x02 \x01(\x0b\x32\x0c.asac.Tensor\x12\x19\n\x03var\x18\x03 \x01(\x0b\x32\x0c.asac.Tensor\"\xc8\x02\n\tInfoReply\x12/\n\x08\x63ounters\x18\x01 \x03(\x0b\x32\x1d.asac.InfoReply.CountersEntry\x12+\n\x06values\x18\x02 \x03(\x0b\x32\x1b.asac.InfoReply.ValuesEntry\x12\x33\n\nnormalizer\x18\x03 \x03(\x0b\x32\x1f.asac.InfoReply.NormalizerEntry\x1a/\n\rCountersEntry\x12\x0b\n\x03key\x18\x01 \x01(\t\x12\r\n\x05value\x18\x02 \x01(\x03:\x02\x38\x01\x1a-\n\x0bValuesEntry\x12\x0b\n\x03key\x18\x01 \x01(\t\x12\r\n\x05value\x18\x02 \x01(\x01:\x02\x38\x01\x1aH\n\x0fNormalizerEntry\x12\x0b\n\x03key\x18\x01 \x01(\t\x12$\n\x05value\x18\x02 \x01(\x0b\x32\x15.asac.NormalizerStats:\x02\x38\x01\"\x1b\n\x0bSaveRequest\x12\x0c\n\x04path\x18\x01 \x01(\t\"\x0b\n\tSaveReply\"\x1b\n\x0bLoadRequest\x12\x0c\n\x04path\x18\x01 \x01(\t\"\x0b\n\tLoadReply2\x94\x03\n\rReplayService\x12\x30\n\x06Insert\x12\x13.asac.InsertRequest\x1a\x11.asac.InsertReply\x12\x30\n\x06Sample\x12\x13.asac.SampleRequest\x1a\x11.asac.SampleReply\x12N\n\x10UpdatePriorities\x12\x1d.asac.UpdatePrioritiesRequest\x1a\x1b.asac.UpdatePrioritiesReply\x12K\n\x0fUpdateRnnStates\x12\x1c.asac.UpdateRnnStatesRequest\x1a\x1a.asac.UpdateRnnStatesReply\x12*\n\x04Info\x12\x11.asac.InfoRequest\x1a\x0f.asac.InfoReply\x12*\n\x04Save\x12\x11.asac.SaveRequest\x1a\x0f.asac.SaveReply\x12*\n\x04Load\x12\x11.asac.LoadRequest\x1a\x0f.asac.LoadReplyb\x06proto3')
 
 _globals = globals()
 _builder.BuildMessageAndEnumDescriptors(DESCRIPTOR, _globals)
@@ -53,26 +53,30 @@ if not _descriptor._USE_C_DESCRIPTORS:
   _globals['_UPDATEPRIORITIESREQUEST']._serialized_end=1129
   _globals['_UPDATEPRIORITIESREPLY']._serialized_start=1131
   _globals['_UPDATEPRIORITIESREPLY']._serialized_end=1154
-  _globals['_INFOREQUEST']._serialized_start=1156
-  _globals['_INFOREQUEST']._serialized_end=1169
-  _globals['_NORMALIZERSTATS']._serialized_start=1171
-  _globals['_NORMALIZERSTATS']._serialized_end=1258
-  _globals['_INFOREPLY']._serialized_start=1261
-  _globals['_INFOREPLY']._serialized_end=1589
-  _globals['_INFOREPLY_COUNTERSENTRY']._serialized_start=1421
-  _globals['_INFOREPLY_COUNTERSENTRY']._serialized_end=1468
-  _globals['_INFOREPLY_VALUESENTRY']._serialized_start=1470
-  _globals['_INFOREPLY_VALUESENTRY']._serialized_end=1515
-  _globals['_INFOREPLY_NORMALIZERENTRY']._serialized_start=1517
-  _globals['_INFOREPLY_NORMALIZERENTRY']._serialized_end=1589
-  _globals['_SAVEREQUEST']._serialized_start=1591
-  _globals['_SAVEREQUEST']._serialized_end=1618
-  _globals['_SAVEREPLY']._serialized_start=1620
-  _globals['_SAVEREPLY']._serialized_end=1631
-  _globals['_LOADREQUEST']._serialized_start=1633
-  _globals['_LOADREQUEST']._serialized_end=1660
-  _globals['_LOADREPLY']._serialized_start=1662
-  _globals['_LOADREPLY']._serialized_end=1673
-  _globals['_REPLAYSERVICE']._serialized_start=1676
-  _globals['_REPLAYSERVICE']._serialized_end=2003
+  _globals['_UPDATERNNSTATESREQUEST']._serialized_start=1156
+  _globals['_UPDATERNNSTATESREQUEST']._serialized_end=1238
+  _globals['_UPDATERNNSTATESREPLY']._serialized_start=1240
+  _globals['_UPDATERNNSTATESREPLY']._serialized_end=1262
+  _globals['_INFOREQUEST']._serialized_start=1264
+  _globals['_INFOREQUEST']._serialized_end=1277
+  _globals['_NORMALIZERSTATS']._serialized_start=1279
+  _globals['_NORMALIZERSTATS']._serialized_end=1366
+  _globals['_INFOREPLY']._serialized_start=1369
+  _globals['_INFOREPLY']._serialized_end=1697
+  _globals['_INFOREPLY_COUNTERSENTRY']._serialized_start=1529
+  _globals['_INFOREPLY_COUNTERSENTRY']._serialized_end=1576
+  _globals['_INFOREPLY_VALUESENTRY']._serialized_start=1578
+  _globals['_INFOREPLY_VALUESENTRY']._serialized_end=1623
+  _globals['_INFOREPLY_NORMALIZERENTRY']._serialized_start=1625
+  _globals['_INFOREPLY_NORMALIZERENTRY']._serialized_end=1697
+  _globals['_SAVEREQUEST']._serialized_start=1699
+  _globals['_SAVEREQUEST']._serialized_end=1726
+  _globals['_SAVEREPLY']._serialized_start=1728
+  _globals['_SAVEREPLY']._serialized_end=1739
+  _globals['_LOADREQUEST']._serialized_start=1741
+  _globals['_LOADREQUEST']._serialized_end=1768
+  _globals['_LOADREPLY']._serialized_start=1770
+  _globals['_LOADREPLY']._serialized_end=1781
+  _globals['_REPLAYSERVICE']._serialized_start=1784
+  _globals['_REPLAYSERVICE']._serialized_end=2188
 # @@protoc_insertion_point(module_scope)

@@ -100,6 +100,18 @@ class UpdatePrioritiesReply(_message.Message):
     __slots__ = ()
     def __init__(self) -> None: ...
 
+class UpdateRnnStatesRequest(_message.Message):
+    __slots__ = ("keys", "states")
+    KEYS_FIELD_NUMBER: _ClassVar[int]
+    STATES_FIELD_NUMBER: _ClassVar[int]
+    keys: Tensor
+    states: Tensor
+    def __init__(self, keys: _Optional[_Union[Tensor, _Mapping]] = ..., states: _Optional[_Union[Tensor, _Mapping]] = ...) -> None: ...
+
+class UpdateRnnStatesReply(_message.Message):
+    __slots__ = ()
+    def __init__(self) -> None: ...
+
 class InfoRequest(_message.Message):
     __slots__ = ()
     def __init__(self) -> None: ...

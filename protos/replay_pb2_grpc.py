@@ -52,6 +52,11 @@ class ReplayServiceStub:
                 request_serializer=protos_dot_replay__pb2.UpdatePrioritiesRequest.SerializeToString,
                 response_deserializer=protos_dot_replay__pb2.UpdatePrioritiesReply.FromString,
                 _registered_method=True)
+        self.UpdateRnnStates = channel.unary_unary(
+                '/asac.ReplayService/UpdateRnnStates',
+                request_serializer=protos_dot_replay__pb2.UpdateRnnStatesRequest.SerializeToString,
+                response_deserializer=protos_dot_replay__pb2.UpdateRnnStatesReply.FromString,
+                _registered_method=True)
         self.Info = channel.unary_unary(
                 '/asac.ReplayService/Info',
                 request_serializer=protos_dot_replay__pb2.InfoRequest.SerializeToString,
@@ -109,6 +114,16 @@ class ReplayServiceServicer:
         context.set_details('Method not implemented!')
         raise NotImplementedError('Method not implemented!')
 
+    def UpdateRnnStates(self, request, context):
+        """Overwrites the stored recurrent state of each key still stored (sac_config.refresh_rnn_states:
+        the learner recomputes the states over each window it trained on). Called by learners after an
+        update. Errors: INVALID_ARGUMENT (the table stores no recurrent state, dtype/shape mismatch,
+        lengths differ, non-finite states; nothing is changed).
+        """
+        context.set_code(grpc.StatusCode.UNIMPLEMENTED)
+        context.set_details('Method not implemented!')
+        raise NotImplementedError('Method not implemented!')
+
     def Info(self, request, context):
         """Returns sizes, counters, rates and the observation normalizer statistics. Called by learners
         (normalizer), loggers and operators. Errors: none beyond transport errors.
@@ -152,6 +167,11 @@ def add_ReplayServiceServicer_to_server(servicer, server):
                     servicer.UpdatePriorities,
                     request_deserializer=protos_dot_replay__pb2.UpdatePrioritiesRequest.FromString,
                     response_serializer=protos_dot_replay__pb2.UpdatePrioritiesReply.SerializeToString,
+            ),
+            'UpdateRnnStates': grpc.unary_unary_rpc_method_handler(
+                    servicer.UpdateRnnStates,
+                    request_deserializer=protos_dot_replay__pb2.UpdateRnnStatesRequest.FromString,
+                    response_serializer=protos_dot_replay__pb2.UpdateRnnStatesReply.SerializeToString,
             ),
             'Info': grpc.unary_unary_rpc_method_handler(
                     servicer.Info,
@@ -253,6 +273,33 @@ class ReplayService:
             '/asac.ReplayService/UpdatePriorities',
             protos_dot_replay__pb2.UpdatePrioritiesRequest.SerializeToString,
             protos_dot_replay__pb2.UpdatePrioritiesReply.FromString,
+            options,
+            channel_credentials,
+            insecure,
+            call_credentials,
+            compression,
+            wait_for_ready,
+            timeout,
+            metadata,
+            _registered_method=True)
+
+    @staticmethod
+    def UpdateRnnStates(request,
+            target,
+            options=(),
+            channel_credentials=None,
+            call_credentials=None,
+            insecure=False,
+            compression=None,
+            wait_for_ready=None,
+            timeout=None,
+            metadata=None):
+        return grpc.experimental.unary_unary(
+            request,
+            target,
+            '/asac.ReplayService/UpdateRnnStates',
+            protos_dot_replay__pb2.UpdateRnnStatesRequest.SerializeToString,
+            protos_dot_replay__pb2.UpdateRnnStatesReply.FromString,
             options,
             channel_credentials,
             insecure,

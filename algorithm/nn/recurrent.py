@@ -77,15 +77,30 @@ class RecurrentRepresentation(Representation):
         carried ``h``. The first ``burn_in`` positions run without gradients unless
         ``burn_in_gradient``.
         """
+        return self.sequence_with_states(obs, prev_actions, initial, valid, burn_in, burn_in_gradient)[0]
+
+    def sequence_with_states(
+        self,
+        obs: list[Tensor],
+        prev_actions: Tensor,
+        initial: Tensor,
+        valid: Tensor,
+        burn_in: int = 0,
+        burn_in_gradient: bool = False,
+    ) -> tuple[Tensor, Tensor]:
+        """:meth:`sequence`, and the recurrent state fed in at each position ``[B, P, rnn_state_size]``
+        (detached): what an actor would have stored there with these weights
+        (``sac_config.refresh_rnn_states`` writes it back into replay)."""
         b, p = prev_actions.shape[:2]
         features = self.features([o.flatten(0, 1) for o in obs]).view(b, p, -1)
         x = torch.cat([features, prev_actions], dim=-1)
         state = initial
-        outputs = []
+        outputs, fed = [], []
         for t in range(p):
+            fed.append(state.detach())
             with torch.set_grad_enabled(torch.is_grad_enabled() and (t >= burn_in or burn_in_gradient)):
                 h, next_state = self._cell(x[:, t], state)
                 keep = valid[:, t, None]
                 state = torch.where(keep, next_state, state)
                 outputs.append(torch.where(keep, h, state[:, : self.hidden_size]))
-        return torch.stack(outputs, dim=1)
+        return torch.stack(outputs, dim=1), torch.stack(fed, dim=1)

@@ -42,6 +42,10 @@ class ReplayTable(Protocol):
         """Set the priority of each key still stored; evicted or unknown keys are ignored."""
         ...
 
+    def update_rnn_states(self, keys: np.ndarray, states: np.ndarray) -> None:
+        """Overwrite the stored recurrent state ``[N, rnn_state_size]`` of each key still stored."""
+        ...
+
     def info(self) -> dict[str, Any]:
         """Flat dict: ``size``, ``capacity``, ``inserted_steps``, ``sampled_windows``, ... ."""
         ...

@@ -151,6 +151,7 @@ class PrioritizedTable:
                 "sample_calls",
                 "priority_updates",
                 "priority_updates_ignored",
+                "rnn_state_updates",
             ),
             0,
         )
@@ -326,6 +327,30 @@ class PrioritizedTable:
             self._counters["priority_updates"] += n_valid
             self._counters["priority_updates_ignored"] += k.shape[0] - n_valid
 
+    def update_rnn_states(self, keys: np.ndarray, states: np.ndarray) -> None:
+        """Overwrite the stored recurrent state of the steps ``keys`` with ``states [N, S]``
+        (``sac_config.refresh_rnn_states``); evicted keys, bootstrap rows and keys never issued are
+        ignored, as in :meth:`update_priorities`. States must be finite float32."""
+        if self._rnn is None:
+            raise ValueError("update_rnn_states: this table stores no recurrent state (rnn_state_size=0)")
+        k = np.asarray(keys)
+        if k.ndim != 1 or (k.size and k.dtype.kind not in "ui"):
+            raise ValueError(f"update_rnn_states: keys must be a 1-D integer array, got {k.dtype} {k.shape}")
+        s = np.asarray(states)
+        if s.shape != (k.shape[0], self.rnn_state_size) or s.dtype != np.float32:
+            raise ValueError(
+                f"update_rnn_states: states must be float32 [{k.shape[0]}, {self.rnn_state_size}], "
+                f"got {s.dtype} {list(s.shape)}"
+            )
+        if not np.isfinite(s).all():
+            raise ValueError("update_rnn_states: states hold non-finite values")
+        k64 = k.astype(np.int64)
+        rows = k64 % self.capacity
+        with self._lock:
+            valid = (k64 >= 0) & (self._row_key[rows] == k64) & (self._end_key[rows] != k64)
+            self._rnn[rows[valid]] = s[valid]
+            self._counters["rnn_state_updates"] += int(np.count_nonzero(valid))
+
     def info(self) -> dict[str, Any]:
         """Flat ``replay/*`` numbers plus ``"normalizer"``: ``{sensor name: {count, mean, var}}``."""
         with self._lock:
@@ -444,7 +469,8 @@ class PrioritizedTable:
         lim = {k: int(meta["rate_limiter"][k]) for k in ("inserted", "evicted", "sampled")}
         if min(lim.values()) < 0 or lim["inserted"] - lim["evicted"] != int(np.count_nonzero(is_step)):
             raise ValueError(f"rate limiter counters {lim} disagree with the stored rows")
-        counters = {name: int(meta["counters"][name]) for name in self._counters}
+        # A counter added after the snapshot was written (rnn_state_updates) starts at 0.
+        counters = {name: int(meta["counters"].get(name, 0)) for name in self._counters}
         max_priority = float(meta["max_priority"])
         if not 0.0 <= max_priority < np.inf:
             raise ValueError(f"max_priority must be finite and >= 0, got {max_priority}")

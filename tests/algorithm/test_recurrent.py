@@ -17,6 +17,7 @@ from algorithm.nn.recurrent import RecurrentRepresentation
 from algorithm.sac import SAC
 from algorithm.spaces import ActionSpec, EnvSpec, SensorSpec
 from algorithm.trainer import EmbeddedTrainer
+from algorithm.types import Batch
 from envs.make import vector_env_factory
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -120,3 +121,51 @@ def test_actors_store_the_state_they_acted_with_and_learning_resumes_exactly(tmp
     resumed = copy.deepcopy(trainer.sac)
     resumed.load_state_dict(copy.deepcopy(trainer.sac.state_dict()))
     np.testing.assert_array_equal(trainer.sac.update(batch).td_abs, resumed.update(batch).td_abs)
+
+
+def test_refreshed_states_are_what_the_pre_update_network_feeds_at_each_valid_window_row() -> None:
+    """sac.refresh_rnn_states: one (key, state) per valid window row; the first valid row keeps its
+    stored state, later rows get the state the network (before this update) carries there."""
+    sac = make_sac(refresh_rnn_states=True)
+    before = copy.deepcopy(sac)
+    b, length = 4, 5  # burn_in 3 + n_step 2
+    rng = np.random.default_rng(0)
+    mask = np.ones((b, length), dtype=bool)
+    mask[1, :2] = False  # look-back rows before window 1's chunk start
+    mask[2, 4:] = False  # window 2's chunk ends after its step 3
+    keys = np.array([10, 21, 32, 43], dtype=np.uint64)  # the trained step: window position 3
+    batch = Batch(
+        keys=keys, probabilities=np.full(b, 0.01), table_size=100,
+        obs=[rng.standard_normal((b, length + 1, OBS), dtype=np.float32)],
+        actions=rng.uniform(-1, 1, (b, length, ACT)).astype(np.float32),
+        prev_actions=rng.uniform(-1, 1, (b, length, ACT)).astype(np.float32),
+        rewards=rng.standard_normal((b, length), dtype=np.float32),
+        terminated=np.zeros((b, length), bool), truncated=np.zeros((b, length), bool),
+        behaviour_logp=np.zeros((b, length), np.float32), mask=mask,
+        rnn_state=rng.standard_normal((b, H), dtype=np.float32),
+    )  # fmt: skip
+    result = sac.update(batch)
+    assert result.refreshed_rnn_states is not None
+    row_keys, states = result.refreshed_rnn_states
+    expected_keys = [k - 3 + j for i, k in enumerate(keys.tolist()) for j in range(length) if mask[i, j]]
+    assert row_keys.tolist() == expected_keys and row_keys.dtype == np.uint64
+    rep = before.models.representation
+    assert isinstance(rep, RecurrentRepresentation)
+    prev = torch.cat([torch.from_numpy(batch.prev_actions), torch.from_numpy(batch.actions[:, -1:])], dim=1)
+    first = torch.from_numpy(mask).long().argmax(dim=1)
+    valid = torch.arange(length + 1)[None, :] >= first[:, None]
+    with torch.no_grad():
+        _, fed = rep.sequence_with_states(
+            [torch.from_numpy(batch.obs[0])], prev, torch.from_numpy(batch.rnn_state), valid
+        )
+    np.testing.assert_allclose(states, fed[:, :-1].numpy()[mask], rtol=1e-5, atol=1e-6)
+    first_rows = [expected_keys.index(int(k) - 3 + int(first[i])) for i, k in enumerate(keys)]
+    np.testing.assert_array_equal(states[first_rows], batch.rnn_state)
+    assert make_sac().update(batch).refreshed_rnn_states is None  # off by default
+
+
+def test_a_trainer_with_refresh_writes_states_back_into_replay(tmp_path: Path) -> None:
+    trainer = small_trainer(tmp_path, "sac.refresh_rnn_states=true")
+    trainer.run(until_step=150)
+    assert trainer.sac.updates > 10
+    assert trainer.table.info()["rnn_state_updates"] > 0

@@ -14,10 +14,12 @@ import pytest
 
 from tests.algorithm.replay.conftest import Connect
 from tests.algorithm.replay.test_table import (  # noqa: F401  (collected by pytest)
+    test_a_table_without_rnn_state_refuses_rnn_state_updates,
     test_all_zero_priorities_sample_uniformly_among_step_rows,
     test_alpha_zero_is_uniform_whatever_the_priorities,
     test_bad_chunks_are_named_and_store_nothing,
     test_bad_priority_updates_are_named,
+    test_bad_rnn_state_updates_are_named_and_change_nothing,
     test_chunk_longer_than_capacity_is_refused,
     test_fifo_eviction_and_stale_updates_are_ignored,
     test_from_config_wires_the_rate_limiter,
@@ -27,6 +29,7 @@ from tests.algorithm.replay.test_table import (  # noqa: F401  (collected by pyt
     test_keys_are_consecutive_per_chunk_and_skip_bootstrap_rows,
     test_new_rows_get_the_highest_priority_seen,
     test_normalizer_sees_every_inserted_observation_of_vector_sensors,
+    test_refreshed_rnn_states_replace_the_stored_ones_of_live_keys_only,
     test_sample_times_out_below_min_size,
     test_sampled_frequencies_follow_transformed_priorities,
     test_zero_priority_rows_are_never_drawn,

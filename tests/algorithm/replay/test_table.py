@@ -228,6 +228,46 @@ def test_chunk_longer_than_capacity_is_refused(connect: Connect) -> None:
         tab.insert(make_chunk(8, 8))
 
 
+def test_refreshed_rnn_states_replace_the_stored_ones_of_live_keys_only(connect: Connect) -> None:
+    tab = connect(table(capacity=12, window=1, rnn_state_size=2, alpha=0.0))
+    tab.insert(make_chunk(5, 0, rnn_state_size=2))  # keys 0-4 (row 5 is the bootstrap row)
+    fresh = np.full((3, 2), 7.5, dtype=np.float32)
+    tab.update_rnn_states(np.array([1, 3, 5], dtype=np.uint64), fresh)  # 5: a bootstrap row, ignored
+    tab.update_rnn_states(np.array([99], dtype=np.uint64), np.zeros((1, 2), np.float32))  # never issued
+    batch = tab.sample(200)
+    stored = dict(zip(batch.keys.tolist(), batch.rnn_state[:, 0].tolist(), strict=True))
+    assert stored == {0: 0.0, 1: 7.5, 2: 2.0, 3: 7.5, 4: 4.0}  # make_chunk stores each key's number
+    assert tab.info()["rnn_state_updates"] == 2
+
+
+@pytest.mark.parametrize(
+    "keys, states, message",
+    [
+        (np.array([1]), np.zeros((1, 3), np.float32), "states"),
+        (np.array([1]), np.zeros((1, 2), np.float64), "float32"),
+        (np.array([1]), np.full((1, 2), np.nan, np.float32), "non-finite|finite"),
+        (np.array([[1]]), np.zeros((1, 2), np.float32), "keys"),
+    ],
+)
+def test_bad_rnn_state_updates_are_named_and_change_nothing(
+    connect: Connect, keys: np.ndarray, states: np.ndarray, message: str
+) -> None:
+    tab = connect(table(window=1, rnn_state_size=2, alpha=0.0))
+    tab.insert(make_chunk(3, 0, rnn_state_size=2))
+    with pytest.raises(ValueError, match=message):
+        tab.update_rnn_states(keys, states)
+    assert tab.info()["rnn_state_updates"] == 0
+    batch = tab.sample(50)
+    np.testing.assert_array_equal(batch.rnn_state[:, 0], batch.keys.astype(np.float32))
+
+
+def test_a_table_without_rnn_state_refuses_rnn_state_updates(connect: Connect) -> None:
+    tab = connect(table(window=1))
+    tab.insert(make_chunk(3, 0))
+    with pytest.raises(ValueError, match="no recurrent state"):
+        tab.update_rnn_states(np.array([1], np.uint64), np.zeros((1, 2), np.float32))
+
+
 @pytest.mark.parametrize(
     ("keys", "priorities", "message"),
     [
