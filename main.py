@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from algorithm.checkpoint import CheckpointError, checkpoint_path, load_checkpoint
+from algorithm.checkpoint import CheckpointError, checkpoint_path, list_checkpoints, load_checkpoint
 from algorithm.config import ConfigError, apply_overrides, config_from_yaml, load_config
 from algorithm.config_schema import Config
 from algorithm.evaluation import evaluate
@@ -200,6 +200,11 @@ def play(args: argparse.Namespace) -> int:
     paths = RunDir(run_dir)
     if not paths.config.exists():
         raise UsageError(f"--run: {run_dir} is not a run folder (no config.yaml)")
+    learners = sorted(p.name for p in run_dir.glob("learner_*") if RunDir(p).config.exists())
+    if learners and not list_checkpoints(paths.model):  # an evolver's population: each learner has its folder
+        name = run_dir.relative_to(run_root)
+        raise UsageError(f"--run: {run_dir} holds a population; play one learner with -n {name}/<learner>, "
+                         f"one of: {', '.join(learners)}")  # fmt: skip
     config = apply_overrides(config_from_yaml(paths.config.read_text(), str(paths.config)), cli_overrides(args))
     setup_logging(run_dir, args.logger_in_file)
     ckpt = checkpoint_path(paths.model, args.ckpt)

@@ -1,4 +1,4 @@
-"""Distributed ASAC: ``python main_ds.py gym/pendulum {replay,learner,actor,local} ...`` runs one role.
+"""Distributed ASAC: ``python main_ds.py gym/pendulum {replay,learner,actor,evolver,local} ...`` runs one role.
 
 Thin by design, like main.py (whose flags it shares): parse, resolve the config and the run
 directory, call ds/roles.py (ARCHITECTURE.md 1). Exit codes: 0 done, 2 bad usage or config,
@@ -24,6 +24,8 @@ from algorithm.config import ConfigError, apply_overrides, config_from_yaml, con
 from algorithm.config_schema import Config
 from algorithm.trainer import RunDir
 from ds import roles
+from ds.evolver_state import EvolverStateError
+from ds.local import run_local
 from main import UsageError, add_common_args, cli_overrides, copy_model_file, env_factory, play, run_model_builder
 from main import task_dir as resolve_task
 
@@ -61,6 +63,7 @@ def build_parser() -> argparse.ArgumentParser:
         prog="main_ds.py",
         description="Run one role of distributed ASAC, or all of them as local subprocesses.",
         epilog="examples:\n  python main_ds.py gym/pendulum local --actors 2\n"
+        "  python main_ds.py gym/pendulum local --learners 3 --actors 6   # a population with an evolver\n"
         "  python main_ds.py gym/pendulum replay\n"
         "  python main_ds.py gym/pendulum learner --replay_host=10.0.0.2\n"
         "  python main_ds.py gym/pendulum actor --learner_host=10.0.0.3 --replay_host=10.0.0.2 --noise 0.1",
@@ -74,6 +77,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--noise", type=noise_level, help="this actor's exploration noise (default: from its index)")
     p.add_argument("--in_k8s", action="store_true", help="servers listen on all interfaces (net_config.bind_host)")
     p.add_argument("--actors", type=positive, default=1, help="with local: how many actor processes")
+    p.add_argument(
+        "--learners",
+        type=positive,
+        help="with local: run a population of N learners (each with its own replay) under an evolver",
+    )
     return p
 
 
@@ -145,27 +153,17 @@ def run(args: argparse.Namespace) -> int:
     role = ROLES[args.role]
     if args.run:
         return play(args)
-    if role == "evolver":
-        raise UsageError("the evolver role is not built yet (next issue); run replay, learner and actors")
     if args.repeat != 1:
         raise UsageError("--repeat is for main.py; start one distributed run per name")
-    if args.actors != 1 and role != "local":
-        raise UsageError("--actors is for the local role")
+    for flag, given in (("--actors", args.actors != 1), ("--learners", args.learners is not None)):
+        if given and role != "local":
+            raise UsageError(f"{flag} is for the local role")
     if args.ckpt is not None and role not in ("learner", "local"):
         raise UsageError("--ckpt is for the learner (it resumes from that checkpoint)")
+    if role == "local" and args.evolver_host is not None:
+        raise UsageError("local starts its own evolver; --evolver_host is for roles started one by one")
     config, run_dir = resolve(args)
     setup_logging(run_dir, role, args.logger_in_file)
-    if role in ("learner", "local"):
-        run_dir.mkdir(parents=True, exist_ok=True)
-        RunDir(run_dir).config.write_text(config_to_yaml(config))
-    if role == "local":
-        log.info("run %s (seed %s): replay, learner and %d actors", run_dir, config.sac_config.seed, args.actors)
-        extra = {
-            "learner": [] if args.ckpt is None else ["--ckpt", str(args.ckpt)],
-            "actor": [] if args.noise is None else ["--noise", str(args.noise)],
-        }
-        command = [sys.executable, str(Path(__file__).resolve()), args.env]
-        return roles.run_local(command, child_args(args, config), args.actors, extra)
     context = roles.RoleContext(
         config,
         run_dir,
@@ -174,8 +172,16 @@ def run(args: argparse.Namespace) -> int:
         args.device,
         roles.stop_on_signals(),
         token=read_token(config),
+        overrides=tuple(cli_overrides(args)),
     )
+    if role in ("local", "evolver") or (role == "learner" and not context.uses_evolver):
+        run_dir.mkdir(parents=True, exist_ok=True)  # a population's learners write learner_<id>/config.yaml
+        RunDir(run_dir).config.write_text(config_to_yaml(config))
+    if role == "local":
+        return local(args, config, run_dir)
     log.info("%s of run %s (seed %s)", role, run_dir, config.sac_config.seed)
+    if role == "evolver":
+        return roles.run_evolver(context)
     if role == "replay":
         return roles.run_replay(context)
     if role == "learner":
@@ -183,11 +189,29 @@ def run(args: argparse.Namespace) -> int:
     return roles.run_actor(context, args.noise)
 
 
+def local(args: argparse.Namespace, config: Config, run_dir: Path) -> int:
+    """All roles as subprocesses: a replay, a learner and the actors; or, with ``--learners N`` (or
+    ``base_config.evolver_enabled``: N defaults to 2), an evolver, N replays, N learners and the actors."""
+    learners = args.learners or (2 if config.base_config.evolver_enabled else None)
+    seed = config.sac_config.seed
+    if learners is None:
+        log.info("run %s (seed %s): replay, learner and %d actors", run_dir, seed, args.actors)
+    else:
+        log.info("run %s (seed %s): evolver, %d replays, %d learners and %d actors", run_dir, seed, learners,
+                 learners, args.actors)  # fmt: skip
+    extra = {
+        "learner": [] if args.ckpt is None else ["--ckpt", str(args.ckpt)],
+        "actor": [] if args.noise is None else ["--noise", str(args.noise)],
+    }
+    command = [sys.executable, str(Path(__file__).resolve()), args.env]
+    return run_local(command, child_args(args, config), args.actors, extra, learners=learners)
+
+
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         return run(args)
-    except (UsageError, ConfigError, CheckpointError) as e:
+    except (UsageError, ConfigError, CheckpointError, EvolverStateError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
     except roles.RoleError as e:

@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import copy
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -833,6 +833,29 @@ class SAC:
         self._consecutive_nonfinite = int(state["consecutive_nonfinite"])
         self._act_rng.set_state(state["rng"]["act"])
         self._learn_rng.set_state(state["rng"]["learn"])
+
+    def load_model_weights(self, weights: Mapping[str, Tensor | np.ndarray]) -> None:
+        """Replace the online models' weights with ``weights`` (every name of ``models.state_dict()``,
+        same shapes: an evolver's CEM sample), hard-copy them into the target networks and reset the
+        moments of the optimizers that train them. ``log_alpha``, counters and RNGs stay.
+
+        The targets are copied, not blended in at rate ``tau``: a Polyak average of the old targets
+        and the new weights would bootstrap from a network that is neither. The optimizers start
+        afresh because Adam's moments are running averages of the replaced weights' gradients: kept,
+        they would push the first steps from the new point along the old point's momentum, scaled by
+        its second moments. The alpha optimizer keeps its state (``log_alpha`` is not replaced).
+        """
+        state = {name: value if isinstance(value, Tensor) else torch.tensor(value) for name, value in weights.items()}
+        own = self.models.state_dict()
+        wrong = sorted(set(own) ^ set(state)) or [k for k in own if own[k].shape != state[k].shape]
+        if wrong:  # checked first: load_state_dict would copy the matching tensors before it raised
+            raise ValueError(f"load_model_weights: tensors {wrong} are missing, unexpected or of another shape")
+        self.models.load_state_dict(state)
+        self.target_representation.load_state_dict(self.models.representation.state_dict())
+        self.target_q.load_state_dict(self.models.q.state_dict())
+        for name, opt in self._named_optimizers().items():
+            if name != "alpha":
+                opt.state.clear()
 
     def _named_optimizers(self) -> dict[str, torch.optim.Optimizer]:
         named: dict[str, torch.optim.Optimizer] = {"critic": self.critic_optimizer}

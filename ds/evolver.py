@@ -250,8 +250,9 @@ class Evolver:
                         self._event(_round_metrics(result))
                         break
         log.info(
-            "CEM round %d: elites %s, samples for %s, retired %s, sat out %s",
+            "CEM round %d: mean returns %s, elites %s, samples for %s, retired %s, sat out %s",
             result.round,
+            {i: round(r, 1) for i, r in result.mean_returns.items()},
             result.elites,
             sorted(result.samples_for),
             result.retired,

@@ -18,6 +18,11 @@ The learner counts env steps by the replay's ``inserted_steps`` (actors may come
 its own policy every ``eval_per_step`` of them on its own envs (``evaluations.csv``, ``eval/*``),
 checkpoints like the single-process trainer (``model/<env_steps>.pt``) and resumes from the latest
 checkpoint when started again on the same run directory.
+
+In an evolver's population (``member``, ds/evolver_link.py) it also posts every evaluation's return,
+copies its full weights for the evolver's GetWeights between updates, loads the CEM samples the
+evolver draws for it (:meth:`SAC.load_model_weights`) and publishes them to its actors at once,
+follows its replay to a new address, and stops, checkpointed, when the evolver retires it.
 """
 
 from __future__ import annotations
@@ -46,6 +51,7 @@ from algorithm.logging import MetricsWriter, ProgressLine, RateMeter, Timers
 from algorithm.replay import ReplayTable
 from algorithm.sac import SAC
 from algorithm.trainer import EVAL_SEED_OFFSET, RunDir
+from ds.evolver_link import Membership
 from ds.learner_service import ActingPolicy, ActorRegistry, ParamsStore
 from ds.params import ParamsPublisher
 from ds.replay_feeds import BatchPrefetcher, PriorityUpdater, Throttle, unavailable
@@ -78,6 +84,7 @@ class LearnerSummary:
     wall_seconds: float
     last_eval_mean: float | None
     interrupted: bool
+    retired: bool = False
 
 
 class Learner:
@@ -98,6 +105,7 @@ class Learner:
         stop: threading.Event | None = None,
         ckpt_step: int | None = None,
         progress: bool = False,
+        member: Membership | None = None,
         prefetch_depth: int = 4,
         info_every_s: float = 1.0,
         republish_every_s: float = 2.0,
@@ -106,6 +114,9 @@ class Learner:
         self.paths = RunDir(Path(run_dir))
         self.sac, self.replay, self.publisher, self.store = sac, replay, publisher, store
         self.acting, self.registry, self.eval_env = acting, registry, eval_env
+        self.member = member
+        self.replay_address = "" if member is None else member.link.replay_address
+        self.prefetch_depth = prefetch_depth
         self.stop = stop or threading.Event()
         self.progress = progress
         self.info_every_s = info_every_s
@@ -119,11 +130,14 @@ class Learner:
         self.next_save = config.sac_config.save_model_per_step
         self.evaluations = 0
         self.last_eval_mean: float | None = None
+        self.weights_round = 0  # the CEM round whose sample these weights descend from (0: none)
         self.timers = Timers()
         self.eval_seed = int(config.sac_config.seed or 0) + EVAL_SEED_OFFSET
         self._log_replay = Throttle(30.0)
         if list_checkpoints(self.paths.model):
             self.restore(ckpt_step)
+        if member is not None and self.weights_round:
+            member.link.loaded(self.weights_round)
         self.writer = MetricsWriter(self.paths.log / "learner")
         self.writer.text("config", config_to_yaml(config), self.env_steps.total)
 
@@ -142,12 +156,16 @@ class Learner:
         self.priorities.start()
         self._poll_replay()
         try:
-            while not self.stop.is_set() and not self._done():
+            while not self.stop.is_set() and not self._done() and not self._leaving():
                 now = time.perf_counter()
                 self.wall_seconds = now - started
+                if self.member is not None:  # between two updates: a consistent copy for the evolver
+                    self.member.snapshot.offer(self.updates, self.sac.models.state_dict)
                 if now - last_info >= self.info_every_s:
                     self._poll_replay()
                     last_info = now
+                    if self.member is not None:
+                        self._follow_evolver(self.member)
                     self._maybe_evaluate()
                     if (now - last_save) / 60 >= cfg.sac_config.save_model_per_minute or (
                         self.env_steps.total >= self.next_save
@@ -181,28 +199,61 @@ class Learner:
             self.priorities.close()
             if bar is not None:
                 bar.close()
-        interrupted = not self._done()
+        retired = self.member is not None and self.member.link.retired
+        interrupted = not self._done() and not retired
         if self._done():
             self._maybe_evaluate(final=True)
         self.save()
         self.writer.close()
-        return LearnerSummary(self.env_steps.total, self.updates, self.wall_seconds, self.last_eval_mean, interrupted)
+        summary = (self.env_steps.total, self.updates, self.wall_seconds, self.last_eval_mean, interrupted, retired)
+        return LearnerSummary(*summary)
 
     def _done(self) -> bool:
         max_step = self.config.base_config.max_step
         return max_step >= 0 and self.env_steps.total >= max_step
 
-    def publish(self) -> None:
-        """Serialise the acting weights once; send them to subscribers, GetParams and GetAction."""
-        version = self.updates
-        if self.publisher.version is not None and version <= self.publisher.version:
-            return
+    def _leaving(self) -> bool:
+        return self.member is not None and (self.member.link.retired or self.member.link.lost is not None)
+
+    def publish(self, force: bool = False) -> None:
+        """Serialise the acting weights once; send them to subscribers, GetParams and GetAction.
+        The version is the update count; ``force`` publishes without a new update (new weights loaded)."""
+        version, last = self.updates, self.publisher.version
+        if last is not None and version <= last:
+            if not force:
+                return
+            version = last + 1
         state = self.sac.acting_state_dict()
         self.publisher.publish(version, state)
         assert self.publisher.frames is not None
         self.store.put(version, self.publisher.frames)
         if self.acting is not None:
             self.acting.load(version, state)
+
+    def _follow_evolver(self, member: Membership) -> None:
+        """Between updates: load a CEM sample that arrived, and follow the replay to a new address."""
+        member.link.env_steps = self.env_steps.total
+        sample = member.link.take_sample()
+        if sample is not None:
+            self.sac.load_model_weights(sample.weights)
+            self.weights_round = sample.round
+            member.link.loaded(sample.round)
+            self.publish(force=True)  # actors act with the new weights from their next step
+            log.info("loaded the CEM sample of round %d (targets hard-copied, optimizer moments reset); "
+                     "published as version %s", sample.round, self.publisher.version)  # fmt: skip
+        address = member.link.replay_address
+        if address and address != self.replay_address:
+            log.info(
+                "the evolver moved this learner's replay from %s to %s: reconnecting", self.replay_address, address
+            )
+            self.prefetcher.stop()
+            self.priorities.close(timeout=1.0)
+            self.replay, self.replay_address = member.connect_replay(address), address
+            self.env_steps.seen = 0  # a new table counts its inserts from 0; each is an env step of this run
+            self.prefetcher = BatchPrefetcher(self.replay, self.config.replay_config.batch_size, self.prefetch_depth)
+            self.priorities = PriorityUpdater(self.replay)
+            self.prefetcher.start()
+            self.priorities.start()
 
     def _poll_replay(self) -> None:
         """Env steps from the replay's counters and, with use_normalization, its observation stats."""
@@ -231,6 +282,8 @@ class Learner:
         self.evaluations += 1
         self.last_eval_mean = result.mean
         append_evaluation(self.paths.evaluations, steps, self.updates, self.wall_seconds, result)
+        if self.member is not None:
+            self.member.link.post(result.mean, steps)
         self.writer.write(
             {
                 "eval/return_mean": result.mean,
@@ -267,6 +320,7 @@ class Learner:
             "next_eval": self.next_eval,
             "next_save": self.next_save,
             "evaluations": self.evaluations,
+            "weights_round": self.weights_round,
         }
 
     def save(self) -> Path:
@@ -290,5 +344,6 @@ class Learner:
         self.wall_seconds = float(counters["wall_seconds"])
         self.next_eval, self.next_save = int(counters["next_eval"]), int(counters["next_save"])
         self.evaluations = int(counters["evaluations"])
+        self.weights_round = int(counters.get("weights_round", 0))  # checkpoints from before the evolver lack it
         restore_rng(state["rng"])
         log.info("resumed from %s at %d env steps, %d updates", path, self.env_steps.total, self.updates)

@@ -6,32 +6,38 @@ Usage (``main_ds.py`` resolves the config and run directory, then calls exactly 
     code = run_replay(role)                 # serves the replay table until stopped
     code = run_learner(role, ckpt_step=None) # trains until replay has seen max_step env steps
     code = run_actor(role, noise=None)      # acts until the budget is spent
-    code = run_local([python, "main_ds.py", "gym/pendulum"], child_args, actors=2)  # all as subprocesses
+    code = run_evolver(role)                # keeps the population until stopped
 
-Each returns the process exit code: 0 done, 130 stopped by a signal (SIGINT/SIGTERM: the role
-saves what it must first). Addresses come from ``net_config`` (``main_ds.py`` flags override it):
-clients connect to ``<role>_host`` (null: this host), servers listen on ``bind_host``.
+(``ds/local.py`` runs them all as subprocesses.) Each returns the process exit code: 0 done (or, a
+learner, retired by the evolver), 130 stopped by a signal (SIGINT/SIGTERM: the role saves what it
+must first), 1 the evolver forgot a learner. Addresses come from ``net_config`` (``main_ds.py``
+flags override it): clients connect to ``<role>_host`` (null: this host), servers listen on
+``bind_host``.
+
+With an evolver (``base_config.evolver_enabled``, or ``net_config.evolver_host`` set, e.g. by
+``--evolver_host``) learners register with it and run with the config it gives them (their own
+flags on top), replays and actors started without a learner ask it where to work, and every role of
+learner k works in ``<run>/learner_<k>/`` (ds/population.py).
 """
 
 from __future__ import annotations
 
 import logging
 import os
-import signal
+import shutil
 import socket
-import subprocess
 import threading
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
-from types import FrameType
 from typing import TypeVar
 
 import zmq
 from grpc_health.v1 import health
 
 from algorithm.actor import VectorEnvLike
+from algorithm.config import ConfigError, config_to_yaml
 from algorithm.config_schema import Config
 from algorithm.logging import MetricsWriter
 from algorithm.nn.user import ModelBuilder
@@ -39,8 +45,12 @@ from algorithm.replay import PrioritizedTable
 from algorithm.sac import SAC
 from algorithm.spaces import EnvSpec
 from algorithm.trainer import EVAL_SEED_OFFSET, RunDir, seed_everything
-from ds import learner_service, replay_service
+from ds import evolver_service, learner_service, replay_service
 from ds.actor import DistributedActor
+from ds.evolver import Evolver
+from ds.evolver_link import EvolverLink, Membership, WeightsSnapshot, exit_code, wait_for_replay
+from ds.evolver_service import EvolverClient, serve_evolver
+from ds.evolver_state import Assignment
 from ds.learner import Learner
 from ds.learner_service import (
     ActingPolicy,
@@ -51,15 +61,23 @@ from ds.learner_service import (
     learner_message_limit,
     serve_learner,
 )
-from ds.params import ParamsPublisher
+from ds.local import LOCAL_HOST, stop_on_signals
+from ds.params import ParamsPublisher, params_spec
+from ds.population import (
+    AssignmentKeeper,
+    Joined,
+    LearnerAddress,
+    SlotTaken,
+    join_population,
+    learner_dir,
+    member_config,
+    wait_for_assignment,
+)
 from ds.replay_codec import message_limit_bytes
 from ds.replay_service import ReplayClient, serve_replay
 from ds.rpc import set_serving, wait_until_serving
 
 log = logging.getLogger("asac.roles")
-LOCAL_HOST = "127.0.0.1"
-
-
 _T = TypeVar("_T")
 
 
@@ -79,8 +97,9 @@ def _listen(what: str, address: str, flag: str, start: Callable[[], _T]) -> _T:
 @dataclass
 class RoleContext:
     """What every role needs: the resolved config, its run directory, an env factory
-    ``make_env(num_envs, seed)``, the model builder of the run, the torch device, a stop event and
-    the run's shared secret (``net_config.token_file``; None: parameters travel unsigned)."""
+    ``make_env(num_envs, seed)``, the model builder of the run, the torch device, a stop event, the
+    run's shared secret (``net_config.token_file``; None: parameters travel unsigned) and this
+    process's ``--override`` flags (applied again on top of the config an evolver gives)."""
 
     config: Config
     run_dir: Path
@@ -89,10 +108,15 @@ class RoleContext:
     device: str = "cpu"
     stop: threading.Event = field(default_factory=threading.Event)
     token: bytes | None = None
+    overrides: tuple[str, ...] = ()
 
     @property
     def seed(self) -> int:
         return int(self.config.sac_config.seed or 0)
+
+    @property
+    def uses_evolver(self) -> bool:
+        return self.config.base_config.evolver_enabled or self.config.net_config.evolver_host is not None
 
     def spec(self) -> EnvSpec:
         env = self.make_env(1, self.seed)
@@ -107,9 +131,11 @@ class RoleContext:
 
     def address(self, role: str) -> str:
         net = self.config.net_config
-        host, port = {"replay": (net.replay_host, net.replay_port), "learner": (net.learner_host, net.learner_port)}[
-            role
-        ]
+        host, port = {
+            "replay": (net.replay_host, net.replay_port),
+            "learner": (net.learner_host, net.learner_port),
+            "evolver": (net.evolver_host, net.evolver_port),
+        }[role]
         return f"{host or LOCAL_HOST}:{port}"
 
     def replay_limit(self, spec: EnvSpec, rnn_state_size: int) -> int:
@@ -124,27 +150,57 @@ class RoleContext:
             max_chunk_steps=cfg.actor_config.chunk_length,
         )
 
-    def replay_client(self, spec: EnvSpec, rnn_state_size: int) -> ReplayClient:
+    def replay_client(self, spec: EnvSpec, rnn_state_size: int, address: str | None = None) -> ReplayClient:
         limit = self.replay_limit(spec, rnn_state_size)
         return ReplayClient(
-            self.address("replay"), spec.sensors, spec.action.size, rnn_state_size, max_message_bytes=limit
+            address or self.address("replay"), spec.sensors, spec.action.size, rnn_state_size, max_message_bytes=limit
         )
 
+    def evolver_client(self) -> EvolverClient | None:
+        """A client of the evolver once it serves; None if stopped while waiting for it."""
+        client = EvolverClient(self.address("evolver"), token=self.token)
+        service = evolver_service.SERVICE_NAME
+        if wait_until_serving(client.channel, service, "evolver", client.address, self.stop):
+            return client
+        client.close()
+        return None
 
-def stop_on_signals() -> threading.Event:
-    """An event set by the first SIGINT or SIGTERM (the role then finishes cleanly: saves, closes);
-    a second signal raises KeyboardInterrupt to cut a stuck shutdown short."""
-    stop = threading.Event()
 
-    def handler(signum: int, frame: FrameType | None) -> None:
-        if stop.is_set():
-            raise KeyboardInterrupt
-        log.info("%s: stopping (again to force)", signal.Signals(signum).name)
-        stop.set()
+def _fixed_port(name: str, port: int) -> None:
+    if port == 0:
+        raise ConfigError(f"net_config.{name}: 0 (any free port) cannot be announced to the evolver; name a port")
 
-    signal.signal(signal.SIGINT, handler)
-    signal.signal(signal.SIGTERM, handler)
-    return stop
+
+def _name(role: str) -> str:
+    return f"{role} on {socket.gethostname()} (pid {os.getpid()})"
+
+
+# ---------------------------------------------------------------------- evolver
+
+
+def run_evolver(role: RoleContext) -> int:
+    """Keep the population (ds/evolver.py) on ``bind_host:evolver_port`` until stopped: its state lives
+    in ``<run>/evolver/`` (a restarted evolver carries on from it), TensorBoard in ``<run>/log/evolver``."""
+    cfg, net = role.config, role.config.net_config
+    metrics = MetricsWriter(role.run_dir / "log" / "evolver")
+    try:
+        evolver = Evolver(cfg, role.run_dir / "evolver", cfg.base_config.name, token=role.token, metrics=metrics)
+    except BaseException:
+        metrics.close()
+        raise
+    address = f"{net.bind_host}:{net.evolver_port}"
+    server, port, _ = _listen("evolver", address, "--evolver_port", lambda: serve_evolver(evolver, address))
+    evolver.start()
+    info = evolver.info()
+    log.info("evolver of %r serving on %s:%d: %d learners known, %d CEM rounds so far", info.experiment,
+             net.bind_host, port, len(info.learners), info.rounds)  # fmt: skip
+    try:
+        role.stop.wait()
+    finally:
+        server.stop(grace=2.0).wait()
+        evolver.stop()
+        metrics.close()
+    return 130
 
 
 # ---------------------------------------------------------------------- replay
@@ -153,7 +209,51 @@ def stop_on_signals() -> threading.Event:
 def run_replay(role: RoleContext, metrics_every_s: float = 10.0) -> int:
     """Serve the run's prioritized table (rate limiter enforced: actors and learner are separate
     processes) until stopped; with ``save_replay`` load it at start and save it every
-    ``save_model_per_minute`` minutes and at shutdown."""
+    ``save_model_per_minute`` minutes and at shutdown. With an evolver it first asks which learner
+    it serves (announcing ``replay_host:replay_port``) and builds its table from that learner's config."""
+    client, keeper = None, None
+    try:
+        if role.uses_evolver:
+            joined = _replay_assignment(role)
+            if joined is None:
+                return 130
+            client, keeper, role = joined
+        return _serve_replay(role, keeper, metrics_every_s)
+    finally:
+        if keeper is not None:
+            keeper.close()
+        if client is not None:
+            client.close()
+
+
+def _replay_assignment(role: RoleContext) -> tuple[EvolverClient, AssignmentKeeper, RoleContext] | None:
+    net = role.config.net_config
+    _fixed_port("replay_port", net.replay_port)
+    host = net.replay_host or (net.bind_host if net.bind_host not in ("0.0.0.0", "::", "") else socket.getfqdn())
+    address, name = f"{host}:{net.replay_port}", _name("replay")
+    client = role.evolver_client()
+    if client is None:
+        return None
+
+    def assign(previous: str) -> Assignment:
+        return client.assign_replay(name, address, previous)
+
+    job = wait_for_assignment(assign, f"replay at {address}", client.address, role.stop)
+    if job is None:
+        client.close()
+        return None
+    keeper = AssignmentKeeper(client, job, assign, role.stop, follow_gone=False)
+    keeper.start()
+    config = member_config(job.config_yaml, job.learner_id, role.config, role.overrides)
+    log.info("replay at %s serves learner %d", address, job.learner_id)
+    return client, keeper, replace(role, config=config, run_dir=learner_dir(role.run_dir, job.learner_id))
+
+
+def _table_layout(config: Config) -> tuple[object, ...]:
+    return config.replay_config, config.sac_config.burn_in_step, config.sac_config.n_step, config.nn_config
+
+
+def _serve_replay(role: RoleContext, keeper: AssignmentKeeper | None, metrics_every_s: float) -> int:
     cfg = role.config
     seed_everything(role.seed)
     spec = role.spec()
@@ -181,14 +281,28 @@ def run_replay(role: RoleContext, metrics_every_s: float = 10.0) -> int:
     ))  # fmt: skip
     log.info("replay serving on %s:%d (capacity %d steps)", cfg.net_config.bind_host, port, table.capacity)
     writer = MetricsWriter(role.run_dir / "log" / "replay")
-    last_save = time.monotonic()
+    halt = keeper.tenure()[1] if keeper is not None else threading.Event()
+    last_metrics = last_save = time.monotonic()
+    code = 130
     try:
-        while not role.stop.wait(metrics_every_s):
-            info = table.info()
-            writer.write(
-                {f"replay/{k}": v for k, v in info.items() if isinstance(v, int | float)}, info["inserted_steps"]
-            )
-            if saving and (time.monotonic() - last_save) / 60 >= sac_cfg.save_model_per_minute:
+        while not role.stop.wait(1.0):
+            now = time.monotonic()
+            if keeper is not None and halt.is_set() and not role.stop.is_set():
+                job = keeper.job
+                moved = member_config(job.config_yaml, job.learner_id, role.config, role.overrides)
+                if _table_layout(moved) != _table_layout(cfg):
+                    log.info("this replay's learner is gone and learner %d needs another table layout: exiting so "
+                             "that a fresh replay serves it", job.learner_id)  # fmt: skip
+                    code = 0
+                    break
+                log.info("this replay's learner is gone; it serves learner %d now", job.learner_id)
+                halt = keeper.tenure()[1]
+            if now - last_metrics >= metrics_every_s:
+                info = table.info()
+                metrics = {f"replay/{k}": v for k, v in info.items() if isinstance(v, int | float)}
+                writer.write(metrics, info["inserted_steps"])
+                last_metrics = now
+            if saving and (now - last_save) / 60 >= sac_cfg.save_model_per_minute:
                 table.save(path)
                 last_save = time.monotonic()
     finally:
@@ -198,7 +312,7 @@ def run_replay(role: RoleContext, metrics_every_s: float = 10.0) -> int:
             table.save(path)
             log.info("replay saved to %s", path)
         writer.close()
-    return 130
+    return code
 
 
 # ---------------------------------------------------------------------- learner
@@ -206,7 +320,64 @@ def run_replay(role: RoleContext, metrics_every_s: float = 10.0) -> int:
 
 def run_learner(role: RoleContext, ckpt_step: int | None = None, progress: bool = False) -> int:
     """Wait for the replay, then train (ds/learner.py), serving the learner service and
-    broadcasting parameters, until the replay has seen ``max_step`` env steps or a signal."""
+    broadcasting parameters, until the replay has seen ``max_step`` env steps or a signal. With an
+    evolver it first registers (its config comes from the evolver, its own flags on top), works in
+    ``<run>/learner_<id>/``, and exits 0, checkpointed, when the evolver retires it."""
+    net = role.config.net_config
+    params_address = f"tcp://{net.bind_host}:{net.params_port or '*'}"
+    publisher = _listen("learner's parameter broadcast", params_address, "--override net.params_port=PORT",
+                        lambda: ParamsPublisher(params_address, token=role.token))  # fmt: skip
+    client: EvolverClient | None = None
+    joined: Joined | None = None
+    try:
+        if role.uses_evolver:
+            _fixed_port("learner_port", net.learner_port)
+            if (client := role.evolver_client()) is None:
+                return 130
+            if (joined := _join(role, client, int(publisher.address.rsplit(":", 1)[1]))) is None:
+                return 130
+            role = _member_learner(role, joined)
+        return _train(role, publisher, ckpt_step, progress, client, joined)
+    finally:
+        publisher.close()
+        if client is not None:
+            client.close()
+        if joined is not None:
+            joined.slot.release()
+
+
+def _join(role: RoleContext, client: EvolverClient, params_port: int) -> Joined | None:
+    net = role.config.net_config
+    static_replay = f"{net.replay_host}:{net.replay_port}" if net.replay_host is not None else ""
+    address = LearnerAddress(_name("learner"), net.learner_host or "", net.learner_port, params_port, static_replay)
+    try:
+        return join_population(client, role.run_dir, address, role.stop)
+    except SlotTaken as e:
+        raise RoleError(str(e)) from None
+
+
+def _member_learner(role: RoleContext, joined: Joined) -> RoleContext:
+    """Learner k's context: its config and its folder, with the config and model file it runs with."""
+    r = joined.registration
+    config = member_config(r.config_yaml, r.learner_id, role.config, role.overrides)
+    folder = joined.slot.path
+    RunDir(folder).config.write_text(config_to_yaml(config))
+    model_file = RunDir(role.run_dir).model_file
+    if model_file.exists() and not RunDir(folder).model_file.exists():
+        shutil.copyfile(model_file, RunDir(folder).model_file)  # main.py --run -n <run>/learner_<k> builds with it
+    log.info("learner %d of %r in %s (seed %s, random_params %s)", r.learner_id, r.experiment, folder,
+             config.sac_config.seed, r.params or "none")  # fmt: skip
+    return replace(role, config=config, run_dir=folder)
+
+
+def _train(
+    role: RoleContext,
+    publisher: ParamsPublisher,
+    ckpt_step: int | None,
+    progress: bool,
+    client: EvolverClient | None,
+    joined: Joined | None,
+) -> int:
     cfg, net = role.config, role.config.net_config
     if cfg.base_config.torch_threads:
         import torch
@@ -216,44 +387,68 @@ def run_learner(role: RoleContext, ckpt_step: int | None = None, progress: bool 
     spec = role.spec()
     sac = SAC(spec, cfg.sac_config, cfg.nn_config, cfg.replay_config, device=role.device,
               compile=cfg.sac_config.compile, build=role.build)  # fmt: skip
-    replay = role.replay_client(spec, sac.rnn_state_size)
-    if not wait_until_serving(replay.channel, replay_service.SERVICE_NAME, "replay", replay.address, role.stop):
-        return 130
-    params_address = f"tcp://{net.bind_host}:{net.params_port or '*'}"
-    publisher = _listen("learner's parameter broadcast", params_address, "--override net.params_port=PORT",
-                        lambda: ParamsPublisher(params_address, token=role.token))  # fmt: skip
-    params_port = int(publisher.address.rsplit(":", 1)[1])
-    store, registry = ParamsStore(), ActorRegistry()
-    acting = None if cfg.actor_config.update_policy_mode else ActingPolicy(role.sac(spec))
-    servicer = LearnerServicer(spec, registry, store, params_port, acting, sac.rnn_state_size)
-    address = f"{net.bind_host}:{net.learner_port}"
-    server, port, health = _listen("learner", address, "--learner_port", lambda: serve_learner(
-        servicer, address, max_message_bytes=learner_message_limit(sac)))  # fmt: skip
-    eval_env = None
-    if cfg.eval_config.eval_per_step > 0:
-        eval_env = role.make_env(cfg.eval_config.eval_envs, role.seed + EVAL_SEED_OFFSET)
+    replays: list[ReplayClient] = []
+
+    def connect(address: str | None = None) -> ReplayClient:
+        replays.append(role.replay_client(spec, sac.rnn_state_size, address))
+        return replays[-1]
+
+    member = link = None
+    if client is not None and joined is not None:
+        link = EvolverLink(client, joined, params_spec(sac.models.state_dict()))
+        link.start()
+        member = Membership(link, WeightsSnapshot(role.token), connect)
     try:
-        learner = Learner(cfg, role.run_dir, sac, replay, publisher, store, acting=acting, registry=registry,
-                          eval_env=eval_env, stop=role.stop, ckpt_step=ckpt_step, progress=progress)  # fmt: skip
-        learner.publish()
-        set_serving(health, learner_service.SERVICE_NAME, True)
-        log.info("learner serving on %s:%d, parameters on %s", net.bind_host, port, publisher.address)
-        summary = learner.run()
+        replay_address = wait_for_replay(link, role.stop) if link is not None else None
+        if link is not None and joined is not None and replay_address is None:
+            return exit_code(link, joined)
+        replay = connect(replay_address)
+        if not wait_until_serving(replay.channel, replay_service.SERVICE_NAME, "replay", replay.address, role.stop):
+            return 130
+        store, registry = ParamsStore(), ActorRegistry()
+        acting = None if cfg.actor_config.update_policy_mode else ActingPolicy(role.sac(spec))
+        weights = None if member is None else member.snapshot
+        servicer = LearnerServicer(spec, registry, store, publisher_port(publisher), acting, sac.rnn_state_size,
+                                   weights=weights)  # fmt: skip
+        address = f"{net.bind_host}:{net.learner_port}"
+        server, port, health_ = _listen("learner", address, "--learner_port", lambda: serve_learner(
+            servicer, address, max_message_bytes=learner_message_limit(sac)))  # fmt: skip
+        eval_env = None
+        if cfg.eval_config.eval_per_step > 0:
+            eval_env = role.make_env(cfg.eval_config.eval_envs, role.seed + EVAL_SEED_OFFSET)
+        try:
+            learner = Learner(cfg, role.run_dir, sac, replay, publisher, store, acting=acting, registry=registry,
+                              eval_env=eval_env, stop=role.stop, ckpt_step=ckpt_step, progress=progress,
+                              member=member)  # fmt: skip
+            learner.replay_address = replay.address
+            learner.publish()
+            set_serving(health_, learner_service.SERVICE_NAME, True)
+            log.info("learner serving on %s:%d, parameters on %s", net.bind_host, port, publisher.address)
+            summary = learner.run()
+        finally:
+            server.stop(grace=1.0).wait()
+            if eval_env is not None:
+                eval_env.close()
     finally:
-        server.stop(grace=1.0).wait()
-        publisher.close()
-        replay.close()
-        if eval_env is not None:
-            eval_env.close()
+        if link is not None:
+            link.close()
+        for replay in replays:
+            replay.close()
     log.info(
         "learner %s after %d env steps, %d updates, %.0f s; last eval return %s",
-        "stopped" if summary.interrupted else "finished",
+        "retired" if summary.retired else "stopped" if summary.interrupted else "finished",
         summary.env_steps,
         summary.updates,
         summary.wall_seconds,
         "n/a" if summary.last_eval_mean is None else f"{summary.last_eval_mean:.1f}",
     )
+    if link is not None and joined is not None and (link.retired or link.lost):
+        return exit_code(link, joined, summary.updates)
     return 130 if summary.interrupted else 0
+
+
+def publisher_port(publisher: ParamsPublisher) -> int:
+    return int(publisher.address.rsplit(":", 1)[1])
 
 
 # ---------------------------------------------------------------------- actor
@@ -261,21 +456,64 @@ def run_learner(role: RoleContext, ckpt_step: int | None = None, progress: bool 
 
 def run_actor(role: RoleContext, noise: float | None = None) -> int:
     """Act (ds/actor.py) until the replay has seen ``max_step`` env steps, ``max_iter`` iterations
-    of this actor's env 0 end, or a signal."""
+    of this actor's env 0 end, or a signal. With an evolver and no ``--learner_host`` it asks the
+    evolver for a learner (and its replay and config), and moves to another one when its learner
+    retires or stays away longer than its lease."""
     import torch
 
     torch.set_num_threads(role.config.base_config.torch_threads or 1)  # acting is small: leave cores to the learner
+    net = role.config.net_config
+    if not role.uses_evolver or net.learner_host is not None:
+        return _act(role, role.address("learner"), net.learner_host or LOCAL_HOST, role.address("replay"), noise)
+    name = _name("actor")
+    client = role.evolver_client()
+    if client is None:
+        return 130
+
+    def assign(previous: str) -> Assignment:
+        return client.assign_actor(name, previous)
+
+    try:
+        job = wait_for_assignment(assign, "actor", client.address, role.stop)
+        if job is None:
+            return 130
+        keeper = AssignmentKeeper(client, job, assign, role.stop, follow_gone=True)
+        keeper.start()
+        try:
+            while True:
+                job, halt = keeper.tenure()
+                config = member_config(job.config_yaml, job.learner_id, role.config, role.overrides)
+                member = replace(role, config=config, run_dir=learner_dir(role.run_dir, job.learner_id), stop=halt)
+                log.info("actor works for learner %d at %s:%d (replay %s)", job.learner_id, job.learner_host,
+                         job.learner_port, job.replay_address)  # fmt: skip
+                learner = f"{job.learner_host}:{job.learner_port}"
+                code = _act(member, learner, job.learner_host, job.replay_address, noise, name)
+                if role.stop.is_set():
+                    return 130
+                if not halt.is_set():
+                    return code
+        finally:
+            keeper.close()
+    finally:
+        client.close()
+
+
+def _act(
+    role: RoleContext,
+    learner_address: str,
+    learner_host: str,
+    replay_address: str,
+    noise: float | None,
+    name: str | None = None,
+) -> int:
     seed_everything(role.seed)
     spec = role.spec()
     sac = role.sac(spec)
-    replay = role.replay_client(spec, sac.rnn_state_size)
-    learner_host = role.config.net_config.learner_host or LOCAL_HOST
-    learner = LearnerClient(
-        role.address("learner"), spec, sac.rnn_state_size, max_message_bytes=learner_message_limit(sac)
-    )
+    replay = role.replay_client(spec, sac.rnn_state_size, replay_address)
+    learner = LearnerClient(learner_address, spec, sac.rnn_state_size, max_message_bytes=learner_message_limit(sac))
     try:
         actor = DistributedActor(role.config, role.run_dir, role.make_env, sac, replay, learner, learner_host,
-                                 noise=noise, stop=role.stop, token=role.token)  # fmt: skip
+                                 noise=noise, stop=role.stop, token=role.token, name=name)  # fmt: skip
         summary = actor.run()
     finally:
         replay.close()
@@ -285,131 +523,12 @@ def run_actor(role: RoleContext, noise: float | None = None) -> int:
     return 130 if summary.interrupted else 0
 
 
-# ---------------------------------------------------------------------- local
-
-
-def free_port() -> int:
-    """A TCP port that was free on loopback a moment ago."""
-    with socket.socket() as s:
-        s.bind((LOCAL_HOST, 0))
-        return int(s.getsockname()[1])
-
-
-class LocalProcesses:
-    """Children of one ``local`` run in one process group, their output streamed with role prefixes."""
-
-    def __init__(self, stream: Callable[[str], None] = lambda line: print(line, end="", flush=True)) -> None:
-        self.children: dict[str, subprocess.Popen[str]] = {}
-        self.pgid = 0
-        self._stream = stream
-        self._readers: list[threading.Thread] = []
-
-    def start(self, name: str, command: list[str], env: dict[str, str] | None = None) -> None:
-        proc = subprocess.Popen(
-            command,
-            stdout=subprocess.PIPE,
-            stderr=subprocess.STDOUT,
-            stdin=subprocess.DEVNULL,
-            text=True,
-            env={**os.environ, **(env or {})},
-            process_group=self.pgid,  # the first child leads a new group; the others join it
-        )
-        if not self.pgid:
-            self.pgid = proc.pid
-        self.children[name] = proc
-        reader = threading.Thread(target=self._pump, args=(name, proc), daemon=True)
-        reader.start()
-        self._readers.append(reader)
-        log.info("started %s (pid %d)", name, proc.pid)
-
-    def _pump(self, name: str, proc: subprocess.Popen[str]) -> None:
-        assert proc.stdout is not None
-        for line in proc.stdout:
-            self._stream(f"[{name}] {line}")
-
-    def signal(self, names: list[str], signum: int) -> None:
-        for name in names:
-            proc = self.children[name]
-            if proc.poll() is None:
-                proc.send_signal(signum)
-
-    def stop_all(self, grace_s: float) -> None:
-        """SIGINT to the group, wait ``grace_s``; then SIGTERM, wait 5 s; then SIGKILL."""
-        for signum, wait_s in ((signal.SIGINT, grace_s), (signal.SIGTERM, 5.0), (signal.SIGKILL, 5.0)):
-            if self.wait_all(0):
-                break
-            if signum != signal.SIGINT:
-                log.warning("children still running after %.0f s: %s", wait_s, signal.Signals(signum).name)
-            try:
-                os.killpg(self.pgid, signum)
-            except ProcessLookupError:
-                break
-            self.wait_all(wait_s)
-        for reader in self._readers:
-            reader.join(2.0)
-
-    def wait_all(self, timeout_s: float, names: list[str] | None = None) -> bool:
-        deadline = time.monotonic() + timeout_s
-        procs = [self.children[n] for n in names or list(self.children)]
-        while any(p.poll() is None for p in procs):
-            if time.monotonic() >= deadline:
-                return False
-            time.sleep(0.1)
-        return True
-
-
-def run_local(
-    command: list[str],
-    child_args: list[str],
-    actors: int,
-    role_args: dict[str, list[str]] | None = None,
-    grace_s: float = 30.0,
-) -> int:
-    """Replay, learner and ``actors`` actors as subprocesses ``command + [role] + child_args`` (plus
-    ``role_args[role]``) on loopback with free ports. Returns 0 when the learner finishes (then
-    the actors and then the replay are stopped; the replay saves), 130 on SIGINT/SIGTERM (every
-    child gets SIGINT, then SIGTERM and SIGKILL after ``grace_s``), 1 when a child fails (the others
-    are stopped)."""
-    ports = ["--replay_host", LOCAL_HOST, "--replay_port", str(free_port()), "--learner_host", LOCAL_HOST,
-             "--learner_port", str(free_port()), "--override", "net.params_port=0"]  # fmt: skip
-    children = LocalProcesses()
-    stop = stop_on_signals()
-    try:
-        extra = role_args or {}
-        children.start("replay", [*command, "replay", *child_args, *ports, *extra.get("replay", [])])
-        children.start("learner", [*command, "learner", *child_args, *ports, *extra.get("learner", [])])
-        for i in range(actors):
-            children.start(f"actor-{i}", [*command, "actor", *child_args, *ports, *extra.get("actor", [])])
-        code = _supervise(children, stop)
-    except KeyboardInterrupt:
-        code = 130
-    if code == 0:  # the run's budget is spent: actors first (nothing left to learn from), then the replay
-        actor_names = [n for n in children.children if n.startswith("actor")]
-        children.signal(actor_names, signal.SIGINT)
-        children.wait_all(grace_s, actor_names)
-        children.signal(["replay"], signal.SIGINT)
-    try:
-        children.stop_all(grace_s)
-    except KeyboardInterrupt:  # a second Ctrl-C: no more waiting
-        os.killpg(children.pgid, signal.SIGKILL)
-        children.wait_all(5.0)
-        code = 130
-    return code
-
-
-def _supervise(children: LocalProcesses, stop: threading.Event) -> int:
-    while not stop.wait(0.2):
-        for name, proc in children.children.items():
-            code = proc.poll()
-            if code is None:
-                continue
-            if name == "learner" and code == 0:
-                log.info("learner finished")
-                return 0
-            if code != 0 or name == "replay":
-                log.error("%s exited with code %d: stopping the others", name, code)
-                return 1
-    return 130
-
-
-__all__ = ["RoleContext", "RoleError", "run_actor", "run_learner", "run_local", "run_replay", "stop_on_signals"]
+__all__ = [
+    "RoleContext",
+    "RoleError",
+    "run_actor",
+    "run_evolver",
+    "run_learner",
+    "run_replay",
+    "stop_on_signals",
+]

@@ -390,6 +390,31 @@ def test_acting_state_dict_carries_the_policy_to_another_instance() -> None:
         actor.load_acting_state_dict({"critic.w": torch.zeros(1)})
 
 
+def test_load_model_weights_hard_copies_targets_and_restarts_the_moments() -> None:
+    """An evolver's sample (ds/population.py): online weights replaced, targets equal to them at once,
+    Adam's moments of the replaced weights gone (the alpha optimizer's kept), log_alpha untouched."""
+    elite, learner = make_sac(seed=3), make_sac()
+    for s in range(3):
+        elite.update(make_batch(seed=s))
+        learner.update(make_batch(seed=s))
+    sample = {k: v.numpy().copy() for k, v in elite.models.state_dict().items()}  # as the network delivers it
+    log_alpha = learner.log_alpha.detach().clone()
+    learner.load_model_weights(sample)
+    assert_same_state(elite.models.state_dict(), learner.models.state_dict())
+    assert_same_state(learner.models.q.state_dict(), learner.target_q.state_dict())
+    rep, target_rep = learner.models.representation.state_dict(), learner.target_representation.state_dict()
+    assert_same_state(rep, target_rep)
+    assert not learner.critic_optimizer.state and learner.policy_optimizer is not None
+    assert not learner.policy_optimizer.state
+    assert learner.alpha_optimizer is not None and learner.alpha_optimizer.state
+    assert torch.equal(learner.log_alpha.detach(), log_alpha)
+    assert not learner.update(make_batch(seed=9)).skipped  # trains on from the new point
+    before = snapshot(learner)
+    with pytest.raises(ValueError, match=r"tensors \['q\."):
+        learner.load_model_weights({k: v for k, v in sample.items() if not k.startswith("q.")})
+    assert_same_state(before, learner.state_dict())  # nothing half-loaded
+
+
 def test_head_subsets_are_fresh_and_of_the_configured_size() -> None:
     sac = make_sac(ensemble_q_num=5, ensemble_q_sample=2)
     subsets = [sac._subset() for _ in range(20)]
