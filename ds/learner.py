@@ -35,6 +35,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from algorithm.actor import VectorEnvLike
 from algorithm.checkpoint import (
     capture_rng,
@@ -124,6 +126,7 @@ class Learner:
         self.prefetcher = BatchPrefetcher(replay, config.replay_config.batch_size, prefetch_depth)
         self.priorities = PriorityUpdater(replay)
         self.updates = 0
+        self.rnn_refreshes_skipped = 0
         self.env_steps = EnvSteps()
         self.wall_seconds = 0.0
         self.next_eval = config.eval_config.eval_per_step
@@ -187,6 +190,9 @@ class Learner:
                 if priorities_matter and not result.skipped:
                     with self.timers.phase("priorities"):
                         self.priorities.put(batch.keys, result.td_abs)
+                if result.refreshed_rnn_states is not None:
+                    with self.timers.phase("rnn_refresh"):
+                        self._refresh_rnn_states(*result.refreshed_rnn_states)
                 self.updates += 1
                 if self.updates % publish_every == 0:
                     with self.timers.phase("publish"):
@@ -207,6 +213,16 @@ class Learner:
         self.writer.close()
         summary = (self.env_steps.total, self.updates, self.wall_seconds, self.last_eval_mean, interrupted, retired)
         return LearnerSummary(*summary)
+
+    def _refresh_rnn_states(self, keys: np.ndarray, states: np.ndarray) -> None:
+        """sac_config.refresh_rnn_states: write the recomputed states back. A refresh only freshens
+        stored states, so one the replay cannot take now (unreachable) is skipped and counted."""
+        try:
+            self.replay.update_rnn_states(keys, states)
+        except ReplayRpcError as e:
+            if not unavailable(e):
+                raise
+            self.rnn_refreshes_skipped += 1
 
     def _done(self) -> bool:
         max_step = self.config.base_config.max_step
@@ -303,6 +319,7 @@ class Learner:
             **{f"learner/{k}": float(v) for k, v in self.publisher.metrics().items()},
             **self.timers.fractions(),
             "learner/updates": float(self.updates),
+            "learner/rnn_refreshes_skipped": float(self.rnn_refreshes_skipped),
             "time/updates_per_second": updates_per_s,
             "time/wall_seconds": self.wall_seconds,
         }

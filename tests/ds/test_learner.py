@@ -259,3 +259,26 @@ def test_learner_takes_the_replays_normalizer_stats_and_publishes_them(
     _, params = decode_params(latest[1], params_spec(sac.acting_state_dict()))
     np.testing.assert_allclose(params["normalizer.mean_obs"], stats["mean"], rtol=1e-6)
     assert int(params["normalizer.count"]) == stats["count"]
+
+
+def test_a_recurrent_learner_refreshes_the_stored_states_over_grpc(over_grpc: ServeOverGrpc, tmp_path: Path) -> None:
+    rnn = ["sac.use_rnn=true", "sac.burn_in_step=2", "nn.rnn_units=8", "sac.refresh_rnn_states=true"]
+    config = load_config(ROOT / "envs/gym/pendulum", None, [*SMALL, *rnn]).config
+    spec = make_vector_env("Pendulum-v1", 1, seed=0).spec
+    sac = SAC(spec, config.sac_config, config.nn_config, config.replay_config)
+    table = PrioritizedTable(10_000, spec.sensors, spec.action.size, window=5, rnn_state_size=8, seed=0, burn_in=2)
+    for i in range(6):
+        table.insert(make_chunk(50, 51 * i, spec.sensors, spec.action.size, rnn_state_size=8))
+    client = over_grpc(table)
+    stop = threading.Event()
+    publisher = ParamsPublisher("tcp://127.0.0.1:*")
+    learner = Learner(config, tmp_path, sac, client, publisher, ParamsStore(), stop=stop)
+    thread = threading.Thread(target=learner.run)
+    thread.start()
+    try:
+        until(lambda: learner.updates >= 10, timeout_s=60)
+    finally:
+        stop.set()
+        thread.join(30)
+        publisher.close()
+    assert table.info()["rnn_state_updates"] > 0 and learner.rnn_refreshes_skipped == 0
