@@ -150,12 +150,6 @@ class SacConfig(Section):
         "over each sampled window back into replay, so later windows start from fresher stored states "
         "(R2D2's stored-state staleness; Kapturowski et al. 2019).",
     )
-    target_thread: bool = Field(
-        False,
-        description="Compute each update's bootstrapped target (next-state policy and target Q, no gradients) "
-        "on a second thread while the online forward passes run: uses a second core (n-step targets; "
-        "V-trace targets stay on the update's thread).",
-    )
     compute_dtype: Literal["float32", "bfloat16", "auto"] = Field(
         "float32",
         description="dtype of the hidden layers' matmuls in updates (torch.autocast); output layers, "

@@ -22,7 +22,6 @@ from __future__ import annotations
 import copy
 import math
 from collections.abc import Callable, Mapping, Sequence
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -193,8 +192,6 @@ class SAC:
         # torch.compile of the loss computation (forward and, through AOTAutograd, backward);
         # its first update compiles for ~20 s on CPU. See bench/learner.py for what it gains.
         self._compute_losses = torch.compile(self._losses) if compile else self._losses
-        # sac.target_thread: one worker thread computes the bootstrapped target of each update.
-        self._target_pool = ThreadPoolExecutor(1, thread_name_prefix="sac-target") if sac.target_thread else None
         # Hidden layers in bfloat16 (sac.compute_dtype): 2.2x faster matmuls on this project's AVX512-BF16
         # CPUs, 1.4x faster updates (bench/learner.py); output layers stay float32 (nn.layers.in_float32).
         self._low_precision = uses_bfloat16(sac.compute_dtype, self.device)
@@ -547,21 +544,6 @@ class SAC:
 
         # 1. Target y for the trained step: n-step return + gamma^m V(o_m)  (eq. 2, 3, 5), or the
         #    V-trace estimate over the window (returns.vtrace_target).
-        def bootstrapped_target() -> tuple[Tensor, Tensor]:
-            """``(y [B], V(o_m) [B])`` without gradients; may run on the target thread (whose grad
-            mode and autocast state are its own, hence set here)."""
-            with torch.no_grad(), torch.autocast(dev.type, dtype=torch.bfloat16, enabled=self._low_precision):
-                m = bootstrap_index(valid)
-                next_pi = self._policy(states_at(m, False), noise[:, 1], masks_at(m))
-                next_q = self.target_q(states_at(m, True), next_pi.continuous, target_heads)
-                v = soft_value(next_q.min(dim=0).values, next_pi, alpha, alpha_d, branches)
-                return n_step_target(rewards, terminated, valid, v, sac.gamma), v
-
-        # With sac.target_thread the target is computed on a second core while this thread runs the
-        # online forward passes below; both only read the weights (the optimizers step after both).
-        pending_target = None
-        if self._target_pool is not None and not sac.use_n_step_is:
-            pending_target = self._target_pool.submit(bootstrapped_target)
         with torch.no_grad():
             if sac.use_n_step_is:
                 assert online_all is not None
@@ -576,8 +558,12 @@ class SAC:
                 weighted = rho > 0
                 metrics["learner/vtrace_rho"] = rho[weighted] if weighted.any() else torch.ones(1, device=dev)
                 v = values[:, 1]
-            elif pending_target is None:
-                y, v = bootstrapped_target()
+            else:
+                m = bootstrap_index(valid)
+                next_pi = self._policy(states_at(m, False), noise[:, 1], masks_at(m))
+                next_q = self.target_q(states_at(m, True), next_pi.continuous, target_heads)
+                v = soft_value(next_q.min(dim=0).values, next_pi, alpha, alpha_d, branches)
+                y = n_step_target(rewards, terminated, valid, v, sac.gamma)
             action0 = actions[:, 0]
             old_q = None
             if sac.clip_epsilon is not None:
@@ -599,8 +585,6 @@ class SAC:
         pi = self._policy(state.detach(), noise[:, 0], masks_at(0))
         q_pi = q(state.detach(), pi.continuous, policy_heads, detach_params=True).min(dim=0).values
         pi_loss, pi_metrics = policy_loss(q_pi, pi, alpha, alpha_d, branches)
-        if pending_target is not None:
-            y, v = pending_target.result()
         q_loss, td_abs, q_metrics = critic_loss(q_taken, y, weights, sac.clip_epsilon, old_q)
         a_loss = torch.zeros((), device=dev)
         if self.alpha_optimizer is not None:

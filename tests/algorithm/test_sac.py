@@ -334,22 +334,6 @@ def test_the_same_seed_gives_the_same_run() -> None:
     assert not np.array_equal(make_sac(seed=2).update(make_batch()).td_abs, make_sac().update(make_batch()).td_abs)
 
 
-@pytest.mark.parametrize("compute_dtype", ["float32", "bfloat16"])
-def test_a_target_thread_changes_nothing_but_where_the_target_is_computed(compute_dtype: str) -> None:
-    """sac.target_thread: the same updates, bit for bit (the target thread sets its own no-grad and
-    autocast state), with n-step targets and terminations in the batch."""
-    plain = make_sac(compute_dtype=compute_dtype, n_step=3)
-    threaded = make_sac(compute_dtype=compute_dtype, n_step=3, target_thread=True)
-    for seed in range(4):
-        terminated = np.zeros((8, 3), dtype=bool)
-        terminated[seed, 1] = True
-        batch = make_batch(length=3, seed=seed, terminated=terminated)
-        a, b = plain.update(batch, with_metrics=True), threaded.update(batch, with_metrics=True)
-        np.testing.assert_array_equal(a.td_abs, b.td_abs)
-        assert a.metrics == b.metrics
-    assert_same_state(snapshot(plain)["models"], snapshot(threaded)["models"])
-
-
 def test_target_reads_the_obs_after_the_last_valid_step_only() -> None:
     sac = make_sac(n_step=3)
     mask = np.array([[True, True, False]] * 8)
