@@ -115,6 +115,7 @@ def kubectl() -> str:
 
 @functools.cache
 def _render(name: str, tmp_root: str) -> tuple[dict[str, Any], ...]:
+    binary = kubectl()
     if "+" in name:  # an optional component on top of the smoke overlay, in a copy of k8s/
         overlay, component = name.split("+")
         tree = Path(tmp_root) / name / "k8s"
@@ -133,7 +134,7 @@ def _render(name: str, tmp_root: str) -> tuple[dict[str, Any], ...]:
         )
     else:
         folder = K8S / name
-    done = subprocess.run([kubectl(), "kustomize", str(folder)], capture_output=True, text=True, timeout=60)
+    done = subprocess.run([binary, "kustomize", str(folder)], capture_output=True, text=True, timeout=60)
     assert done.returncode == 0, f"kubectl kustomize k8s/{name} failed:\n{done.stderr}"
     return tuple(doc for doc in yaml.safe_load_all(done.stdout) if doc)
 
