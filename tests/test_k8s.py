@@ -330,24 +330,21 @@ def test_learner_k_finds_replay_k(render: Any, name: str) -> None:
     headless = {d["metadata"]["name"] for d in docs if d["kind"] == "Service" and d["spec"].get("clusterIP") == "None"}
     for workload in (learner, replay):
         assert workload["spec"]["serviceName"] == workload["metadata"]["name"] in headless
+    replay_name, service = replay["metadata"]["name"], replay["spec"]["serviceName"]
     for k in range(learner["spec"]["replicas"]):
-        pod = f"{learner['metadata']['name']}-{k}"
-        assert (
-            paired_hosts(pod, "learner")["replay_host"]
-            == f"{replay['metadata']['name']}-{k}.{replay['spec']['serviceName']}"
-        )
-        assert paired_hosts(f"{replay['metadata']['name']}-{k}", "replay") == {
-            "replay_host": paired_hosts(pod, "learner")["replay_host"]
-        }
+        given = paired_hosts(f"{learner['metadata']['name']}-{k}", "learner")["replay_host"]
+        assert given == f"{replay_name}-{k}.{service}"  # replay pod k through its headless Service
+        assert paired_hosts(f"{replay_name}-{k}", "replay") == {"replay_host": given}  # what replay k announces
+    for c in (roles["learner"], roles["replay"]):
+        assert c.args.replay_host is None, f"{c.where}: a fixed --replay_host overrides the pairing by ordinal"
 
 
 @pytest.mark.parametrize("name", RENDERS)
 def test_cuda_goes_with_a_gpu_and_the_cuda_image(render: Any, name: str) -> None:
     for c in asac_containers(render(name)):
-        args = c.args
         gpu = "nvidia.com/gpu" in c.spec["resources"].get("limits", {})
         cuda_image = c.spec["image"].split(":")[0].endswith("asac-cuda")
-        assert (args.device == "cuda") == gpu == cuda_image, f"{c.where}: --device {args.device}, gpu {gpu}"
+        assert (c.args.device == "cuda") == gpu == cuda_image, f"{c.where}: --device {c.args.device}, gpu {gpu}"
 
 
 def test_overlays_have_the_sizes_they_promise(render: Any) -> None:
