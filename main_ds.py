@@ -15,6 +15,7 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 import argparse
 import logging
 import random
+import socket
 import sys
 import time
 from pathlib import Path
@@ -23,7 +24,7 @@ from algorithm.checkpoint import CheckpointError
 from algorithm.config import ConfigError, apply_overrides, config_from_yaml, config_to_yaml, load_config
 from algorithm.config_schema import Config
 from algorithm.trainer import RunDir
-from ds import roles
+from ds import k8s, roles
 from ds.evolver_state import EvolverStateError
 from ds.local import run_local
 from main import UsageError, add_common_args, cli_overrides, copy_model_file, env_factory, play, run_model_builder
@@ -75,7 +76,12 @@ def build_parser() -> argparse.ArgumentParser:
         p.add_argument(f"--{peer}_host", help=f"address of the {peer} (net_config.{peer}_host)")
         p.add_argument(f"--{peer}_port", type=port, help=f"port of the {peer} (net_config.{peer}_port)")
     p.add_argument("--noise", type=noise_level, help="this actor's exploration noise (default: from its index)")
-    p.add_argument("--in_k8s", action="store_true", help="servers listen on all interfaces (net_config.bind_host)")
+    p.add_argument(
+        "--in_k8s",
+        action="store_true",
+        help="servers listen on all interfaces (net_config.bind_host); learner k and replay k of the "
+        "StatefulSets pair by pod ordinal (ds/k8s.py)",
+    )
     p.add_argument("--actors", type=positive, default=1, help="with local: how many actor processes")
     p.add_argument(
         "--learners",
@@ -107,6 +113,12 @@ def resolve(args: argparse.Namespace) -> tuple[Config, Path]:
             setattr(net, f"{peer}_port", number)
     if args.in_k8s:
         net.bind_host = "0.0.0.0"
+        # Learner k and replay k of the StatefulSets find each other by ordinal (ds/k8s.py); the pod
+        # name is the hostname, or ASAC_POD_NAME (the Downward API's metadata.name) when set.
+        pod = os.environ.get("ASAC_POD_NAME") or socket.gethostname()
+        for key, value in k8s.paired_hosts(pod, ROLES[args.role]).items():
+            if getattr(args, key) is None:  # an explicit --replay_host / --learner_host wins
+                setattr(net, key, value)
     read_token(config)  # a missing or empty secret stops here, before anything starts
     copy_model_file(task, config, run_dir, explicit=args.nn is not None)
     return config, run_dir

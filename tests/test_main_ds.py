@@ -99,6 +99,27 @@ def test_a_taken_port_is_a_clear_error(tmp_path: Path) -> None:
     assert "Traceback" not in done.stderr
 
 
+@pytest.mark.grpc
+def test_in_k8s_pairs_learner_k_with_replay_k_by_pod_name(tmp_path: Path) -> None:
+    """--in_k8s: the learner in pod asac-learner-2 looks for replay 2 through its headless Service,
+    and says so while it waits; an explicit --replay_host still wins."""
+    log = tmp_path / "learner.log"
+    env = {**ENV, "ASAC_POD_NAME": "asac-learner-2"}
+    for extra, expected in (([], "waiting for replay at asac-replay-2.asac-replay:61002"),
+                            (["--replay_host", "10.9.9.9"], "waiting for replay at 10.9.9.9:61002")):  # fmt: skip
+        with log.open("wb") as out:
+            proc = subprocess.Popen(command("gym/pendulum", "learner", "--in_k8s", "--no_progress", *extra),
+                                    cwd=tmp_path, env=env, stdout=out, stderr=subprocess.STDOUT)  # fmt: skip
+        try:
+            deadline = time.monotonic() + 120
+            while expected not in log.read_text() and time.monotonic() < deadline and proc.poll() is None:
+                time.sleep(0.2)
+            assert expected in log.read_text(), log.read_text()[-2000:]
+        finally:
+            proc.send_signal(signal.SIGINT)
+            proc.wait(timeout=60)
+
+
 # ---------------------------------------------------------------------- local runs
 
 
