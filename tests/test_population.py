@@ -247,7 +247,17 @@ def test_a_sabotaged_learner_is_never_elite_and_is_fixed_by_elite_samples_or_ret
     if me["retired_round"] is not None:
         assert sabotaged.wait(timeout=60) == 0, text[-3000:]
         assert json.loads((pop.run / "learner_0/learner.json").read_text())["status"] == "retired"
-        outcome = f"retired in round {me['retired_round']}"
+
+        def actors_moved() -> bool:  # the retired learner's actors asked the evolver again and went elsewhere
+            info = pop.info()
+            if info is None:
+                return False
+            on = {x.learner_id: x.actors for x in info.learners}
+            return on.get(0, 0) == 0 and sum(n for i, n in on.items() if i != 0) == 3
+
+        pop.wait_for("the retired learner's actors working for the other learners", actors_moved, 120)
+        assert all(p.poll() is None for label, p in pop.procs.items() if label.startswith("actor-"))
+        outcome = f"retired in round {me['retired_round']}; its actors moved"
     else:
         mean_before, mean_after = sum(before) / len(before), sum(after) / len(after)
         assert mean_after > mean_before + RECOVERY, (before, after)
