@@ -166,7 +166,7 @@ class ReplaySink:
         self._pending.popleft()
         if pending.final:
             self.unsent_steps += pending.steps()
-            log.info("stopping: a chunk of %d steps could not be inserted", pending.steps())
+            log.info("stopping: %d chunks (%d steps) could not be inserted", len(pending.chunks), pending.steps())
             return
         self.between()
         self._send(pending.chunks)
