@@ -41,6 +41,7 @@ from algorithm.types import Chunk
 from ds import learner_service, replay_service
 from ds.learner_service import LearnerClient, LeaseExpired, Registration, RemotePolicy
 from ds.params import ParamsError, ParamsSubscriber, decode_params, params_spec
+from ds.replay_codec import chunk_payload_bytes
 from ds.replay_feeds import Throttle
 from ds.replay_service import PendingInsert, ReplayClient, ReplayRpcError
 from ds.rpc import peer_gone, wait_until_serving
@@ -121,10 +122,11 @@ class ReplaySink:
 
     def _send_queued(self) -> None:
         """Send the waiting chunks, as many per request as the limits allow."""
-        budget = self.replay.max_message_bytes // 2
+        replay = self.replay
+        budget = replay.max_message_bytes // 2
         count, size = 0, 0
         for chunk in self._queued[: self.max_chunks_per_insert]:
-            size += _chunk_bytes(chunk)
+            size += chunk_payload_bytes(replay.sensors, replay.action_size, len(chunk), replay.rnn_state_size)
             if count and size > budget:
                 break
             count += 1
@@ -171,11 +173,6 @@ class ReplaySink:
         self.between()
         self._send(pending.chunks)
         self._pending.rotate(1)  # the retry goes first again: settle it before newer inserts
-
-
-def _chunk_bytes(chunk: Chunk) -> int:
-    arrays = [*chunk.obs, chunk.actions, chunk.prev_actions, chunk.rewards, chunk.behaviour_logp]
-    return sum(a.nbytes for a in arrays) + (0 if chunk.rnn_state is None else chunk.rnn_state.nbytes)
 
 
 @dataclass
