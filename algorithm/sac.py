@@ -581,11 +581,10 @@ class SAC:
                 torch.cat(targets, dim=-1) if targets else None, sac.transition_kl,
             )  # fmt: skip
             metrics.update({f"learner/prediction_{k}": v.detach() for k, v in predictions.items()})
-        q_taken = self._q_taken(q, state, action0)
+        q_loss, td_abs, q_metrics = critic_loss(self._q_taken(q, state, action0), y, weights, sac.clip_epsilon, old_q)
         pi = self._policy(state.detach(), noise[:, 0], masks_at(0))
         q_pi = q(state.detach(), pi.continuous, policy_heads, detach_params=True).min(dim=0).values
         pi_loss, pi_metrics = policy_loss(q_pi, pi, alpha, alpha_d, branches)
-        q_loss, td_abs, q_metrics = critic_loss(q_taken, y, weights, sac.clip_epsilon, old_q)
         a_loss = torch.zeros((), device=dev)
         if self.alpha_optimizer is not None:
             if pi.continuous_log_prob is not None:

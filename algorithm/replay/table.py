@@ -312,20 +312,17 @@ class PrioritizedTable:
     def update_priorities(self, keys: np.ndarray, priorities: np.ndarray) -> None:
         """Set raw priorities (e.g. mean |TD| over heads) of ``keys``; keys that are evicted,
         bootstrap rows or never issued are ignored. Shapes must match; values finite and >= 0."""
-        k = np.asarray(keys)
-        if k.ndim != 1 or (k.size and k.dtype.kind not in "ui"):
-            raise ValueError(f"update_priorities: keys must be a 1-D integer array, got {k.dtype} {k.shape}")
-        p = self._transform(self._check_priorities(priorities, k.shape[0], "update_priorities"))
-        k64 = k.astype(np.int64)  # uint64 keys >= 2**63 wrap to negatives: never issued, so ignored
+        k64 = _keys_int64(keys, "update_priorities")
+        p = self._transform(self._check_priorities(priorities, k64.shape[0], "update_priorities"))
         rows = k64 % self.capacity
         with self._lock:
-            valid = (k64 >= 0) & (self._row_key[rows] == k64) & (self._end_key[rows] != k64)
+            valid = self._live(k64, rows)
             n_valid = int(np.count_nonzero(valid))
             if n_valid:
                 self._tree.set(rows[valid], p[valid])
                 self._max_priority = max(self._max_priority, float(p[valid].max()))
             self._counters["priority_updates"] += n_valid
-            self._counters["priority_updates_ignored"] += k.shape[0] - n_valid
+            self._counters["priority_updates_ignored"] += k64.shape[0] - n_valid
 
     def update_rnn_states(self, keys: np.ndarray, states: np.ndarray) -> None:
         """Overwrite the stored recurrent state of the steps ``keys`` with ``states [N, S]``
@@ -333,23 +330,24 @@ class PrioritizedTable:
         ignored, as in :meth:`update_priorities`. States must be finite float32."""
         if self._rnn is None:
             raise ValueError("update_rnn_states: this table stores no recurrent state (rnn_state_size=0)")
-        k = np.asarray(keys)
-        if k.ndim != 1 or (k.size and k.dtype.kind not in "ui"):
-            raise ValueError(f"update_rnn_states: keys must be a 1-D integer array, got {k.dtype} {k.shape}")
+        k64 = _keys_int64(keys, "update_rnn_states")
         s = np.asarray(states)
-        if s.shape != (k.shape[0], self.rnn_state_size) or s.dtype != np.float32:
+        if s.shape != (k64.shape[0], self.rnn_state_size) or s.dtype != np.float32:
             raise ValueError(
-                f"update_rnn_states: states must be float32 [{k.shape[0]}, {self.rnn_state_size}], "
+                f"update_rnn_states: states must be float32 [{k64.shape[0]}, {self.rnn_state_size}], "
                 f"got {s.dtype} {list(s.shape)}"
             )
         if not np.isfinite(s).all():
             raise ValueError("update_rnn_states: states hold non-finite values")
-        k64 = k.astype(np.int64)
         rows = k64 % self.capacity
         with self._lock:
-            valid = (k64 >= 0) & (self._row_key[rows] == k64) & (self._end_key[rows] != k64)
+            valid = self._live(k64, rows)
             self._rnn[rows[valid]] = s[valid]
             self._counters["rnn_state_updates"] += int(np.count_nonzero(valid))
+
+    def _live(self, k64: np.ndarray, rows: np.ndarray) -> np.ndarray:
+        """Which keys still name a stored step (not evicted, not a bootstrap row, issued). Under the lock."""
+        return (k64 >= 0) & (self._row_key[rows] == k64) & (self._end_key[rows] != k64)
 
     def info(self) -> dict[str, Any]:
         """Flat ``replay/*`` numbers plus ``"normalizer"``: ``{sensor name: {count, mean, var}}``."""
@@ -604,3 +602,12 @@ class PrioritizedTable:
         if chunk.terminated[:-1].any() or chunk.truncated[:-1].any():
             raise ValueError("only the last step of a chunk may be terminated or truncated")
         return t
+
+
+def _keys_int64(keys: np.ndarray, what: str) -> np.ndarray:
+    """``keys`` (a 1-D integer array) as int64; uint64 keys >= 2**63 wrap to negatives, which were
+    never issued and so are ignored like evicted ones."""
+    k = np.asarray(keys)
+    if k.ndim != 1 or (k.size and k.dtype.kind not in "ui"):
+        raise ValueError(f"{what}: keys must be a 1-D integer array, got {k.dtype} {k.shape}")
+    return k.astype(np.int64)
