@@ -24,7 +24,7 @@ from algorithm.checkpoint import CheckpointError
 from algorithm.config import ConfigError, apply_overrides, config_from_yaml, config_to_yaml, load_config
 from algorithm.config_schema import Config
 from algorithm.trainer import RunDir
-from ds import k8s, roles
+from ds import k8s, roles, security
 from ds.evolver_state import EvolverStateError
 from ds.local import run_local
 from main import UsageError, add_common_args, cli_overrides, copy_model_file, env_factory, play, run_model_builder
@@ -33,6 +33,7 @@ from main import task_dir as resolve_task
 ROLES = {"replay": "replay", "r": "replay", "learner": "learner", "l": "learner", "actor": "actor", "a": "actor",
          "evolver": "evolver", "e": "evolver", "local": "local"}  # fmt: skip
 log = logging.getLogger("asac")
+TLS_FLAGS = ("tls_cert", "tls_key", "tls_ca")
 
 
 def port(text: str) -> int:
@@ -75,6 +76,11 @@ def build_parser() -> argparse.ArgumentParser:
     for peer in ("evolver", "learner", "replay"):
         p.add_argument(f"--{peer}_host", help=f"address of the {peer} (net_config.{peer}_host)")
         p.add_argument(f"--{peer}_port", type=port, help=f"port of the {peer} (net_config.{peer}_port)")
+    tls = {"cert": "this process's PEM certificate; its DNS SANs name its roles (replay, learner, evolver, actor)",
+           "key": "the certificate's unencrypted PEM key",
+           "ca": "PEM certificate of the run's CA: peers must hold a certificate it signed (mutual TLS)"}  # fmt: skip
+    for name, what in tls.items():
+        p.add_argument(f"--tls_{name}", metavar="FILE", help=f"{what} (net_config.tls_{name}; README Security)")
     p.add_argument("--noise", type=noise_level, help="this actor's exploration noise (default: from its index)")
     p.add_argument(
         "--in_k8s",
@@ -119,23 +125,20 @@ def resolve(args: argparse.Namespace) -> tuple[Config, Path]:
         for key, value in k8s.paired_hosts(pod, ROLES[args.role]).items():
             if getattr(args, key) is None:  # an explicit --replay_host / --learner_host wins
                 setattr(net, key, value)
-    read_token(config)  # a missing or empty secret stops here, before anything starts
+    for name in TLS_FLAGS:
+        if (path := getattr(args, name)) is not None:
+            setattr(net, name, path)
+    credentials(config, ROLES[args.role])  # a missing secret or a bad certificate stops here, before anything starts
     copy_model_file(task, config, run_dir, explicit=args.nn is not None)
     return config, run_dir
 
 
-def read_token(config: Config) -> bytes | None:
-    """The shared secret in ``net_config.token_file`` (surrounding whitespace dropped), or None."""
-    path = config.net_config.token_file
-    if path is None:
-        return None
-    try:
-        token = Path(path).read_bytes().strip()
-    except OSError as e:
-        raise ConfigError(f"net_config.token_file: cannot read {path!r} ({e.strerror})") from None
-    if not token:
-        raise ConfigError(f"net_config.token_file: {path!r} is empty; put the run's shared secret in it")
-    return token
+def credentials(config: Config, role: str) -> security.Credentials:
+    """The role's token and TLS material (ds/security.py), checked: ConfigError naming the key and file."""
+    loaded = security.load_credentials(config.net_config)
+    if role != "actor":  # every other role serves gRPC (local runs them all)
+        security.check_server_credentials(loaded, role)
+    return loaded
 
 
 def setup_logging(run_dir: Path, role: str, in_file: bool) -> None:
@@ -157,6 +160,9 @@ def child_args(args: argparse.Namespace, config: Config) -> list[str]:
             out += [f"--{flag}", str(value)]
     for override in args.override:
         out += ["--override", override]
+    for name in TLS_FLAGS:
+        if (path := getattr(args, name)) is not None:
+            out += [f"--{name}", path]
     out += ["--logger_in_file"] * args.logger_in_file + ["--no_progress"] * args.no_progress
     return out
 
@@ -183,14 +189,14 @@ def run(args: argparse.Namespace) -> int:
         run_model_builder(RunDir(run_dir)),
         args.device,
         roles.stop_on_signals(),
-        token=read_token(config),
+        credentials=credentials(config, role),
         overrides=tuple(cli_overrides(args)),
     )
     if role in ("local", "evolver") or (role == "learner" and not context.uses_evolver):
         run_dir.mkdir(parents=True, exist_ok=True)  # a population's learners write learner_<id>/config.yaml
         RunDir(run_dir).config.write_text(config_to_yaml(config))
     if role == "local":
-        return local(args, config, run_dir)
+        return local(args, config, run_dir, context.credentials)
     log.info("%s of run %s (seed %s)", role, run_dir, config.sac_config.seed)
     if role == "evolver":
         return roles.run_evolver(context)
@@ -201,7 +207,7 @@ def run(args: argparse.Namespace) -> int:
     return roles.run_actor(context, args.noise)
 
 
-def local(args: argparse.Namespace, config: Config, run_dir: Path) -> int:
+def local(args: argparse.Namespace, config: Config, run_dir: Path, creds: security.Credentials) -> int:
     """All roles as subprocesses: a replay, a learner and the actors; or, with ``--learners N`` (or
     ``base_config.evolver_enabled``: N defaults to 2), an evolver, N replays, N learners and the actors."""
     learners = args.learners or (2 if config.base_config.evolver_enabled else None)
@@ -216,7 +222,7 @@ def local(args: argparse.Namespace, config: Config, run_dir: Path) -> int:
         "actor": [] if args.noise is None else ["--noise", str(args.noise)],
     }
     command = [sys.executable, str(Path(__file__).resolve()), args.env]
-    return run_local(command, child_args(args, config), args.actors, extra, learners=learners)
+    return run_local(command, child_args(args, config), args.actors, extra, learners=learners, credentials=creds)
 
 
 def main(argv: list[str] | None = None) -> int:

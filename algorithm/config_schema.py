@@ -223,7 +223,30 @@ class NetConfig(Section):
         None,
         description="File holding the run's shared secret (e.g. a mounted Kubernetes Secret); the learner "
         "signs its ZeroMQ parameter stream with it (HMAC-SHA256) and actors drop frames that do not verify. "
-        "Every role of a run must name the same secret; null = unsigned.",
+        "Every role of a run must name the same secret; null = unsigned. With it every gRPC call must carry a key "
+        "derived from it too (ds/security.py), except the health service.",
+    )
+    tls_cert: str | None = Field(
+        None,
+        description="PEM certificate of this process (--tls_cert), with tls_key: its servers speak TLS and present "
+        "it, its clients show it to servers that ask. Its DNS subject alternative names are the roles it may act "
+        "as (replay, learner, evolver, actor); clients accept a server only if its certificate names the role "
+        "they call. null = plaintext.",
+    )
+    tls_key: str | None = Field(None, description="PEM private key (unencrypted) of tls_cert (--tls_key).")
+    tls_ca: str | None = Field(
+        None,
+        description="PEM certificate of the CA that signs the run's certificates (--tls_ca): clients trust only "
+        "servers it signed; servers with it require a client certificate it signed (mutual TLS) and open each "
+        "rpc only to the roles that call it (e.g. a learner's GetWeights to the evolver).",
+    )
+    health_port: int | None = Field(
+        None,
+        ge=0,
+        le=65535,
+        description="A plaintext port, beside the role's own, on which only the gRPC health service answers: for "
+        "Kubernetes gRPC probes, which speak neither TLS nor tokens (k8s/components/tls). null = none; health "
+        "always answers on the role's port too, without the token.",
     )
 
 

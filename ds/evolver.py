@@ -78,6 +78,7 @@ from ds.evolver_state import (
 from ds.learner_service import LearnerClient
 from ds.params import ParamsError, decode_params
 from ds.rpc import RetryPolicy
+from ds.security import NO_CREDENTIALS, Credentials
 
 log = logging.getLogger("asac.evolver")
 EVOLVER_MESSAGE_BYTES = 256 * 1024 * 1024  # whole SAC models travel (GetWeights, GetSample)
@@ -89,7 +90,8 @@ class Evolver:
 
     ``config`` is the experiment's (``base_config.evolver_*``, ``max_actors_each_learner``,
     ``random_params``); ``state_dir`` is where its state lives (the run directory's ``evolver/``);
-    ``token`` verifies the elites' weights and signs samples; ``metrics`` gets the ``evolver/*``
+    ``token`` verifies the elites' weights and signs samples; ``credentials`` (ds/security.py: TLS, the
+    token's bearer) open the channels to the learners for GetWeights; ``metrics`` gets the ``evolver/*``
     metrics; ``seed`` seeds the draws of params and weights (default ``sac_config.seed``). A saved
     state in ``state_dir`` is loaded (:class:`EvolverStateError` names a file that cannot be).
     Thread-safe.
@@ -103,6 +105,7 @@ class Evolver:
         *,
         lease_s: float = 30.0,
         token: bytes | None = None,
+        credentials: Credentials = NO_CREDENTIALS,
         metrics: MetricsWriter | None = None,
         seed: int | None = None,
         max_message_bytes: int = EVOLVER_MESSAGE_BYTES,
@@ -117,6 +120,7 @@ class Evolver:
         self.state_dir = Path(state_dir)
         self.experiment = experiment
         self.token = token
+        self.credentials = credentials
         self.metrics = metrics
         self.max_message_bytes = int(max_message_bytes)
         self.weights_timeout_s = float(weights_timeout_s)
@@ -265,7 +269,11 @@ class Evolver:
         address = self.registry.address(learner_id)
         retry = RetryPolicy(attempts=3)
         client = LearnerClient(
-            address, max_message_bytes=self.max_message_bytes, rpc_timeout_s=self.weights_timeout_s, retry=retry
+            address,
+            max_message_bytes=self.max_message_bytes,
+            rpc_timeout_s=self.weights_timeout_s,
+            retry=retry,
+            credentials=self.credentials,
         )
         try:
             return decode_params(client.get_weights()[1], token=self.token)[1]

@@ -5,13 +5,13 @@ Usage, the evolver's process::
 
     evolver = Evolver(config, run_dir / "evolver", name, metrics=MetricsWriter(run_dir / "log" / "evolver"))
     evolver.start()
-    server, port, health = serve_evolver(evolver, "0.0.0.0:61000")   # SERVING at once: the state is loaded
+    server, port, health = serve_evolver(evolver, "0.0.0.0:61000", credentials=creds)  # SERVING at once
     ...
     server.stop(grace=5.0); evolver.stop()
 
 a learner's::
 
-    evolver = EvolverClient("evolver:61000", token=token)
+    evolver = EvolverClient("evolver:61000", token=token, credentials=creds)  # creds: ds.security
     me = evolver.register_learner("learner-0", host="", learner_port=61001, params_port=61003,
                                   previous_id=saved_id)                # host "": the address the call came from
     orders = evolver.heartbeat(me.learner_id, env_steps, loaded_round=loaded)   # every few seconds
@@ -29,14 +29,16 @@ Status codes map to the exceptions of ds/evolver_state.py on both ends: NOT_FOUN
 :class:`UnknownLearner` (or :class:`UnknownAssignment` for assignments), FAILED_PRECONDITION
 :class:`LearnerRetired`, UNAVAILABLE from Assign :class:`NoWorkYet`, INVALID_ARGUMENT
 :class:`EvolverRequestRejected` (a ``ValueError``). Every call has a deadline; UNAVAILABLE (evolver
-down or restarting) is retried with backoff and then raised as ``grpc.RpcError``.
+down or restarting) is retried with backoff and then raised as ``grpc.RpcError``. Under mutual TLS
+each rpc is open only to the roles :data:`CALLERS` names, and an :class:`EvolverClient` accepts only
+a server whose certificate names the evolver: a learner loads CEM samples from nobody else
+(ds/security.py).
 """
 
 from __future__ import annotations
 
 import json
 from collections.abc import Callable, Iterator
-from concurrent import futures
 from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import Any
@@ -45,7 +47,7 @@ import grpc
 import numpy as np
 from grpc_health.v1 import health, health_pb2_grpc
 
-from ds import rpc
+from ds import rpc, security
 from ds.evolver import EVOLVER_MESSAGE_BYTES, Evolver
 from ds.evolver_state import (
     Assignment,
@@ -61,9 +63,21 @@ from ds.evolver_state import (
     UnknownLearner,
 )
 from ds.params import ParamsError, ParamsSpec, decode_params
+from ds.security import ACTOR, LEARNER, NO_CREDENTIALS, REPLAY, ROLES, Credentials
 from protos import evolver_pb2, evolver_pb2_grpc
 
 SERVICE_NAME = "asac.EvolverService"
+# Who calls what (under mutual TLS, no other role may): learners join, report and fetch their CEM
+# samples; actors and replays ask where to work; Info (the local launcher, operators) is open to any role.
+CALLERS: security.Callers = {
+    "RegisterLearner": frozenset({LEARNER}),
+    "LearnerHeartbeat": frozenset({LEARNER}),
+    "PostReward": frozenset({LEARNER}),
+    "GetSample": frozenset({LEARNER}),
+    "Assign": frozenset({ACTOR, REPLAY}),
+    "AssignmentHeartbeat": frozenset({ACTOR, REPLAY}),
+    "Info": ROLES,
+}
 _ROLE_TO_PROTO = {Role.ACTOR: evolver_pb2.ACTOR, Role.REPLAY: evolver_pb2.REPLAY}
 _ROLE_FROM_PROTO = {v: k for k, v in _ROLE_TO_PROTO.items()}
 _INSTRUCTION_TO_PROTO = {
@@ -204,20 +218,21 @@ def serve_evolver(
     max_message_bytes: int = EVOLVER_MESSAGE_BYTES,
     max_workers: int = 16,
     ready: bool = True,
+    credentials: Credentials = NO_CREDENTIALS,
+    health_port: int | None = None,
 ) -> tuple[grpc.Server, int, health.HealthServicer]:
     """Start the evolver's gRPC server on ``address`` (port 0: any free port); returns the server, its
     port and its health servicer. The evolver's state is loaded when it is constructed, so the health
     service reports SERVING once the server runs (``ready=False``: the caller flips it with
-    ``ds.rpc.set_serving(health, SERVICE_NAME, True)``). Stop it with ``server.stop(grace)``."""
-    server = grpc.server(
-        futures.ThreadPoolExecutor(max_workers=max_workers, thread_name_prefix="evolver-rpc"),
-        options=rpc.channel_options(max_message_bytes),
-    )
+    ``ds.rpc.set_serving(health, SERVICE_NAME, True)``). ``credentials`` and ``health_port``: see
+    :func:`ds.security.listen`. Stop it with ``server.stop(grace)``."""
+    options = rpc.channel_options(max_message_bytes)
+    server = security.new_server("evolver", SERVICE_NAME, CALLERS, credentials, max_workers, options)
     evolver_pb2_grpc.add_EvolverServiceServicer_to_server(EvolverServicer(evolver, max_message_bytes), server)
     health_servicer = health.HealthServicer()
     health_pb2_grpc.add_HealthServicer_to_server(health_servicer, server)
     rpc.set_serving(health_servicer, SERVICE_NAME, False)
-    port = server.add_insecure_port(address)
+    port = security.listen(server, address, credentials, "evolver", health_port)
     server.start()
     if ready:
         rpc.set_serving(health_servicer, SERVICE_NAME, True)
@@ -242,7 +257,8 @@ class Sample:
 class EvolverClient:
     """The learners', actors' and replays' end of :class:`EvolverServicer`. Every call has a deadline
     of ``rpc_timeout_s``; UNAVAILABLE is retried per ``retry``. ``token`` verifies samples (the
-    evolver signs them with the run's token). Thread-safe."""
+    evolver signs them with the run's token); ``credentials``: TLS and the token on every call
+    (:func:`ds.security.open_channel`; the server must hold the evolver's certificate). Thread-safe."""
 
     def __init__(
         self,
@@ -252,12 +268,14 @@ class EvolverClient:
         max_message_bytes: int = EVOLVER_MESSAGE_BYTES,
         rpc_timeout_s: float = 10.0,
         retry: rpc.RetryPolicy | None = None,
+        credentials: Credentials = NO_CREDENTIALS,
     ) -> None:
         self.address = address
         self.token = token
         self.rpc_timeout_s = float(rpc_timeout_s)
         self.retry = retry or rpc.RetryPolicy()
-        self.channel = grpc.insecure_channel(address, options=rpc.channel_options(max_message_bytes))
+        options = rpc.channel_options(max_message_bytes)
+        self.channel = security.open_channel(address, security.EVOLVER, credentials, options)
         self._stub = evolver_pb2_grpc.EvolverServiceStub(self.channel)
 
     def close(self) -> None:
@@ -453,6 +471,7 @@ def _learner_from_proto(m: evolver_pb2.LearnerInfo) -> LearnerInfo:
 
 
 __all__ = [
+    "CALLERS",
     "SERVICE_NAME",
     "EvolverClient",
     "EvolverRequestRejected",

@@ -8,13 +8,13 @@ Usage, the learner's side (ds/learner.py feeds the store and the acting copy)::
     acting = ActingPolicy(SAC(...)) if not update_policy_mode else None
     servicer = LearnerServicer(spec, registry, store, params_port=publisher_port, acting=acting,
                                weights=latest_full_weights)  # with an evolver: () -> (version, frames) | None
-    server, port, health = serve_learner(servicer, "127.0.0.1:61001", max_message_bytes=limit)
+    server, port, health = serve_learner(servicer, "127.0.0.1:61001", max_message_bytes=limit, credentials=creds)
     store.put(version, publisher.frames); acting.load(version, sac.acting_state_dict())
     set_serving(health, True)                                  # after the first publication
 
 and an actor's::
 
-    learner = LearnerClient("learner:61001", spec, rnn_state_size, max_message_bytes=limit)
+    learner = LearnerClient("learner:61001", spec, rnn_state_size, max_message_bytes=limit, credentials=creds)
     me = learner.register("actor on host-3")                   # id, index, params port, lease
     learner.heartbeat(me.actor_id, env_steps)                  # every few seconds; LeaseExpired: register again
     version, frames = learner.get_params()                     # decode with ds.params.decode_params
@@ -22,7 +22,10 @@ and an actor's::
 
 and the evolver's (ds/evolver.py), which needs no EnvSpec::
 
-    version, frames = LearnerClient("learner:61001").get_weights()   # decode with ds.params.decode_params
+    version, frames = LearnerClient("learner:61001", credentials=creds).get_weights()   # decode_params
+
+(``creds``: ds.security.load_credentials; under mutual TLS each rpc is open only to the roles
+:data:`CALLERS` names: GetWeights to the evolver, the rest to actors.)
 """
 
 from __future__ import annotations
@@ -31,7 +34,6 @@ import threading
 import time
 import uuid
 from collections.abc import Callable, Iterator
-from concurrent import futures
 from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import Any, TypeAlias
@@ -43,12 +45,22 @@ from grpc_health.v1 import health, health_pb2_grpc
 
 from algorithm.sac import SAC
 from algorithm.spaces import EnvSpec
-from ds import rpc
+from ds import rpc, security
 from ds.replay_codec import GRPC_DEFAULT_MESSAGE_BYTES
+from ds.security import ACTOR, EVOLVER, NO_CREDENTIALS, Credentials
 from ds.wire import TensorSpec, WireError, from_tensor, to_tensor
 from protos import learner_pb2, learner_pb2_grpc
 
 SERVICE_NAME = "asac.LearnerService"
+# Who calls what (under mutual TLS, no other role may): actors, except GetWeights, which feeds the
+# evolver's CEM round and is open to the evolver alone.
+CALLERS: security.Callers = {
+    "RegisterActor": frozenset({ACTOR}),
+    "Heartbeat": frozenset({ACTOR}),
+    "GetParams": frozenset({ACTOR}),
+    "GetAction": frozenset({ACTOR}),
+    "GetWeights": frozenset({EVOLVER}),
+}
 _F32 = np.dtype(np.float32)
 # Framing of the frames and tensors of a message beyond their raw bytes (tags, lengths, JSON header).
 _FRAMING_BYTES = 64 * 1024
@@ -333,19 +345,20 @@ def serve_learner(
     *,
     max_message_bytes: int = GRPC_DEFAULT_MESSAGE_BYTES,
     max_workers: int = 16,
+    credentials: Credentials = NO_CREDENTIALS,
+    health_port: int | None = None,
 ) -> tuple[grpc.Server, int, health.HealthServicer]:
     """Start the learner's gRPC server on ``address`` (port 0: any free port); returns the server,
     its port and its health servicer, which reports NOT_SERVING until the caller flips it with
-    ``ds.rpc.set_serving(health, SERVICE_NAME, True)`` (after the first publication)."""
-    server = grpc.server(
-        futures.ThreadPoolExecutor(max_workers=max_workers, thread_name_prefix="learner-rpc"),
-        options=rpc.channel_options(max_message_bytes),
-    )
+    ``ds.rpc.set_serving(health, SERVICE_NAME, True)`` (after the first publication).
+    ``credentials`` and ``health_port``: see :func:`ds.security.listen`."""
+    options = rpc.channel_options(max_message_bytes)
+    server = security.new_server("learner", SERVICE_NAME, CALLERS, credentials, max_workers, options)
     learner_pb2_grpc.add_LearnerServiceServicer_to_server(servicer, server)
     health_servicer = health.HealthServicer()
     health_pb2_grpc.add_HealthServicer_to_server(health_servicer, server)
     rpc.set_serving(health_servicer, SERVICE_NAME, False)
-    port = server.add_insecure_port(address)
+    port = security.listen(server, address, credentials, "learner", health_port)
     server.start()
     return server, port, health_servicer
 
@@ -370,6 +383,7 @@ class LearnerClient:
     """The actor's (and the evolver's) end of :class:`LearnerServicer`. Every call has a deadline of
     ``rpc_timeout_s``; UNAVAILABLE is retried per ``retry`` and then raised as ``grpc.RpcError``, as
     is every other status except the ones named per method. ``spec`` is needed by :meth:`act` only.
+    ``credentials``: TLS and the token (:func:`ds.security.open_channel`; the server must be a learner).
     Thread-safe."""
 
     def __init__(
@@ -381,17 +395,25 @@ class LearnerClient:
         max_message_bytes: int = GRPC_DEFAULT_MESSAGE_BYTES,
         rpc_timeout_s: float = 10.0,
         retry: rpc.RetryPolicy | None = None,
+        credentials: Credentials = NO_CREDENTIALS,
     ) -> None:
         self.address = address
         self.spec = spec
         self.rnn_state_size = int(rnn_state_size)
         self.rpc_timeout_s = float(rpc_timeout_s)
         self.retry = retry or rpc.RetryPolicy()
-        self.channel = grpc.insecure_channel(address, options=rpc.channel_options(max_message_bytes))
+        options = rpc.channel_options(max_message_bytes)
+        self.channel = security.open_channel(address, security.LEARNER, credentials, options)
         self._stub = learner_pb2_grpc.LearnerServiceStub(self.channel)
 
     def close(self) -> None:
         self.channel.close()
+
+    def __enter__(self) -> LearnerClient:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
 
     def register(self, name: str, preferred_index: int | None = None) -> Registration:
         request = learner_pb2.RegisterActorRequest(name=name)
@@ -478,6 +500,7 @@ class RemotePolicy:
 
 
 __all__ = [
+    "CALLERS",
     "SERVICE_NAME",
     "ActingPolicy",
     "ActorRegistry",

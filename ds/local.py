@@ -4,13 +4,16 @@ prefixed logs, and one Ctrl-C for all; and the signal handling every role proces
 Usage (``main_ds.py`` builds the command and the flags each child gets)::
 
     code = run_local([python, "main_ds.py", "gym/pendulum"], child_args, actors=2)              # one learner
-    code = run_local([python, "main_ds.py", "gym/pendulum"], child_args, actors=6, learners=3)  # a population
+    code = run_local([python, "main_ds.py", "gym/pendulum"], child_args, actors=6, learners=3,  # a population
+                     credentials=creds)   # what the launcher itself needs to ask the evolver (ds/security.py)
 
 One learner: a replay, the learner and the actors, told each other's ports. A population: an evolver,
 ``learners`` replays and learners, told only the evolver's port (the evolver pairs replays with
 learners, ds/population.py), and, once every learner has registered with a replay, the actors, so
 that the evolver spreads them over all learners (it gives each actor the least-loaded learner there
-is when it asks).
+is when it asks). Every child gets the same flags, so with TLS they share one certificate, which must
+name every role (README Security); none opens a plaintext health port (``net_config.health_port`` is
+for Kubernetes probes, and the children's would collide).
 """
 
 from __future__ import annotations
@@ -30,9 +33,11 @@ import grpc
 from ds.evolver_service import EvolverClient
 from ds.replay_feeds import Throttle
 from ds.rpc import RetryPolicy
+from ds.security import NO_CREDENTIALS, Credentials
 
 log = logging.getLogger("asac.local")
 LOCAL_HOST = "127.0.0.1"
+NO_HEALTH_PORT = ("--override", "net.health_port=null")
 
 
 def stop_on_signals() -> threading.Event:
@@ -141,17 +146,18 @@ def plan(
 
     if learners is None:
         ports = ["--replay_host", LOCAL_HOST, "--replay_port", str(free_port()), "--learner_host", LOCAL_HOST,
-                 "--learner_port", str(free_port()), "--override", "net.params_port=0"]  # fmt: skip
+                 "--learner_port", str(free_port()), "--override", "net.params_port=0", *NO_HEALTH_PORT]  # fmt: skip
         return [("replay", child("replay", *ports)), ("learner", child("learner", *ports))] + [
             (f"actor-{i}", child("actor", *ports)) for i in range(actors)
         ]
     evolver = ["--evolver_host", LOCAL_HOST, "--evolver_port", str(free_port())]
-    children = [("evolver", child("evolver", *evolver))]
+    children = [("evolver", child("evolver", *evolver, *NO_HEALTH_PORT))]
     for k in range(learners):
-        replay = ["--replay_host", LOCAL_HOST, "--replay_port", str(free_port())]
+        replay = ["--replay_host", LOCAL_HOST, "--replay_port", str(free_port()), *NO_HEALTH_PORT]
         children.append((f"replay-{k}", child("replay", *evolver, *replay)))
     for k in range(learners):
-        learner = ["--learner_host", LOCAL_HOST, "--learner_port", str(free_port()), "--override", "net.params_port=0"]
+        learner = ["--learner_host", LOCAL_HOST, "--learner_port", str(free_port()), "--override", "net.params_port=0",
+                   *NO_HEALTH_PORT]  # fmt: skip
         children.append((f"learner-{k}", child("learner", *evolver, *learner)))
     return children + [(f"actor-{i}", child("actor", *evolver)) for i in range(actors)]
 
@@ -163,12 +169,14 @@ def run_local(
     role_args: dict[str, list[str]] | None = None,
     grace_s: float = 30.0,
     learners: int | None = None,
+    credentials: Credentials = NO_CREDENTIALS,
 ) -> int:
     """Run :func:`plan`'s children (``command + [role] + child_args`` plus their ports and
     ``role_args[role]``). Returns 0 when every learner has exited 0 (finished its budget, or retired
     by the evolver; then the actors and then the replays and the evolver are stopped; replays save),
     130 on SIGINT/SIGTERM (every child gets SIGINT, then SIGTERM and SIGKILL after ``grace_s``), 1
-    when a child fails or a replay or the evolver exits (the others are stopped)."""
+    when a child fails or a replay or the evolver exits (the others are stopped). ``credentials``
+    are the launcher's own, for asking the evolver whether the learners have registered."""
     children = LocalProcesses()
     stop = stop_on_signals()
     try:
@@ -179,7 +187,8 @@ def run_local(
         code = None
         if learners is not None:
             evolver = planned[0][1]
-            code = _wait_for_learners(children, stop, f"{LOCAL_HOST}:{evolver[evolver.index('--evolver_port') + 1]}")
+            address = f"{LOCAL_HOST}:{evolver[evolver.index('--evolver_port') + 1]}"
+            code = _wait_for_learners(children, stop, address, credentials)
         if code is None:
             for name, argv in planned:
                 if name.startswith("actor"):
@@ -224,11 +233,13 @@ def _failed(children: LocalProcesses) -> bool:
     return False
 
 
-def _wait_for_learners(children: LocalProcesses, stop: threading.Event, evolver: str) -> int | None:
+def _wait_for_learners(
+    children: LocalProcesses, stop: threading.Event, evolver: str, credentials: Credentials
+) -> int | None:
     """Wait until every learner child is registered with the evolver at ``evolver`` and has a replay:
     None; or the exit code when a child failed (1) or a signal came (130) first."""
     count, waiting = len(children.names("learner")), Throttle(30.0)
-    with EvolverClient(evolver, rpc_timeout_s=2.0, retry=RetryPolicy(attempts=1)) as client:
+    with EvolverClient(evolver, rpc_timeout_s=2.0, retry=RetryPolicy(attempts=1), credentials=credentials) as client:
         while not stop.wait(1.0):
             if _failed(children):
                 return 1

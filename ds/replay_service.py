@@ -3,9 +3,10 @@
 Usage, a replay process and its peers (protos/replay.proto documents every rpc)::
 
     limit = message_limit_bytes(sensors, action_size, batch_size, window, rnn_state_size, chunk_length)
-    server, port = serve_replay(table, "0.0.0.0:50051", max_message_bytes=limit)   # replay role
+    server, port = serve_replay(table, "0.0.0.0:50051", max_message_bytes=limit, credentials=creds)  # replay role
     ...
-    replay = ReplayClient("replay:50051", sensors, action_size, rnn_state_size, max_message_bytes=limit)
+    replay = ReplayClient("replay:50051", sensors, action_size, rnn_state_size, max_message_bytes=limit,
+                          credentials=creds)   # creds: ds.security.load_credentials (token, TLS)
     keys = replay.insert(chunk)                      # actor
     batch = replay.sample(256, timeout=1.0)          # learner: a Batch with the same dtypes as in-process
     replay.update_priorities(batch.keys, td_abs)     # learner
@@ -23,14 +24,15 @@ Errors map to gRPC status codes on the server and back to exceptions on the clie
 - a file the server cannot write (``OSError``): FAILED_PRECONDITION -> :class:`ReplayRpcError`;
 - a message over the size limit: RESOURCE_EXHAUSTED -> :class:`ReplayRpcError` (the client refuses
   to send an oversize request itself, with a ``WireError`` naming the size and the limit);
-- server unreachable: UNAVAILABLE -> retried with backoff, then :class:`ReplayRpcError`.
+- server unreachable: UNAVAILABLE -> retried with backoff, then :class:`ReplayRpcError`;
+- a missing or wrong token, a caller whose certificate names no role that may call the rpc
+  (:data:`CALLERS`, ds/security.py): UNAUTHENTICATED / PERMISSION_DENIED -> :class:`ReplayRpcError`.
 """
 
 from __future__ import annotations
 
 import threading
 from collections.abc import Callable, Iterator, Sequence
-from concurrent import futures
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Any, TypeVar
@@ -42,7 +44,7 @@ from grpc_health.v1 import health, health_pb2_grpc
 from algorithm.replay import InsertTimeout, PrioritizedTable, SampleTimeout
 from algorithm.spaces import SensorSpec
 from algorithm.types import Batch, Chunk
-from ds import rpc
+from ds import rpc, security
 from ds.replay_codec import (
     GRPC_DEFAULT_MESSAGE_BYTES,
     ReplaySpecs,
@@ -53,10 +55,12 @@ from ds.replay_codec import (
     sample_reply_bytes,
 )
 from ds.rpc import RetryPolicy, call_with_retry, channel_options, peer_gone
+from ds.security import ACTOR, LEARNER, NO_CREDENTIALS, Credentials
 from ds.wire import TensorSpec, WireError, from_tensor, to_tensor
 from protos import replay_pb2, replay_pb2_grpc
 
 __all__ = [
+    "CALLERS",
     "SERVICE_NAME",
     "ReplayClient",
     "ReplayRequestRejected",
@@ -69,6 +73,17 @@ __all__ = [
 ]
 
 SERVICE_NAME = "asac.ReplayService"
+# Who calls what (under mutual TLS, no other role may): actors insert; the learner samples, updates
+# and saves; both read Info (the actor checks the step budget, the learner the normalizer).
+CALLERS: security.Callers = {
+    "Insert": frozenset({ACTOR}),
+    "Sample": frozenset({LEARNER}),
+    "UpdatePriorities": frozenset({LEARNER}),
+    "UpdateRnnStates": frozenset({LEARNER}),
+    "Info": frozenset({ACTOR, LEARNER}),
+    "Save": frozenset({LEARNER}),
+    "Load": frozenset({LEARNER}),
+}
 _T = TypeVar("_T")
 
 
@@ -195,6 +210,8 @@ def serve_replay(
     max_workers: int = 32,
     health_servicer: health.HealthServicer | None = None,
     ready: bool = True,
+    credentials: Credentials = NO_CREDENTIALS,
+    health_port: int | None = None,
 ) -> tuple[grpc.Server, int]:
     """Start a gRPC server for ``table`` on ``address`` (port 0: any free port); returns it and its port.
 
@@ -203,19 +220,18 @@ def serve_replay(
     blocked by the rate limiter holds one, so give at least one per actor and learner. The health
     service reports NOT_SERVING until the server has started, then SERVING; pass ``ready=False``
     and your own ``health_servicer`` to flip it with :func:`set_serving` later (after loading a
-    saved table, say). Plaintext on loopback by default (ARCHITECTURE.md 6: without TLS servers
-    bind to loopback). Stop it with ``server.stop(grace)``.
+    saved table, say). ``credentials`` and ``health_port``: see :func:`ds.security.listen` (TLS, the
+    token, who may call what); plaintext on loopback by default (ARCHITECTURE.md 6: without
+    credentials servers bind to loopback). Stop it with ``server.stop(grace)``.
     """
-    server = grpc.server(
-        futures.ThreadPoolExecutor(max_workers=max_workers, thread_name_prefix="replay-rpc"),
-        options=channel_options(max_message_bytes),
-    )
+    options = channel_options(max_message_bytes)
+    server = security.new_server("replay", SERVICE_NAME, CALLERS, credentials, max_workers, options)
     servicer = ReplayServicer(table, table.sensors, table.action_size, table.rnn_state_size, max_message_bytes)
     replay_pb2_grpc.add_ReplayServiceServicer_to_server(servicer, server)
     health_servicer = health_servicer or health.HealthServicer()
     health_pb2_grpc.add_HealthServicer_to_server(health_servicer, server)
     set_serving(health_servicer, False)
-    port = server.add_insecure_port(address)
+    port = security.listen(server, address, credentials, "replay", health_port)
     server.start()
     if ready:
         set_serving(health_servicer, True)
@@ -248,6 +264,7 @@ class ReplayClient:
     on ``insert``/``sample`` (a wait without end, ``timeout=None``, is a series of
     ``poll_s``-second calls), or ``file_timeout_s`` for ``save``/``load``. UNAVAILABLE is
     retried per ``retry``; every other error surfaces at once with the server's message.
+    ``credentials``: TLS and the token (:func:`ds.security.open_channel`; the server must be a replay).
     Thread-safe: share one client between threads.
     """
 
@@ -263,6 +280,7 @@ class ReplayClient:
         file_timeout_s: float = 600.0,
         poll_s: float = 10.0,
         retry: RetryPolicy | None = None,
+        credentials: Credentials = NO_CREDENTIALS,
     ) -> None:
         self.address = address
         self.sensors = tuple(sensors)
@@ -275,7 +293,7 @@ class ReplayClient:
         self.poll_s = float(poll_s)
         self.retry = retry or RetryPolicy()
         # The channel reconnects by itself; other services of the same server (health) may use it.
-        self.channel = grpc.insecure_channel(address, options=channel_options(max_message_bytes))
+        self.channel = security.open_channel(address, security.REPLAY, credentials, channel_options(max_message_bytes))
         self._stub = replay_pb2_grpc.ReplayServiceStub(self.channel)
 
     def close(self) -> None:

@@ -12,7 +12,8 @@ Usage (``main_ds.py`` resolves the config and run directory, then calls exactly 
 learner, retired by the evolver), 130 stopped by a signal (SIGINT/SIGTERM: the role saves what it
 must first), 1 the evolver forgot a learner. Addresses come from ``net_config`` (``main_ds.py``
 flags override it): clients connect to ``<role>_host`` (null: this host), servers listen on
-``bind_host``.
+``bind_host``, every server and client with the role's credentials (ds/security.py: the token on
+every rpc, TLS / mutual TLS; a server beyond loopback without them logs a warning).
 
 With an evolver (``base_config.evolver_enabled``, or ``net_config.evolver_host`` set, e.g. by
 ``--evolver_host``) learners register with it and run with the config it gives them (their own
@@ -76,6 +77,7 @@ from ds.population import (
 from ds.replay_codec import message_limit_bytes
 from ds.replay_service import ReplayClient, serve_replay
 from ds.rpc import set_serving, wait_until_serving
+from ds.security import NO_CREDENTIALS, Credentials, warn_if_exposed
 
 log = logging.getLogger("asac.roles")
 _T = TypeVar("_T")
@@ -98,8 +100,9 @@ def _listen(what: str, address: str, flag: str, start: Callable[[], _T]) -> _T:
 class RoleContext:
     """What every role needs: the resolved config, its run directory, an env factory
     ``make_env(num_envs, seed)``, the model builder of the run, the torch device, a stop event, the
-    run's shared secret (``net_config.token_file``; None: parameters travel unsigned) and this
-    process's ``--override`` flags (applied again on top of the config an evolver gives)."""
+    role's credentials (ds/security.py: the run's shared secret of ``net_config.token_file``, which
+    signs parameters and authenticates rpcs, and its TLS certificates; none: plaintext, unsigned) and
+    this process's ``--override`` flags (applied again on top of the config an evolver gives)."""
 
     config: Config
     run_dir: Path
@@ -107,8 +110,12 @@ class RoleContext:
     build: ModelBuilder
     device: str = "cpu"
     stop: threading.Event = field(default_factory=threading.Event)
-    token: bytes | None = None
+    credentials: Credentials = NO_CREDENTIALS
     overrides: tuple[str, ...] = ()
+
+    @property
+    def token(self) -> bytes | None:
+        return self.credentials.token
 
     @property
     def seed(self) -> int:
@@ -153,12 +160,17 @@ class RoleContext:
     def replay_client(self, spec: EnvSpec, rnn_state_size: int, address: str | None = None) -> ReplayClient:
         limit = self.replay_limit(spec, rnn_state_size)
         return ReplayClient(
-            address or self.address("replay"), spec.sensors, spec.action.size, rnn_state_size, max_message_bytes=limit
+            address or self.address("replay"),
+            spec.sensors,
+            spec.action.size,
+            rnn_state_size,
+            max_message_bytes=limit,
+            credentials=self.credentials,
         )
 
     def evolver_client(self) -> EvolverClient | None:
         """A client of the evolver once it serves; None if stopped while waiting for it."""
-        client = EvolverClient(self.address("evolver"), token=self.token)
+        client = EvolverClient(self.address("evolver"), token=self.token, credentials=self.credentials)
         service = evolver_service.SERVICE_NAME
         if wait_until_serving(client.channel, service, "evolver", client.address, self.stop):
             return client
@@ -184,12 +196,14 @@ def run_evolver(role: RoleContext) -> int:
     cfg, net = role.config, role.config.net_config
     metrics = MetricsWriter(role.run_dir / "log" / "evolver")
     try:
-        evolver = Evolver(cfg, role.run_dir / "evolver", cfg.base_config.name, token=role.token, metrics=metrics)
+        evolver = Evolver(cfg, role.run_dir / "evolver", cfg.base_config.name, token=role.token,
+                          credentials=role.credentials, metrics=metrics)  # fmt: skip
     except BaseException:
         metrics.close()
         raise
     address = f"{net.bind_host}:{net.evolver_port}"
-    server, port, _ = _listen("evolver", address, "--evolver_port", lambda: serve_evolver(evolver, address))
+    server, port, _ = _listen("evolver", address, "--evolver_port", lambda: serve_evolver(
+        evolver, address, credentials=role.credentials, health_port=net.health_port))  # fmt: skip
     evolver.start()
     info = evolver.info()
     log.info("evolver of %r serving on %s:%d: %d learners known, %d CEM rounds so far", info.experiment,
@@ -277,7 +291,8 @@ def _serve_replay(role: RoleContext, keeper: AssignmentKeeper | None, metrics_ev
     checker = health.HealthServicer()
     address = f"{cfg.net_config.bind_host}:{cfg.net_config.replay_port}"
     server, port = _listen("replay", address, "--replay_port", lambda: serve_replay(
-        table, address, max_message_bytes=role.replay_limit(spec, rnn), health_servicer=checker, max_workers=64
+        table, address, max_message_bytes=role.replay_limit(spec, rnn), health_servicer=checker, max_workers=64,
+        credentials=role.credentials, health_port=cfg.net_config.health_port,
     ))  # fmt: skip
     log.info("replay serving on %s:%d (capacity %d steps)", cfg.net_config.bind_host, port, table.capacity)
     writer = MetricsWriter(role.run_dir / "log" / "replay")
@@ -327,6 +342,9 @@ def run_learner(role: RoleContext, ckpt_step: int | None = None, progress: bool 
     params_address = f"tcp://{net.bind_host}:{net.params_port or '*'}"
     publisher = _listen("learner's parameter broadcast", params_address, "--override net.params_port=PORT",
                         lambda: ParamsPublisher(params_address, token=role.token))  # fmt: skip
+    # The stream is signed with the token (not encrypted: ZeroMQ carries no TLS here); without one, say so.
+    warn_if_exposed(net.bind_host, f"learner's parameter broadcast on {publisher.address}", role.token is not None,
+                    "net_config.token_file (actors then drop frames it did not sign)")  # fmt: skip
     client: EvolverClient | None = None
     joined: Joined | None = None
     try:
@@ -412,7 +430,8 @@ def _train(
                                    weights=weights)  # fmt: skip
         address = f"{net.bind_host}:{net.learner_port}"
         server, port, health_ = _listen("learner", address, "--learner_port", lambda: serve_learner(
-            servicer, address, max_message_bytes=learner_message_limit(sac)))  # fmt: skip
+            servicer, address, max_message_bytes=learner_message_limit(sac), credentials=role.credentials,
+            health_port=net.health_port))  # fmt: skip
         eval_env = None
         if cfg.eval_config.eval_per_step > 0:
             eval_env = role.make_env(cfg.eval_config.eval_envs, role.seed + EVAL_SEED_OFFSET)
@@ -510,7 +529,8 @@ def _act(
     spec = role.spec()
     sac = role.sac(spec)
     replay = role.replay_client(spec, sac.rnn_state_size, replay_address)
-    learner = LearnerClient(learner_address, spec, sac.rnn_state_size, max_message_bytes=learner_message_limit(sac))
+    learner = LearnerClient(learner_address, spec, sac.rnn_state_size, max_message_bytes=learner_message_limit(sac),
+                            credentials=role.credentials)  # fmt: skip
     try:
         actor = DistributedActor(role.config, role.run_dir, role.make_env, sac, replay, learner, learner_host,
                                  noise=noise, stop=role.stop, token=role.token, name=name)  # fmt: skip

@@ -3,7 +3,7 @@ exponential backoff, the health service, and waiting for a peer to come up.
 
 Usage::
 
-    channel = grpc.insecure_channel(address, options=channel_options(limit))
+    channel = security.open_channel(address, "replay", credentials, channel_options(limit))   # ds/security.py
     reply = call_with_retry(stub.Info, request, deadline_s=30.0, retry=RetryPolicy())   # or grpc.RpcError
     if not wait_until_serving(channel, "asac.ReplayService", "replay", address, stop):   # logs while waiting
         return  # stop was set
@@ -85,6 +85,16 @@ def set_serving(health_servicer: health.HealthServicer, service: str, serving: b
         health_servicer.set(name, status)
 
 
+def _unreachable(e: grpc.RpcError) -> str:
+    """Why a health check failed, in a few words; a failed TLS handshake (wrong CA, a certificate that
+    does not name the role) reads UNAVAILABLE like a peer that is down, so its reason is kept."""
+    details = e.details() or ""
+    if e.code() != grpc.StatusCode.UNAVAILABLE:
+        return f"{e.code().name}: {details}"
+    tls = any(word in details.lower() for word in ("handshake", "certificate", "verification", "ssl", "tls"))
+    return f"not reachable: {details}" if tls else "not reachable"
+
+
 def wait_until_serving(
     channel: grpc.Channel,
     service: str,
@@ -107,7 +117,7 @@ def wait_until_serving(
                 return True
             reason = "up but not serving yet"
         except grpc.RpcError as e:
-            reason = "not reachable" if e.code() == grpc.StatusCode.UNAVAILABLE else f"{e.code().name}: {e.details()}"
+            reason = _unreachable(e)
         if time.monotonic() - last_log >= log_every_s:
             log.info("waiting for %s at %s (%s)", what, address, reason)
             last_log = time.monotonic()

@@ -14,6 +14,9 @@ from pathlib import Path
 
 import pytest
 
+from ds.security import ROLES
+from tests.pki import Pki
+
 ROOT = Path(__file__).resolve().parents[1]
 ENV = {**os.environ, "OMP_WAIT_POLICY": "PASSIVE", "OMP_NUM_THREADS": "1", "MUJOCO_GL": "egl"}
 TINY_OVERRIDES = [
@@ -77,6 +80,9 @@ def event_files(run: Path, role: str) -> list[Path]:
         (["gym/pendulum", "learner", "--actors", "3"], "--actors is for the local role"),
         (["gym/pendulum", "replay", "--override", "net.replay_prot=5"], "did you mean 'replay_port'"),
         (["gym/pendulum", "learner", "--override", "net.token_file=absent.key"], "net_config.token_file: cannot read"),
+        (["gym/pendulum", "replay", "--tls_cert", "absent.crt", "--tls_key", "absent.key"],
+         "net_config.tls_cert: cannot read 'absent.crt'"),  # fmt: skip
+        (["gym/pendulum", "evolver", "--tls_cert", "absent.crt"], "net_config.tls_cert needs net_config.tls_key"),
     ],
 )
 def test_bad_input_is_a_one_line_error_with_exit_2(args: list[str], message: str, tmp_path: Path) -> None:
@@ -214,3 +220,34 @@ def test_replay_learner_and_two_actors_learn_pendulum(tmp_path: Path) -> None:
     assert int(best["env_steps"]) <= BUDGET + 100  # the learner may read the counter a chunk late
     print(f"reached {float(best['return_mean']):.1f} at {best['env_steps']} env steps in "
           f"{time.monotonic() - started:.0f} s wall")  # fmt: skip
+
+
+# ---------------------------------------------------------------------- security
+
+
+@pytest.mark.slow
+@pytest.mark.grpc
+def test_local_run_with_a_token_and_mutual_tls_trains(tmp_path: Path) -> None:
+    """Every role of a local run with the token and mutual TLS (one certificate naming every role, as
+    README Security says for local runs): the learner trains to the budget; each server says it
+    requires both; nothing warns of an open server. A server role given a CA but no certificate of
+    its own stops before it starts; an actor (a client only) may run so."""
+    pki = Pki(tmp_path / "pki")
+    local = pki.issue("local", *sorted(ROLES))
+    (tmp_path / "token").write_text("s3cret-for-this-run\n")
+    tls = ["--tls_cert", str(local.cert), "--tls_key", str(local.key), "--tls_ca", str(pki.ca)]
+    token = ["--override", f"net.token_file={tmp_path / 'token'}"]
+    done = run_ds("gym/pendulum", "local", "--actors", "1", "-n", "secure", *TINY, *token, *tls,
+                  "--override", "base.max_step=1200", cwd=tmp_path)  # fmt: skip
+    output = done.stdout + done.stderr
+    assert done.returncode == 0, output[-4000:]
+    for role in ("replay", "learner"):
+        assert re.search(rf"\[{role}\].* {role} on 127.0.0.1:\d+: mutual TLS .*token required", output), role
+    assert "open to anyone" not in output, output[-4000:]
+    assert "not reachable: " not in output, output[-4000:]  # the reason a TLS handshake failed (ds/rpc.py)
+    run = tmp_path / "models/gym/pendulum/secure"
+    assert max(int(p.stem) for p in run.glob("model/*.pt")) >= 1200  # the learner trained to the budget
+    for role in ("learner", "actor_0", "replay"):
+        assert event_files(run, role), f"no TensorBoard events for {role}"
+    refused = run_ds("gym/pendulum", "replay", "--tls_ca", str(pki.ca), cwd=tmp_path, timeout=120)
+    assert refused.returncode == 2 and "the replay serves gRPC and needs its own certificate" in refused.stderr

@@ -1,0 +1,109 @@
+"""Certificates made at test time (no network, no files shipped): a CA, certificates for ASAC's roles
+signed by it, and a second, unrelated CA for "the wrong CA" cases.
+
+Usage::
+
+    pki = Pki(tmp_path)                        # writes ca.crt and wrong-ca.crt
+    learner = pki.issue("learner")             # learner.crt / learner.key, DNS SAN "learner"
+    local = pki.issue("local", "actor", "learner", "replay", "evolver")   # one certificate, every role
+    stranger = pki.issue("replay", ca="wrong") # a replay certificate from the wrong CA
+    learner.cert, learner.key, pki.ca          # paths, for --tls_cert / --tls_key / --tls_ca
+
+Role names travel as DNS subject alternative names: that is what ds/security.py checks (README Security).
+Keys are EC P-256: generated in milliseconds.
+"""
+
+from __future__ import annotations
+
+import datetime
+from dataclasses import dataclass
+from pathlib import Path
+
+from cryptography import x509
+from cryptography.hazmat.primitives import hashes, serialization
+from cryptography.hazmat.primitives.asymmetric import ec
+from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
+
+
+@dataclass(frozen=True)
+class Issued:
+    cert: Path
+    key: Path
+
+
+@dataclass
+class _Authority:
+    key: ec.EllipticCurvePrivateKey
+    cert: x509.Certificate
+    path: Path
+
+
+def _name(common_name: str) -> x509.Name:
+    return x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, common_name)])
+
+
+def _validity(builder: x509.CertificateBuilder) -> x509.CertificateBuilder:
+    now = datetime.datetime.now(datetime.UTC)
+    hour = datetime.timedelta(hours=1)
+    return builder.not_valid_before(now - hour).not_valid_after(now + 24 * hour)
+
+
+def _write_key(key: ec.EllipticCurvePrivateKey, path: Path) -> None:
+    path.write_bytes(
+        key.private_bytes(serialization.Encoding.PEM, serialization.PrivateFormat.PKCS8, serialization.NoEncryption())
+    )
+
+
+class Pki:
+    """Two independent CAs in ``folder`` (``ca`` and ``wrong_ca``) and :meth:`issue` for leaf certificates."""
+
+    def __init__(self, folder: Path) -> None:
+        self.folder = folder
+        folder.mkdir(parents=True, exist_ok=True)
+        self._cas = {name: self._authority(name) for name in ("ca", "wrong-ca")}
+        self.ca = self._cas["ca"].path
+        self.wrong_ca = self._cas["wrong-ca"].path
+
+    def _authority(self, name: str) -> _Authority:
+        key = ec.generate_private_key(ec.SECP256R1())
+        builder = _validity(x509.CertificateBuilder())
+        cert = (
+            builder.subject_name(_name(f"ASAC test {name}"))
+            .issuer_name(_name(f"ASAC test {name}"))
+            .public_key(key.public_key())
+            .serial_number(x509.random_serial_number())
+            .add_extension(x509.BasicConstraints(ca=True, path_length=0), critical=True)
+            .add_extension(
+                x509.KeyUsage(False, False, False, False, False, True, True, False, False), critical=True
+            )  # keyCertSign, cRLSign
+            .sign(key, hashes.SHA256())
+        )
+        path = self.folder / f"{name}.crt"
+        path.write_bytes(cert.public_bytes(serialization.Encoding.PEM))
+        return _Authority(key, cert, path)
+
+    def issue(self, name: str, *roles: str, ca: str = "ca") -> Issued:
+        """``<name>.crt`` and ``<name>.key``, signed by ``ca`` ("ca" or "wrong"), naming ``roles`` (default:
+        ``name``) as DNS SANs, usable as server and as client certificate."""
+        authority = self._cas["wrong-ca" if ca == "wrong" else "ca"]
+        key = ec.generate_private_key(ec.SECP256R1())
+        sans = [x509.DNSName(r) for r in roles or (name,)]
+        cert = (
+            _validity(x509.CertificateBuilder())
+            .subject_name(_name(name))
+            .issuer_name(authority.cert.subject)
+            .public_key(key.public_key())
+            .serial_number(x509.random_serial_number())
+            .add_extension(x509.SubjectAlternativeName(sans), critical=False)
+            .add_extension(x509.BasicConstraints(ca=False, path_length=None), critical=True)
+            .add_extension(
+                x509.ExtendedKeyUsage([ExtendedKeyUsageOID.SERVER_AUTH, ExtendedKeyUsageOID.CLIENT_AUTH]),
+                critical=False,
+            )
+            .sign(authority.key, hashes.SHA256())
+        )
+        stem = name if ca == "ca" else f"{name}-wrong-ca"
+        issued = Issued(self.folder / f"{stem}.crt", self.folder / f"{stem}.key")
+        issued.cert.write_bytes(cert.public_bytes(serialization.Encoding.PEM))
+        _write_key(key, issued.key)
+        return issued
