@@ -193,7 +193,9 @@ def resolve(workload: dict[str, Any], spec: dict[str, Any]) -> Container:
         config = load_config(task_dir(args.env), args.config, cli_overrides(args)).config
     except (ConfigError, UsageError) as e:
         pytest.fail(f"{where}: {e}")
-    for flag in ("evolver_host", "evolver_port", "learner_host", "learner_port", "replay_host", "replay_port"):
+    flags = ("evolver_host", "evolver_port", "learner_host", "learner_port", "replay_host", "replay_port", "tls_cert",
+             "tls_key", "tls_ca")  # fmt: skip
+    for flag in flags:
         if (value := getattr(args, flag)) is not None:
             setattr(config.net_config, flag, value)
     return Container(workload, spec, argv, args, config)
@@ -253,7 +255,7 @@ def test_service_ports_are_the_roles_configured_ports(render: Any, name: str) ->
     containers = asac_containers(docs)
     for c in containers:  # every port a container declares is one its role serves
         for port in c.spec.get("ports", []):
-            key = {"grpc": f"{c.role}_port", "params": "params_port"}.get(port["name"])
+            key = {"grpc": f"{c.role}_port", "params": "params_port", "health": "health_port"}.get(port["name"])
             assert key is not None and c.role in SERVERS, f"{c.where}: unexpected port {port}"
             assert port["containerPort"] == getattr(c.config.net_config, key), f"{c.where}: {port} != net.{key}"
     services = [d for d in docs if d["kind"] == "Service"]
@@ -272,14 +274,20 @@ def test_service_ports_are_the_roles_configured_ports(render: Any, name: str) ->
 
 
 @pytest.mark.parametrize("name", RENDERS)
-def test_probes_ask_the_roles_health_service_on_its_grpc_port(render: Any, name: str) -> None:
+def test_probes_ask_the_roles_health_service_on_a_port_that_serves_it(render: Any, name: str) -> None:
+    """The role's gRPC port; under TLS, which Kubernetes gRPC probes cannot speak, the plaintext
+    health-only port (net_config.health_port, ds/security.py)."""
     for c in asac_containers(render(name)):
         probes = [c.spec[k] for k in ("startupProbe", "readinessProbe", "livenessProbe") if k in c.spec]
         if c.role not in SERVERS:
             assert not probes, f"{c.where}: an {c.role} serves no health service"
             continue
         assert len(probes) == 3, f"{c.where}: needs startup, readiness and liveness probes"
-        expected = {"port": c.role_port(), "service": HEALTH_SERVICE[c.role]}
+        net = c.config.net_config
+        if net.tls_cert is not None:
+            assert net.health_port is not None, f"{c.where}: TLS on its gRPC port, so probes need net.health_port"
+        port = c.role_port() if net.health_port is None else net.health_port
+        expected = {"port": port, "service": HEALTH_SERVICE[c.role]}
         for probe in probes:
             assert probe.get("grpc") == expected, f"{c.where}: probe {probe} should ask {expected}"
 
@@ -364,6 +372,32 @@ def test_token_component_names_the_mounted_secret(render: Any) -> None:
         (mount,) = [m for m in c.spec["volumeMounts"] if m["mountPath"] == c.config.net_config.token_file]
         (volume,) = [v for v in c.pod["volumes"] if v["name"] == mount["name"]]
         assert volume["secret"]["secretName"] == "asac-token" and mount["subPath"] == "token"
+
+
+def test_tls_component_gives_each_role_its_own_secret_through_the_tls_flags(render: Any) -> None:
+    """k8s/components/tls: --tls_cert/--tls_key/--tls_ca name files of a read-only mount of the Secret
+    asac-tls-<role> (one per role: an actor pod never holds another role's key); servers open the
+    plaintext health-only port for the probes and declare it."""
+    roles = by_role(render("smoke+tls"))
+    assert set(roles) == {"evolver", "learner", "replay", "actor"}
+    for c in roles.values():
+        net = c.config.net_config
+        files = {"tls_cert": net.tls_cert, "tls_key": net.tls_key, "tls_ca": net.tls_ca}
+        assert None not in files.values(), f"{c.where}: {files}"
+        (mount,) = [m for m in c.spec["volumeMounts"] if Path(str(net.tls_cert)).parent == Path(m["mountPath"])]
+        assert mount.get("readOnly") is True and "subPath" not in mount, f"{c.where}: {mount}"
+        assert all(Path(str(f)).parent == Path(mount["mountPath"]) for f in files.values())
+        assert {Path(str(f)).name for f in files.values()} == {"tls.crt", "tls.key", "ca.crt"}  # cert-manager's keys
+        (volume,) = [v for v in c.pod["volumes"] if v["name"] == mount["name"]]
+        assert volume["secret"]["secretName"] == f"asac-tls-{c.role}", c.where
+        declared = {p["name"]: p["containerPort"] for p in c.spec.get("ports", [])}
+        if c.role in SERVERS:
+            assert net.health_port is not None and declared.get("health") == net.health_port, c.where
+            assert net.health_port not in (c.role_port(), net.params_port), c.where
+        else:
+            assert "health" not in declared, c.where
+    secrets = {v["secret"]["secretName"] for c in roles.values() for v in c.pod["volumes"] if "secret" in v}
+    assert len(secrets) == 4, secrets
 
 
 def cpus(quantity: str | int) -> int:

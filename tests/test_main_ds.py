@@ -80,8 +80,10 @@ def event_files(run: Path, role: str) -> list[Path]:
         (["gym/pendulum", "learner", "--actors", "3"], "--actors is for the local role"),
         (["gym/pendulum", "replay", "--override", "net.replay_prot=5"], "did you mean 'replay_port'"),
         (["gym/pendulum", "learner", "--override", "net.token_file=absent.key"], "net_config.token_file: cannot read"),
-        (["gym/pendulum", "replay", "--tls_cert", "absent.crt", "--tls_key", "absent.key"],
-         "net_config.tls_cert: cannot read 'absent.crt'"),  # fmt: skip
+        (
+            ["gym/pendulum", "replay", "--tls_cert", "absent.crt", "--tls_key", "absent.key"],
+            "net_config.tls_cert: cannot read 'absent.crt'",
+        ),
         (["gym/pendulum", "evolver", "--tls_cert", "absent.crt"], "net_config.tls_cert needs net_config.tls_key"),
     ],
 )

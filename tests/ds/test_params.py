@@ -281,6 +281,24 @@ def test_token_signed_stream(ctx: zmq.Context) -> None:
         assert unsigned.version is None and unsigned.last_error is not None and "trailing MAC" in unsigned.last_error
 
 
+def test_a_subscriber_with_the_token_drops_unsigned_and_forged_frames_and_keeps_its_weights(ctx: zmq.Context) -> None:
+    """A peer without the run's token (or with another) at the publisher's address: every message it
+    sends is dropped, the subscriber keeps the weights it has, and the next signed version gets through."""
+    pub, address = raw_pub(ctx)
+    with ParamsSubscriber(address, SPEC, token=TOKEN, context=ctx) as sub:
+        until(reaches(sub, 0), lambda: pub.send_multipart(encode_params(0, small_params(0), TOKEN)))
+        forged = [encode_params(5, small_params(5)), encode_params(6, small_params(6), b"a guess")]
+        for i, frames in enumerate(forged, start=1):
+            pub.send_multipart(frames)
+            until(counts(sub, "rejected", i))
+        assert sub.version == 0 and sub.last_error is not None and "MAC does not verify" in sub.last_error
+        pub.send_multipart(encode_params(7, small_params(7), TOKEN))
+        got = sub.latest(timeout_ms=5000)
+        assert got is not None and got[0] == 7 and sub.rejected == 2
+        np.testing.assert_array_equal(got[1]["b"], np.arange(5) + 7)
+    pub.close()
+
+
 def test_eight_subscribers_end_on_the_newest_version(ctx: zmq.Context, monkeypatch: pytest.MonkeyPatch) -> None:
     encodes: list[int] = []
 

@@ -24,7 +24,7 @@ from grpc_health.v1 import health_pb2, health_pb2_grpc
 from algorithm.config import ConfigError
 from algorithm.config_schema import Config, NetConfig
 from algorithm.replay import PrioritizedTable
-from algorithm.spaces import ActionSpec, EnvSpec, SensorSpec
+from algorithm.spaces import ActionSpec, EnvSpec
 from ds import evolver_service, learner_service, replay_service, security
 from ds.evolver import Evolver
 from ds.evolver_service import EvolverClient, serve_evolver
@@ -42,7 +42,7 @@ pytestmark = pytest.mark.grpc
 
 TOKEN = b"the run's secret"
 SPEC = EnvSpec((VECTOR,), ActionSpec(continuous_dim=2, low=(-1.0, -1.0), high=(1.0, 1.0)))
-WEIGHTS = {"q.weight": np.full((3, 4), 0.5, np.float32), "policy.bias": np.zeros(2, np.float64)}
+WEIGHTS: dict[str, np.ndarray] = {"q.weight": np.full((3, 4), 0.5, np.float32), "policy.bias": np.zeros(2, np.float64)}
 ONCE = RetryPolicy(attempts=1)
 SERVICES = ("replay", "learner", "evolver")
 MODULES: dict[str, tuple[ModuleType, str, Any]] = {  # role -> (pb2 module, service, callers)
@@ -123,7 +123,12 @@ def serve(role: str, credentials: Credentials, tmp_path: Path, health_port: int 
     config = Config.model_validate({"sac_config": {"seed": 0}})
     evolver = Evolver(config, Path(tempfile.mkdtemp(dir=tmp_path)), "exp", token=TOKEN)
     server, port, _ = serve_evolver(evolver, credentials=credentials, health_port=health_port)
-    return Served(role, port, health_port, lambda: (server.stop(None), evolver.stop()))
+
+    def stop() -> None:
+        server.stop(None)
+        evolver.stop()
+
+    return Served(role, port, health_port, stop)
 
 
 @pytest.fixture
@@ -219,7 +224,7 @@ def test_a_client_without_the_token_or_with_a_wrong_one_is_refused_on_every_rpc(
 # ---------------------------------------------------------------------- TLS
 
 
-CLIENTS_WITHOUT_THE_RUNS_CERTIFICATES = {
+CLIENTS_WITHOUT_THE_RUNS_CERTIFICATES: dict[str, dict[str, Any]] = {
     "trusts the wrong CA": {"ca": "wrong"},
     "its certificate is from the wrong CA": {"cert_ca": "wrong"},
     "no client certificate": {"cert": None},
