@@ -359,12 +359,14 @@ def test_tls_without_client_certificates(material: Material, servers: Callable[.
 # ---------------------------------------------------------------------- health
 
 
+@pytest.mark.parametrize("client_certificates", [True, False], ids=["mtls", "tls"])
 @pytest.mark.parametrize("role", SERVICES)
 def test_the_plaintext_health_port_answers_health_and_refuses_everything_else(
-    role: str, material: Material, servers: Callable[..., Served], tmp_path: Path
+    role: str, client_certificates: bool, material: Material, servers: Callable[..., Served], tmp_path: Path
 ) -> None:
     """What Kubernetes gRPC probes (no TLS, no metadata) get under TLS: health, and nothing else."""
-    served = servers(role, material.creds(role), health_port=free_port())
+    credentials = material.creds(role, ca="ca" if client_certificates else None)
+    served = servers(role, credentials, health_port=free_port())
     assert served.health_port is not None
     probe = f"127.0.0.1:{served.health_port}"
     assert health_status(probe, role, Credentials()) == health_pb2.HealthCheckResponse.SERVING
