@@ -242,7 +242,7 @@ class NetConfig(Section):
     )
     health_port: int | None = Field(
         None,
-        ge=0,
+        ge=1,
         le=65535,
         description="A plaintext port, beside the role's own, on which only the gRPC health service answers: for "
         "Kubernetes gRPC probes, which speak neither TLS nor tokens (k8s/components/tls). null = none; health "

@@ -5,7 +5,7 @@ and replays (a learner's live link with the evolver is ds/evolver_link.py).
 
 Usage, a learner's (``run_learner``)::
 
-    client = EvolverClient("evolver:61000", token=token)
+    client = EvolverClient("evolver:61000", token=token, credentials=creds)  # creds: ds/security.py
     joined = join_population(client, run_dir, LearnerAddress(name, "", 61001, params_port, ""), stop)
     config = member_config(joined.registration.config_yaml, joined.learner_id, own_config, overrides)
     ...                                    # ds/evolver_link.py: heartbeats, returns, samples, retirement

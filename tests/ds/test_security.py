@@ -356,6 +356,24 @@ def test_tls_without_client_certificates(material: Material, servers: Callable[.
     assert set(codes(served, material.creds(None, ca="wrong"), tmp_path).values()) == {grpc.StatusCode.UNAVAILABLE}
 
 
+def test_a_client_waiting_for_a_server_it_cannot_trust_logs_why(
+    material: Material, servers: Callable[..., Served], caplog: pytest.LogCaptureFixture
+) -> None:
+    """A failed handshake reads UNAVAILABLE, like a server that is down; the wait says which it is."""
+    served = servers("replay", material.creds("replay"))
+    stop = threading.Event()
+    timer = threading.Timer(1.0, stop.set)
+    timer.start()
+    with (
+        caplog.at_level(logging.INFO, logger="asac.rpc"),
+        security.open_channel(served.address, "replay", material.creds(ca="wrong"), []) as channel,
+    ):
+        assert not wait_until_serving(channel, replay_service.SERVICE_NAME, "replay", served.address, stop, 0.2)
+    timer.join()
+    waits = [r.getMessage() for r in caplog.records if r.getMessage().startswith("waiting for replay")]
+    assert waits and all("not reachable: " in w and "handshake" in w.lower() for w in waits), waits
+
+
 # ---------------------------------------------------------------------- health
 
 
