@@ -11,8 +11,7 @@ from typing import Any
 import numpy as np
 import pytest
 
-from algorithm.replay import ChunkIds, InsertTimeout, PrioritizedTable, RateLimiter
-from algorithm.replay import dedup
+from algorithm.replay import ChunkIds, InsertTimeout, PrioritizedTable, RateLimiter, dedup
 from algorithm.replay.dedup import ChunkLedger
 
 from .chunks import VECTOR, make_chunk
