@@ -286,9 +286,9 @@ class PrioritizedTable:
                     keys.append(self._store(chunk, t, new_p))
                     if ids is not None:
                         self._ledger.record(ids.producer, ids.seqs[i], int(keys[-1][0]))
-                else:
-                    start = np.uint64(max(first, 0))
-                    keys.append(np.arange(start, start + np.uint64(t if first != FORGOTTEN else 0), dtype=np.uint64))
+                else:  # the keys it was stored under; none if they are forgotten
+                    known_keys = np.arange(first, first + t) if first != FORGOTTEN else np.empty(0)
+                    keys.append(known_keys.astype(np.uint64))
                     self._counters["duplicates"] += 1
                 duplicate.append(first is not None)
         return Inserted(keys, duplicate)
