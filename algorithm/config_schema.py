@@ -86,6 +86,12 @@ class ReplayConfig(Section):
     )
     min_size_to_sample: int = Field(1000, ge=1, description="Steps stored before the first update.")
     save_replay: bool = Field(False, description="Save replay contents with checkpoints and restore them.")
+    save_replay_per_minute: float | None = Field(
+        None,
+        gt=0,
+        description="Replay role with save_replay: snapshot the table every N minutes (and at shutdown); "
+        "null = sac.save_model_per_minute. What a crash loses is what came in since the last snapshot.",
+    )
 
     @model_validator(mode="after")
     def _check_td_range(self) -> ReplayConfig:

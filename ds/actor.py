@@ -35,7 +35,7 @@ import torch
 from algorithm.actor import ActorLoop, VectorEnvLike
 from algorithm.config_schema import Config
 from algorithm.logging import MetricsWriter, RateMeter
-from algorithm.replay import InsertTimeout
+from algorithm.replay import ChunkIds, InsertTimeout
 from algorithm.sac import SAC
 from algorithm.types import Chunk
 from ds import learner_service, replay_service
@@ -73,6 +73,12 @@ class ReplaySink:
     immediate try and is then counted in ``unsent_steps`` (and logged). Chunks may be stored out of
     order after a retry; each is self-contained (no window spans two chunks), so order does not
     matter. :meth:`flush` waits for everything on its way.
+
+    Delivery is at least once and storage at most once: every chunk gets a sequence number under
+    this sink's random ``producer`` id when handed in and keeps it on every resend, so a chunk that
+    was stored although its reply was lost is answered as a duplicate (counted in ``duplicates``)
+    rather than stored twice; each request also tells the replay the lowest number still held here
+    (``acked_below``), so it can forget the rest (algorithm/replay/dedup.py).
     """
 
     def __init__(
@@ -100,13 +106,17 @@ class ReplaySink:
         self.wait_seconds = 0.0
         self.unavailable = 0
         self.unsent_steps = 0
+        self.duplicates = 0
+        self.producer = int.from_bytes(os.urandom(8), "little") or 1
+        self._next_seq = 0
         self._pending: deque[PendingInsert] = deque()
-        self._queued: list[Chunk] = []
+        self._queued: list[tuple[int, Chunk]] = []
         self._backoff = 0.0
         self._log = Throttle(30.0)
 
     def __call__(self, chunk: Chunk) -> None:
-        self._queued.append(chunk)
+        self._queued.append((self._next_seq, chunk))
+        self._next_seq += 1
         if len(self._pending) >= self.in_flight and len(self._queued) >= self.max_chunks_per_insert:
             self._settle_oldest()  # the actor is ahead of the replay: wait for it
         if len(self._pending) < self.in_flight:
@@ -125,18 +135,23 @@ class ReplaySink:
         replay = self.replay
         budget = replay.max_message_bytes // 2
         count, size = 0, 0
-        for chunk in self._queued[: self.max_chunks_per_insert]:
+        for _, chunk in self._queued[: self.max_chunks_per_insert]:
             size += chunk_payload_bytes(replay.sensors, replay.action_size, len(chunk), replay.rnn_state_size)
             if count and size > budget:
                 break
             count += 1
-        self._send(self._queued[:count])
+        batch = self._queued[:count]
         del self._queued[:count]
+        self._send(tuple(seq for seq, _ in batch), [chunk for _, chunk in batch])
 
-    def _send(self, chunks: list[Chunk]) -> None:
-        """Send ``chunks``; once stopping, as their last try (no waiting in the rate limiter)."""
+    def _send(self, seqs: tuple[int, ...], chunks: list[Chunk]) -> None:
+        """Send ``chunks`` numbered ``seqs``; once stopping, as their last try (no waiting in the
+        rate limiter)."""
+        held = [*seqs, *(seq for seq, _ in self._queued)]
+        held += [seq for p in self._pending if p.ids is not None for seq in p.ids.seqs]
+        ids = ChunkIds(self.producer, seqs, min(held, default=self._next_seq))
         final = self.stopping()
-        pending = self.replay.insert_async(chunks, timeout=0.0 if final else self.timeout_s)
+        pending = self.replay.insert_async(chunks, timeout=0.0 if final else self.timeout_s, ids=ids)
         pending.final = final
         self._pending.append(pending)
         self.requests += 1
@@ -146,7 +161,7 @@ class ReplaySink:
         start = time.monotonic()
         pending = self._pending[0]
         try:
-            pending.result()
+            self.duplicates += sum(pending.result().duplicate)
             self.inserted_steps += pending.steps()
             self._pending.popleft()
             self._backoff = 0.0
@@ -171,7 +186,8 @@ class ReplaySink:
             log.info("stopping: %d chunks (%d steps) could not be inserted", len(pending.chunks), pending.steps())
             return
         self.between()
-        self._send(pending.chunks)
+        assert pending.ids is not None
+        self._send(pending.ids.seqs, pending.chunks)
         self._pending.rotate(1)  # the retry goes first again: settle it before newer inserts
 
 
@@ -300,6 +316,7 @@ class DistributedActor:
             "actor/insert_waits": float(sink.insert_waits),
             "actor/insert_wait_seconds": sink.wait_seconds,
             "actor/replay_unavailable": float(sink.unavailable),
+            "actor/insert_duplicates": float(sink.duplicates),
             "actor/params_version": float(self.params_version),
             "actor/params_applied": float(self.params_applied),
             "time/env_steps_per_second": steps_per_s,

@@ -8,6 +8,8 @@ Usage, a replay process and its peers (protos/replay.proto documents every rpc):
     replay = ReplayClient("replay:50051", sensors, action_size, rnn_state_size, max_message_bytes=limit,
                           credentials=creds)   # creds: ds.security.load_credentials (token, TLS)
     keys = replay.insert(chunk)                      # actor
+    pending = replay.insert_async(chunks, timeout=2.0, ids=ChunkIds(producer, seqs, acked_below))
+    pending.result()                                 # actor's sink: keys and duplicate flags, or raises
     batch = replay.sample(256, timeout=1.0)          # learner: a Batch with the same dtypes as in-process
     replay.update_priorities(batch.keys, td_abs)     # learner
     server.stop(grace=5.0)
@@ -41,7 +43,7 @@ import grpc
 import numpy as np
 from grpc_health.v1 import health, health_pb2_grpc
 
-from algorithm.replay import InsertTimeout, PrioritizedTable, SampleTimeout
+from algorithm.replay import ChunkIds, Inserted, InsertTimeout, PrioritizedTable, SampleTimeout
 from algorithm.spaces import SensorSpec
 from algorithm.types import Batch, Chunk
 from ds import rpc, security
@@ -117,9 +119,15 @@ class ReplayServicer(replay_pb2_grpc.ReplayServiceServicer):
         with _status_codes(context):
             # Decode every chunk first: a bad one anywhere rejects the whole request untouched.
             decoded = [self.specs.chunk_from_proto(c, f"chunks[{i}]") for i, c in enumerate(request.chunks)]
-            keys = self.table.insert_many(
-                [chunk for chunk, _ in decoded], [p for _, p in decoded], _wait_seconds(request, context)
-            )
+            chunks, priorities = [chunk for chunk, _ in decoded], [p for _, p in decoded]
+            wait = _wait_seconds(request, context)
+            if request.producer:
+                ids = ChunkIds(request.producer, tuple(request.sequence), request.acked_below)
+                inserted = self.table.insert_once(chunks, ids, priorities, wait)
+                return replay_pb2.InsertReply(keys=[to_tensor(k) for k in inserted.keys], duplicate=inserted.duplicate)
+            if request.sequence or request.acked_below:
+                raise ValueError("InsertRequest: sequence and acked_below need a producer, but producer is 0")
+            keys = self.table.insert_many(chunks, priorities, wait)
         return replay_pb2.InsertReply(keys=[to_tensor(k) for k in keys])
 
     def Sample(self, request: replay_pb2.SampleRequest, context: grpc.ServicerContext) -> replay_pb2.SampleReply:
@@ -212,6 +220,7 @@ def serve_replay(
     ready: bool = True,
     credentials: Credentials = NO_CREDENTIALS,
     health_port: int | None = None,
+    interceptors: Sequence[grpc.ServerInterceptor] = (),
 ) -> tuple[grpc.Server, int]:
     """Start a gRPC server for ``table`` on ``address`` (port 0: any free port); returns it and its port.
 
@@ -222,10 +231,11 @@ def serve_replay(
     and your own ``health_servicer`` to flip it with :func:`set_serving` later (after loading a
     saved table, say). ``credentials`` and ``health_port``: see :func:`ds.security.listen` (TLS, the
     token, who may call what); plaintext on loopback by default (ARCHITECTURE.md 6: without
-    credentials servers bind to loopback). Stop it with ``server.stop(grace)``.
+    credentials servers bind to loopback). ``interceptors`` wrap every call after those checks (tests inject
+    faults with them). Stop it with ``server.stop(grace)``.
     """
     options = channel_options(max_message_bytes)
-    server = security.new_server("replay", SERVICE_NAME, CALLERS, credentials, max_workers, options)
+    server = security.new_server("replay", SERVICE_NAME, CALLERS, credentials, max_workers, options, interceptors)
     servicer = ReplayServicer(table, table.sensors, table.action_size, table.rnn_state_size, max_message_bytes)
     replay_pb2_grpc.add_ReplayServiceServicer_to_server(servicer, server)
     health_servicer = health_servicer or health.HealthServicer()
@@ -254,7 +264,7 @@ class ReplayRequestRejected(ReplayRpcError, ValueError):
 
 
 class ReplayClient:
-    """The replay table interface over gRPC: ``insert``, ``insert_many``, ``sample``,
+    """The replay table interface over gRPC: ``insert``, ``insert_many``, ``insert_once``, ``sample``,
     ``update_priorities``, ``info``, ``normalizer_stats``, ``save``, ``load``.
 
     Takes and returns the same types as :class:`PrioritizedTable` (Chunk in, Batch out, numpy
@@ -324,29 +334,49 @@ class ReplayClient:
         """
         request = self._insert_request(chunks, priorities)
         reply = self._blocking("Insert", self._stub.Insert, request, timeout, InsertTimeout)
-        return _inserted_keys(reply, chunks)
+        return _inserted(reply, chunks, None).keys
 
-    def insert_async(self, chunks: Sequence[Chunk], timeout: float = 0.0) -> PendingInsert:
+    def insert_once(
+        self,
+        chunks: Sequence[Chunk],
+        ids: ChunkIds,
+        priorities: Sequence[np.ndarray | None] | None = None,
+        timeout: float | None = None,
+    ) -> Inserted:
+        """Store chunks unless already stored under their ids; see :meth:`PrioritizedTable.insert_once`.
+        Retrying UNAVAILABLE is harmless here: a copy that was stored comes back as a duplicate."""
+        request = self._insert_request(chunks, priorities, ids)
+        reply = self._blocking("Insert", self._stub.Insert, request, timeout, InsertTimeout)
+        return _inserted(reply, chunks, ids)
+
+    def insert_async(self, chunks: Sequence[Chunk], timeout: float = 0.0, ids: ChunkIds | None = None) -> PendingInsert:
         """Send one insert of ``chunks`` (all or nothing) without waiting for the answer: the
         caller goes on (an actor steps its envs) and collects it with :meth:`PendingInsert.result`.
-        One attempt, no retries: the caller keeps the chunks until the result says they are stored.
-        ``timeout`` is how long the server's rate limiter may hold the insert back."""
-        request = self._insert_request(chunks, None)
+        One attempt, no retries: the caller keeps the chunks until the result says they are stored,
+        and sends them again with the same ``ids`` if it does not (then a copy that was stored is
+        answered as a duplicate, not stored twice). ``timeout`` is how long the server's rate
+        limiter may hold the insert back."""
+        request = self._insert_request(chunks, None, ids)
         request.timeout_s = max(0.0, float(timeout))
         future = self._stub.Insert.future(request, timeout=request.timeout_s + self.rpc_timeout_s)
-        return PendingInsert(self.address, future, list(chunks))
+        return PendingInsert(self.address, future, list(chunks), ids)
 
     def _insert_request(
-        self, chunks: Sequence[Chunk], priorities: Sequence[np.ndarray | None] | None
+        self, chunks: Sequence[Chunk], priorities: Sequence[np.ndarray | None] | None, ids: ChunkIds | None = None
     ) -> replay_pb2.InsertRequest:
         if priorities is not None and len(priorities) != len(chunks):
             raise ValueError(f"insert: {len(priorities)} priority arrays for {len(chunks)} chunks")
+        if ids is not None:
+            ids.check(len(chunks))
         request = replay_pb2.InsertRequest(
             chunks=[
                 chunk_to_proto(c, None if priorities is None else priorities[i], f"chunks[{i}]")
                 for i, c in enumerate(chunks)
             ]
         )
+        if ids is not None:
+            request.producer, request.acked_below = ids.producer, ids.acked_below
+            request.sequence.extend(ids.seqs)
         self._check_size(request, f"{len(chunks)} chunks of {sum(len(c) for c in chunks)} steps")
         return request
 
@@ -440,22 +470,25 @@ class ReplayClient:
 
 
 class PendingInsert:
-    """An insert on its way (:meth:`ReplayClient.insert_async`); ``chunks`` are what it carries.
-    ``final`` is the sender's mark for a last try (the actor's sink sets it once stopping)."""
+    """An insert on its way (:meth:`ReplayClient.insert_async`); ``chunks`` are what it carries,
+    under ``ids`` (None: none). ``final`` is the sender's mark for a last try (the actor's sink
+    sets it once stopping)."""
 
-    def __init__(self, address: str, future: grpc.Future, chunks: list[Chunk]) -> None:
+    def __init__(self, address: str, future: grpc.Future, chunks: list[Chunk], ids: ChunkIds | None = None) -> None:
         self.address = address
         self.chunks = chunks
+        self.ids = ids
         self.final = False
         self._future = future
 
     def steps(self) -> int:
         return sum(len(c) for c in self.chunks)
 
-    def result(self) -> list[np.ndarray]:
-        """Wait for the answer: each chunk's keys, or the exceptions :meth:`ReplayClient.insert_many`
-        raises (:class:`InsertTimeout` when the rate limiter held it back for its whole timeout,
-        :class:`ReplayRpcError` with UNAVAILABLE when the replay is gone, ``ValueError`` if refused)."""
+    def result(self) -> Inserted:
+        """Wait for the answer: each chunk's keys and whether it was a duplicate, or the exceptions
+        :meth:`ReplayClient.insert_many` raises (:class:`InsertTimeout` when the rate limiter held
+        it back for its whole timeout, :class:`ReplayRpcError` with UNAVAILABLE when the replay is
+        gone or the answer was lost, ``ValueError`` if refused)."""
         try:
             reply = self._future.result()
         except grpc.RpcError as e:
@@ -463,16 +496,22 @@ class PendingInsert:
             if e.code() == grpc.StatusCode.DEADLINE_EXCEEDED:
                 raise InsertTimeout(message) from None
             raise _client_error(e.code(), message, 1) from None
-        return _inserted_keys(reply, self.chunks)
+        return _inserted(reply, self.chunks, self.ids)
 
 
-def _inserted_keys(reply: replay_pb2.InsertReply, chunks: Sequence[Chunk]) -> list[np.ndarray]:
+def _inserted(reply: replay_pb2.InsertReply, chunks: Sequence[Chunk], ids: ChunkIds | None) -> Inserted:
+    """Check an InsertReply against the request: one key tensor per chunk of ``T`` keys (a
+    duplicate's may be empty: the server forgot them) and, with ``ids``, one duplicate flag each."""
     if len(reply.keys) != len(chunks):
         raise WireError("keys", f"has {len(reply.keys)} tensors for {len(chunks)} chunks")
-    return [
-        from_tensor(k, TensorSpec(f"keys[{i}]", np.dtype(np.uint64), leading=("T",)), {"T": len(c)})
-        for i, (k, c) in enumerate(zip(reply.keys, chunks, strict=True))
-    ]
+    duplicate = list(reply.duplicate)
+    if len(duplicate) != (0 if ids is None else len(chunks)):
+        raise WireError("duplicate", f"has {len(duplicate)} flags for {len(chunks)} chunks")
+    keys = []
+    for i, (k, c) in enumerate(zip(reply.keys, chunks, strict=True)):
+        t = 0 if duplicate and duplicate[i] and tuple(k.shape) == (0,) else len(c)
+        keys.append(from_tensor(k, TensorSpec(f"keys[{i}]", np.dtype(np.uint64), leading=("T",)), {"T": t}))
+    return Inserted(keys, duplicate or [False] * len(chunks))
 
 
 def _client_error(code: grpc.StatusCode, message: str, attempts: int) -> ReplayRpcError:

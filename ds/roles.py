@@ -223,8 +223,11 @@ def run_evolver(role: RoleContext) -> int:
 def run_replay(role: RoleContext, metrics_every_s: float = 10.0) -> int:
     """Serve the run's prioritized table (rate limiter enforced: actors and learner are separate
     processes) until stopped; with ``save_replay`` load it at start and save it every
-    ``save_model_per_minute`` minutes and at shutdown. With an evolver it first asks which learner
-    it serves (announcing ``replay_host:replay_port``) and builds its table from that learner's config."""
+    ``save_replay_per_minute`` (default ``save_model_per_minute``) minutes and at shutdown. A
+    replay killed without saving comes back with its last snapshot, including the ids of the chunks
+    in it: actors send again what was not acknowledged, and what the snapshot holds is not stored
+    twice. With an evolver it first asks which learner it serves (announcing
+    ``replay_host:replay_port``) and builds its table from that learner's config."""
     client, keeper = None, None
     try:
         if role.uses_evolver:
@@ -285,9 +288,11 @@ def _serve_replay(role: RoleContext, keeper: AssignmentKeeper | None, metrics_ev
     )
     path = RunDir(role.run_dir).replay
     saving = cfg.replay_config.save_replay
+    save_every_min = cfg.replay_config.save_replay_per_minute or sac_cfg.save_model_per_minute
     if saving and path.exists():
         table.load(path)
-        log.info("replay restored from %s: %d steps", path, table.info()["size"])
+        info = table.info()
+        log.info("replay restored from %s: %d steps, the chunk ids of %d actors", path, info["size"], info["producers"])
     checker = health.HealthServicer()
     address = f"{cfg.net_config.bind_host}:{cfg.net_config.replay_port}"
     server, port = _listen("replay", address, "--replay_port", lambda: serve_replay(
@@ -317,7 +322,7 @@ def _serve_replay(role: RoleContext, keeper: AssignmentKeeper | None, metrics_ev
                 metrics = {f"replay/{k}": v for k, v in info.items() if isinstance(v, int | float)}
                 writer.write(metrics, info["inserted_steps"])
                 last_metrics = now
-            if saving and (now - last_save) / 60 >= sac_cfg.save_model_per_minute:
+            if saving and (now - last_save) / 60 >= save_every_min:
                 table.save(path)
                 last_save = time.monotonic()
     finally:

@@ -170,12 +170,14 @@ def new_server(
     credentials: Credentials,
     max_workers: int,
     options: Sequence[tuple[str, Any]],
+    interceptors: Sequence[grpc.ServerInterceptor] = (),
 ) -> grpc.Server:
     """A gRPC server (``max_workers`` threads named ``<what>-rpc``) that checks every call to
-    ``service`` as the module docstring says; ``callers`` names who may call each of its rpcs."""
-    interceptors = [_Guard(service, callers, credentials)] if credentials.secured else []
+    ``service`` as the module docstring says; ``callers`` names who may call each of its rpcs.
+    ``interceptors`` run after those checks (tests inject faults with them)."""
+    guard = [_Guard(service, callers, credentials)] if credentials.secured else []
     executor = futures.ThreadPoolExecutor(max_workers=max_workers, thread_name_prefix=f"{what}-rpc")
-    return grpc.server(executor, options=list(options), interceptors=interceptors)
+    return grpc.server(executor, options=list(options), interceptors=[*guard, *interceptors])
 
 
 def listen(

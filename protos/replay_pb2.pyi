@@ -39,18 +39,26 @@ class Chunk(_message.Message):
     def __init__(self, obs: _Optional[_Iterable[_Union[Tensor, _Mapping]]] = ..., actions: _Optional[_Union[Tensor, _Mapping]] = ..., prev_actions: _Optional[_Union[Tensor, _Mapping]] = ..., rewards: _Optional[_Union[Tensor, _Mapping]] = ..., terminated: _Optional[_Union[Tensor, _Mapping]] = ..., truncated: _Optional[_Union[Tensor, _Mapping]] = ..., behaviour_logp: _Optional[_Union[Tensor, _Mapping]] = ..., rnn_state: _Optional[_Union[Tensor, _Mapping]] = ..., priorities: _Optional[_Union[Tensor, _Mapping]] = ...) -> None: ...
 
 class InsertRequest(_message.Message):
-    __slots__ = ("chunks", "timeout_s")
+    __slots__ = ("chunks", "timeout_s", "producer", "sequence", "acked_below")
     CHUNKS_FIELD_NUMBER: _ClassVar[int]
     TIMEOUT_S_FIELD_NUMBER: _ClassVar[int]
+    PRODUCER_FIELD_NUMBER: _ClassVar[int]
+    SEQUENCE_FIELD_NUMBER: _ClassVar[int]
+    ACKED_BELOW_FIELD_NUMBER: _ClassVar[int]
     chunks: _containers.RepeatedCompositeFieldContainer[Chunk]
     timeout_s: float
-    def __init__(self, chunks: _Optional[_Iterable[_Union[Chunk, _Mapping]]] = ..., timeout_s: _Optional[float] = ...) -> None: ...
+    producer: int
+    sequence: _containers.RepeatedScalarFieldContainer[int]
+    acked_below: int
+    def __init__(self, chunks: _Optional[_Iterable[_Union[Chunk, _Mapping]]] = ..., timeout_s: _Optional[float] = ..., producer: _Optional[int] = ..., sequence: _Optional[_Iterable[int]] = ..., acked_below: _Optional[int] = ...) -> None: ...
 
 class InsertReply(_message.Message):
-    __slots__ = ("keys",)
+    __slots__ = ("keys", "duplicate")
     KEYS_FIELD_NUMBER: _ClassVar[int]
+    DUPLICATE_FIELD_NUMBER: _ClassVar[int]
     keys: _containers.RepeatedCompositeFieldContainer[Tensor]
-    def __init__(self, keys: _Optional[_Iterable[_Union[Tensor, _Mapping]]] = ...) -> None: ...
+    duplicate: _containers.RepeatedScalarFieldContainer[bool]
+    def __init__(self, keys: _Optional[_Iterable[_Union[Tensor, _Mapping]]] = ..., duplicate: _Optional[_Iterable[bool]] = ...) -> None: ...
 
 class SampleRequest(_message.Message):
     __slots__ = ("batch_size", "timeout_s")

@@ -84,8 +84,17 @@ class ReplayServiceServicer:
         """Stores chunks, each contiguously, and returns each chunk's T new keys (uint64, increasing,
         never reused). Called by actors. All or nothing: every chunk is validated before any is
         stored, and the rate limiter admits the request's total steps at once.
+        Idempotent with a producer: an actor keeps each chunk until a reply says it is stored and
+        sends it again (same producer and sequence) when no reply came, so delivery is at least once;
+        a chunk already stored under its (producer, sequence) is answered as a duplicate with its
+        keys and not stored again (counted in Info's "duplicates"), and a request of duplicates only
+        is never held back by the rate limiter. The ids are saved with the table (Save, and the replay
+        role's periodic snapshot), so a replay restarted from a snapshot recognises every chunk the
+        snapshot holds. A chunk stored after the last snapshot is lost when the replay dies without
+        saving (kill -9); if its reply had reached the actor the actor does not send it again.
         Errors: INVALID_ARGUMENT (a tensor breaks its spec, a chunk breaks the chunk rules, a chunk
-        is longer than capacity - 1 steps, or timeout_s < 0; nothing is stored), DEADLINE_EXCEEDED
+        is longer than capacity - 1 steps, timeout_s < 0, or sequence is not one distinct number
+        per chunk with a producer, or not empty without one; nothing is stored), DEADLINE_EXCEEDED
         (the rate limiter held the insert back for timeout_s or until the call's deadline; nothing is
         stored), RESOURCE_EXHAUSTED (message over the server's size limit; nothing is stored).
         """

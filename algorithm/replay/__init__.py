@@ -1,8 +1,18 @@
 """Replay: the table interface, the prioritized in-process table, its sum tree and rate limiter."""
 
 from algorithm.replay.base import ReplayTable, SampleTimeout
+from algorithm.replay.dedup import ChunkIds, Inserted
 from algorithm.replay.rate_limiter import InsertTimeout, RateLimiter
 from algorithm.replay.sum_tree import SumTree
 from algorithm.replay.table import PrioritizedTable
 
-__all__ = ["InsertTimeout", "PrioritizedTable", "RateLimiter", "ReplayTable", "SampleTimeout", "SumTree"]
+__all__ = [
+    "ChunkIds",
+    "Inserted",
+    "InsertTimeout",
+    "PrioritizedTable",
+    "RateLimiter",
+    "ReplayTable",
+    "SampleTimeout",
+    "SumTree",
+]

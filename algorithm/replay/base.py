@@ -3,6 +3,7 @@
 Usage, from an actor and a learner sharing one table::
 
     keys = table.insert(chunk)                      # actor: one chunk -> one key per step
+    table.insert_once(chunks, ChunkIds(producer, seqs, acked_below))   # actor: safe to send again
     batch = table.sample(batch_size, timeout=1.0)   # learner: B windows, with keys and probabilities
     table.update_priorities(batch.keys, td_abs)     # learner: |TD| per sampled key; evicted keys ignored
     stats = table.info()                            # anyone: sizes, counters, normalizer stats
@@ -14,11 +15,13 @@ itself, so callers never need the replay's hyper-parameters.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any, Protocol
 
 import numpy as np
 
+from algorithm.replay.dedup import ChunkIds, Inserted
 from algorithm.types import Batch, Chunk
 
 
@@ -31,6 +34,18 @@ class ReplayTable(Protocol):
         """Store a chunk contiguously; returns its ``len(chunk)`` new uint64 keys (increasing,
         never reused). New rows get the current maximum priority unless ``priorities`` is given.
         May block while the rate limiter says the learner is behind, if the table was built to."""
+        ...
+
+    def insert_once(
+        self,
+        chunks: Sequence[Chunk],
+        ids: ChunkIds,
+        priorities: Sequence[np.ndarray | None] | None = None,
+        timeout: float | None = None,
+    ) -> Inserted:
+        """Store chunks all or nothing, except those already stored under their ids (producer,
+        sequence number), which are answered with their keys and not stored again: a producer
+        that missed an answer sends the same chunks again safely (algorithm/replay/dedup.py)."""
         ...
 
     def sample(self, batch_size: int, timeout: float | None = None) -> Batch:

@@ -5,6 +5,7 @@ Usage (see :class:`~algorithm.replay.base.ReplayTable` for the contract)::
     table = PrioritizedTable.from_config(cfg.replay_config, env_spec.sensors, env_spec.action.size,
                                          window=burn_in_step + n_step, seed=0)
     keys = table.insert(chunk)                    # T new keys; the chunk also fills one bootstrap row
+    table.insert_once(chunks, ChunkIds(producer, seqs, acked_below))  # a re-sent chunk is not stored twice
     batch = table.sample(256, timeout=1.0)        # [B, L] windows, keys, probabilities, table size
     table.update_priorities(batch.keys, td_abs)   # raw |TD|; evicted keys are ignored
     table.save(path); other.load(path)            # atomic; sampling continues identically
@@ -34,6 +35,7 @@ import numpy as np
 
 from algorithm.normalizer import RunningMeanStd
 from algorithm.replay import persistence
+from algorithm.replay.dedup import FORGOTTEN, ChunkIds, ChunkLedger, Inserted
 from algorithm.replay.rate_limiter import RateLimiter
 from algorithm.replay.sum_tree import SumTree
 from algorithm.spaces import SensorSpec
@@ -143,6 +145,7 @@ class PrioritizedTable:
         self._tree = SumTree(cap)
         self._normalizers = {s.name: RunningMeanStd(s.shape) for s in self.sensors if not s.is_image}
         self._next_key = 0
+        self._ledger = ChunkLedger()  # which producers' chunks are stored (insert_once)
         self._max_priority = float(self._transform(np.ones(1))[0])
         self._counters = dict.fromkeys(
             (
@@ -152,6 +155,7 @@ class PrioritizedTable:
                 "priority_updates",
                 "priority_updates_ignored",
                 "rnn_state_updates",
+                "duplicates",
             ),
             0,
         )
@@ -225,6 +229,29 @@ class PrioritizedTable:
         ``chunks[i]``, or :class:`~algorithm.replay.rate_limiter.InsertTimeout`). For callers
         that hand over several chunks at a time, such as the replay server.
         """
+        return self._insert(self._check_many(chunks, priorities), None, timeout).keys
+
+    def insert_once(
+        self,
+        chunks: Sequence[Chunk],
+        ids: ChunkIds,
+        priorities: Sequence[np.ndarray | None] | None = None,
+        timeout: float | None = None,
+    ) -> Inserted:
+        """:meth:`insert_many` for a producer that sends a chunk again when it missed the answer:
+        a chunk already stored under ``(ids.producer, ids.seqs[i])`` is not stored again but
+        answered with the keys it got (counted in ``info()["duplicates"]``); the new ones are
+        stored all or nothing. The ids are saved with the table (algorithm/replay/dedup.py says
+        what that guarantees and how little it keeps). A request of duplicates only is never held
+        back by the rate limiter. Bad ``ids`` raise ``ValueError`` and store nothing."""
+        checked = self._check_many(chunks, priorities)
+        ids.check(len(checked))
+        return self._insert(checked, ids, timeout)
+
+    def _check_many(
+        self, chunks: Sequence[Chunk], priorities: Sequence[np.ndarray | None] | None
+    ) -> list[tuple[Chunk, int, np.ndarray | None]]:
+        """Validate every chunk and its raw priorities; returns ``(chunk, T, transformed priorities)``."""
         if priorities is not None and len(priorities) != len(chunks):
             raise ValueError(f"insert: {len(priorities)} priority arrays for {len(chunks)} chunks")
         checked: list[tuple[Chunk, int, np.ndarray | None]] = []
@@ -238,9 +265,33 @@ class PrioritizedTable:
                     raise
                 raise ValueError(f"chunks[{i}]: {e}") from e
             checked.append((chunk, t, new_p))
+        return checked
+
+    def _insert(
+        self, checked: list[tuple[Chunk, int, np.ndarray | None]], ids: ChunkIds | None, timeout: float | None
+    ) -> Inserted:
         with self._lock:
-            self.rate_limiter.await_insert(sum(t for _, t, _ in checked), timeout)
-            return [self._store(chunk, t, new_p) for chunk, t, new_p in checked]
+            known: list[int | None] = [None] * len(checked)
+            if ids is not None:
+                self._ledger.settle(ids)
+                known = self._ledger.lookup(ids)
+            steps = sum(t for (_, t, _), first in zip(checked, known, strict=True) if first is None)
+            if steps:
+                self.rate_limiter.await_insert(steps, timeout)
+                if ids is not None:  # the wait released the lock: a copy of this request may have been stored
+                    known = self._ledger.lookup(ids)
+            keys, duplicate = [], []
+            for i, ((chunk, t, new_p), first) in enumerate(zip(checked, known, strict=True)):
+                if first is None:
+                    keys.append(self._store(chunk, t, new_p))
+                    if ids is not None:
+                        self._ledger.record(ids.producer, ids.seqs[i], int(keys[-1][0]))
+                else:  # the keys it was stored under; none if they are forgotten
+                    known_keys = np.arange(first, first + t) if first != FORGOTTEN else np.empty(0)
+                    keys.append(known_keys.astype(np.uint64))
+                    self._counters["duplicates"] += 1
+                duplicate.append(first is not None)
+        return Inserted(keys, duplicate)
 
     def _store(self, chunk: Chunk, t: int, new_p: np.ndarray | None) -> np.ndarray:
         """Write a validated, admitted chunk into the ring (the caller holds the lock)."""
@@ -364,6 +415,7 @@ class PrioritizedTable:
                 "next_key": self._next_key,
                 "max_priority": self._max_priority,
                 "total_priority": self._tree.total,
+                "producers": len(self._ledger),
                 **self._counters,
                 **lim.info(),
             }
@@ -378,7 +430,9 @@ class PrioritizedTable:
 
     def save(self, path: str | Path) -> None:
         """Write the table to ``path`` (an ``.npz`` archive, no pickles) atomically: the state is
-        copied under the lock, then written to a temp file beside ``path``, fsynced and renamed."""
+        copied under the lock, then written to a temp file beside ``path``, fsynced and renamed.
+        The ids of :meth:`insert_once` are saved with the rows they name, so a table loaded from
+        the file recognises exactly the chunks it holds."""
         with self._lock:
             arrays = self._state_arrays()
             meta = {
@@ -389,6 +443,7 @@ class PrioritizedTable:
                 "rate_limiter": self.rate_limiter.state_dict(),
                 "rng": self._rng.bit_generator.state,
                 "normalizer_counts": {name: rms.count for name, rms in self._normalizers.items()},
+                "ledger": self._ledger.state_dict(),
             }
         persistence.write_atomic(Path(path), arrays, meta)
 
@@ -476,6 +531,7 @@ class PrioritizedTable:
         tree.set_all(leaves)
         rng = np.random.default_rng()
         rng.bit_generator.state = meta["rng"]
+        ledger = ChunkLedger.from_state(meta.get("ledger", []), next_key)  # files from before insert_once: none
         normalizers = {}
         for i, s in enumerate(self.sensors):
             if s.name in self._normalizers:
@@ -501,6 +557,7 @@ class PrioritizedTable:
             "_max_priority": max_priority,
             "_counters": counters,
             "_rng": rng,
+            "_ledger": ledger,
         }
         return attributes, lim
 

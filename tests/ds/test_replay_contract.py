@@ -4,8 +4,9 @@ Each test below is the in-process test itself, imported and collected again here
 overridden: the test builds its table as before, and ``connect`` starts a real server for it on
 127.0.0.1 and hands back a :class:`~ds.replay_service.ReplayClient`, through which the test then
 does everything (STYLE.md 11). Not listed, because they reach inside the table or test its
-constructor rather than its interface: ``test_constructor_rejects_bad_arguments`` and the
-thread-safety test of test_table_threads.py (its gRPC counterpart is in test_replay_service.py).
+constructor rather than its interface: ``test_constructor_rejects_bad_arguments``, the
+thread-safety test of test_table_threads.py (its gRPC counterpart is in test_replay_service.py)
+and the tests of the dedup ledger's bounds.
 """
 
 from __future__ import annotations
@@ -37,6 +38,15 @@ from tests.algorithm.replay.test_table import (  # noqa: F401  (collected by pyt
 from tests.algorithm.replay.test_table_burn_in import (  # noqa: F401
     test_look_back_windows_never_leave_the_sampled_chunk,
     test_the_sampled_step_sits_after_the_burn_in_and_early_steps_get_zero_rows,
+)
+from tests.algorithm.replay.test_table_dedup import (  # noqa: F401
+    test_a_chunk_sent_again_is_answered_with_its_keys_and_stored_once,
+    test_a_request_of_duplicates_only_is_not_held_back_by_the_rate_limiter,
+    test_a_snapshot_with_a_bad_ledger_is_refused,
+    test_a_table_loaded_from_a_snapshot_knows_the_chunks_the_snapshot_holds,
+    test_acknowledged_numbers_are_forgotten_and_a_stale_copy_is_not_stored,
+    test_bad_ids_are_named_and_store_nothing,
+    test_copies_waiting_in_the_rate_limiter_store_the_chunk_once,
 )
 from tests.algorithm.replay.test_table_persistence import (  # noqa: F401
     test_bad_file_raises_and_leaves_the_table_intact,

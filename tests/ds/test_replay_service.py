@@ -181,6 +181,18 @@ BAD_INSERTS: dict[str, tuple[Callable[[replay_pb2.InsertRequest], None], str]] =
         lambda r: setattr(r, "timeout_s", -1.0),
         "timeout_s must be >= 0, got -1.0",
     ),
+    "sequence without producer": (
+        lambda r: r.sequence.append(3),
+        "InsertRequest: sequence and acked_below need a producer, but producer is 0",
+    ),
+    "producer without sequence": (
+        lambda r: setattr(r, "producer", 77),
+        "insert ids: 0 sequence numbers for 1 chunks",
+    ),
+    "repeated sequence number": (
+        lambda r: (r.chunks.append(r.chunks[0]), setattr(r, "producer", 77), r.sequence.extend([5, 5])),
+        "insert ids: sequence numbers repeat within one request: [5, 5]",
+    ),
 }
 
 

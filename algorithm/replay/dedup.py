@@ -1,0 +1,146 @@
+"""Idempotent inserts: which chunks of which producer a table has stored, so that a chunk sent again
+is answered with the keys it already got instead of being stored twice.
+
+Usage (:meth:`PrioritizedTable.insert_once` does this under the table's lock)::
+
+    ids = ChunkIds(producer=0x5EED, seqs=(12, 13), acked_below=12)
+    ledger.settle(ids)                 # forget what the producer says it will never send again
+    known = ledger.lookup(ids)         # per chunk: None (new), a first key, or FORGOTTEN
+    ...store the new chunks...
+    ledger.record(ids.producer, 12, first_key)
+
+Delivery from an actor to the replay is at least once: the actor's sink (ds/actor.py) keeps every
+chunk until a reply says it is stored and sends it again, with the same producer id and sequence
+number, when the reply does not come (the replay was unreachable, or the reply was lost after the
+chunk was stored). The ledger turns the second case from a double insert into a duplicate answer.
+It is saved with the table, so a replay restarted from its snapshot still recognises every chunk
+the snapshot holds. What a snapshot cannot hold is a chunk stored after it: after a crash that
+chunk is gone, and if its reply had reached the actor the actor will not send it again (it cannot
+know); only unacknowledged chunks come back.
+
+Memory is bounded by what producers have in flight, not by what they ever sent: each request
+carries ``acked_below``, the producer's promise that every chunk numbered lower has had its answer
+(stored, or given up when stopping) and will not be sent again. The ledger keeps, per producer,
+that floor plus the first key of each stored chunk at or above it; a chunk below the floor that
+still arrives (a stale copy of a request the producer already gave up waiting for) is a duplicate
+whose keys are forgotten. Past the caps (:data:`MAX_OPEN_PER_PRODUCER` stored chunks above a
+producer's floor, :data:`MAX_PRODUCERS` producers, least recently seen first) entries are dropped:
+a chunk sent again after that would be stored twice, never lost. The actor's sink has at most
+``in_flight * max_chunks_per_insert`` (64) chunks on their way, far below the caps.
+"""
+
+from __future__ import annotations
+
+from collections import OrderedDict
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import Any, NamedTuple
+
+import numpy as np
+
+MAX_PRODUCERS = 1024
+MAX_OPEN_PER_PRODUCER = 4096
+FORGOTTEN = -1  # lookup(): stored once, below the producer's floor, keys no longer known
+_U64 = 1 << 64
+
+
+@dataclass(frozen=True)
+class ChunkIds:
+    """Names the chunks of one insert request so that sending it again is harmless.
+
+    ``producer``: a random nonzero 64-bit id of the sending process (a restarted actor is a new
+    producer). ``seqs``: one number per chunk, unique per producer, the same every time the chunk
+    is sent. ``acked_below``: every chunk of this producer numbered below it has had its answer and
+    will never be sent again, so the table may forget it.
+    """
+
+    producer: int
+    seqs: tuple[int, ...]
+    acked_below: int = 0
+
+    def check(self, n_chunks: int) -> None:
+        """Raise ``ValueError`` naming what is wrong for a request of ``n_chunks`` chunks."""
+        if not 0 < self.producer < _U64:
+            raise ValueError(f"insert ids: producer must be in [1, 2**64), got {self.producer}")
+        if len(self.seqs) != n_chunks:
+            raise ValueError(f"insert ids: {len(self.seqs)} sequence numbers for {n_chunks} chunks")
+        if any(not 0 <= s < _U64 for s in self.seqs) or not 0 <= self.acked_below < _U64:
+            raise ValueError("insert ids: sequence numbers and acked_below must be in [0, 2**64)")
+        if len(set(self.seqs)) != len(self.seqs):
+            raise ValueError(f"insert ids: sequence numbers repeat within one request: {list(self.seqs)}")
+
+
+class Inserted(NamedTuple):
+    """What an idempotent insert returns: each chunk's ``T`` uint64 keys (for a duplicate the keys
+    it was stored under, or an empty array when the table no longer knows them) and whether it was
+    a duplicate (already stored, not stored again)."""
+
+    keys: list[np.ndarray]
+    duplicate: list[bool]
+
+
+@dataclass
+class _Producer:
+    floor: int = 0
+    stored: dict[int, int] = field(default_factory=dict)  # seq -> first key, for stored seqs >= floor
+
+
+class ChunkLedger:
+    """Per producer: the floor it acknowledged and the first key of each stored chunk above it.
+    Not thread-safe: the table calls it under its own lock."""
+
+    def __init__(self) -> None:
+        self._producers: OrderedDict[int, _Producer] = OrderedDict()
+
+    def __len__(self) -> int:
+        return len(self._producers)
+
+    def settle(self, ids: ChunkIds) -> None:
+        """Raise the producer's floor to ``ids.acked_below`` and forget the chunks below it."""
+        p = self._producers.get(ids.producer)
+        if p is None:
+            p = self._producers[ids.producer] = _Producer()
+            while len(self._producers) > MAX_PRODUCERS:
+                self._producers.popitem(last=False)
+        self._producers.move_to_end(ids.producer)
+        if ids.acked_below > p.floor:
+            p.floor = ids.acked_below
+            p.stored = {s: k for s, k in p.stored.items() if s >= p.floor}
+
+    def lookup(self, ids: ChunkIds) -> list[int | None]:
+        """Per chunk: None if it is new, else the first key it was stored under (:data:`FORGOTTEN`
+        when below the producer's floor)."""
+        p = self._producers.get(ids.producer)
+        if p is None:
+            return [None] * len(ids.seqs)
+        return [FORGOTTEN if s < p.floor else p.stored.get(s) for s in ids.seqs]
+
+    def record(self, producer: int, seq: int, first_key: int) -> None:
+        """Remember that chunk ``seq`` of ``producer`` is stored from key ``first_key`` on."""
+        p = self._producers.setdefault(producer, _Producer())
+        p.stored[seq] = first_key
+        while len(p.stored) > MAX_OPEN_PER_PRODUCER:
+            del p.stored[min(p.stored)]
+
+    def state_dict(self) -> list[list[Any]]:
+        """JSON-friendly: ``[[producer, floor, [[seq, first_key], ...]], ...]``, least recent first."""
+        return [[pid, p.floor, sorted(p.stored.items())] for pid, p in self._producers.items()]
+
+    @classmethod
+    def from_state(cls, state: Sequence[Any], next_key: int) -> ChunkLedger:
+        """A ledger from :meth:`state_dict`; raises ``ValueError`` if it is malformed or names keys
+        the table has not issued (``>= next_key``)."""
+        ledger = cls()
+        for entry in state:
+            producer, floor, stored = entry
+            ids = [producer, floor] + [x for pair in stored for x in pair]
+            if not all(isinstance(x, int) and 0 <= x < _U64 for x in ids) or producer == 0:
+                raise ValueError(f"ledger entry {entry!r}: every number must be an integer in [0, 2**64)")
+            seqs = {int(s): int(k) for s, k in stored}
+            if len(seqs) != len(stored) or any(s < floor for s in seqs) or any(k >= next_key for k in seqs.values()):
+                raise ValueError(f"ledger of producer {producer}: sequence numbers must be unique and >= its "
+                                 f"floor {floor}, keys below next_key {next_key}")  # fmt: skip
+            if producer in ledger._producers:
+                raise ValueError(f"ledger: producer {producer} listed twice")
+            ledger._producers[int(producer)] = _Producer(int(floor), seqs)
+        return ledger

@@ -1,0 +1,203 @@
+"""insert_once: a chunk sent again under its (producer, sequence) is answered, not stored twice;
+the ids are forgotten once acknowledged, bounded, and saved with the table."""
+
+from __future__ import annotations
+
+import json
+import threading
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from algorithm.replay import ChunkIds, InsertTimeout, PrioritizedTable, RateLimiter, dedup
+from algorithm.replay.dedup import ChunkLedger
+
+from .chunks import VECTOR, make_chunk
+from .conftest import Connect
+
+PRODUCER = 0xA5A5_0000_1234_5678
+
+
+def table(capacity: int = 200, **kwargs: Any) -> PrioritizedTable:
+    return PrioritizedTable(capacity, (VECTOR,), 2, 1, seed=0, **kwargs)
+
+
+def stored_observations(tab: Any) -> list[float]:
+    """Every stored step's first observation value (make_chunk writes its key there), sorted."""
+    batch = tab.sample(4000, timeout=0)
+    return sorted(set(batch.obs[0][:, 0, 0].tolist()))
+
+
+def test_a_chunk_sent_again_is_answered_with_its_keys_and_stored_once(connect: Connect) -> None:
+    tab = connect(table())
+    a, b, c = make_chunk(3, 0), make_chunk(2, 100), make_chunk(4, 200)
+    first = tab.insert_once([a, b], ChunkIds(PRODUCER, (0, 1)))
+    assert first.duplicate == [False, False]
+    assert [k.tolist() for k in first.keys] == [[0, 1, 2], [4, 5]]
+    again = tab.insert_once([a, b], ChunkIds(PRODUCER, (0, 1)))  # the reply was lost: sent again
+    assert again.duplicate == [True, True]
+    assert [k.tolist() for k in again.keys] == [[0, 1, 2], [4, 5]]  # the keys it got the first time
+    mixed = tab.insert_once([b, c], ChunkIds(PRODUCER, (1, 2)))  # only the new chunk is stored
+    assert mixed.duplicate == [True, False]
+    assert [k.tolist() for k in mixed.keys] == [[4, 5], [7, 8, 9, 10]]
+    other = tab.insert_once([a], ChunkIds(PRODUCER + 1, (0,)))  # another producer's number 0
+    assert other.duplicate == [False] and other.keys[0].tolist() == [12, 13, 14]
+    info = tab.info()
+    assert (info["inserted_chunks"], info["inserted_steps"], info["duplicates"], info["producers"]) == (4, 12, 3, 2)
+    assert tab.insert_many([a])[0].tolist() == [16, 17, 18]  # without ids nothing is checked
+
+
+def test_acknowledged_numbers_are_forgotten_and_a_stale_copy_is_not_stored(connect: Connect) -> None:
+    tab = connect(table())
+    tab.insert_once([make_chunk(2, 0)], ChunkIds(PRODUCER, (0,), acked_below=0))
+    tab.insert_once([make_chunk(2, 10)], ChunkIds(PRODUCER, (1,), acked_below=1))  # 0 was answered
+    # A copy of number 0 still on its way (its sender gave up waiting and sent it again) arrives late.
+    stale = tab.insert_once([make_chunk(2, 0)], ChunkIds(PRODUCER, (0,), acked_below=0))
+    assert stale.duplicate == [True] and stale.keys[0].tolist() == []  # its keys are forgotten
+    assert tab.insert_once([make_chunk(2, 10)], ChunkIds(PRODUCER, (1,), acked_below=1)).keys[0].tolist() == [3, 4]
+    info = tab.info()
+    assert (info["inserted_chunks"], info["duplicates"]) == (2, 2)
+    assert stored_observations(tab) == [0.0, 1.0, 10.0, 11.0]
+
+
+def test_a_request_of_duplicates_only_is_not_held_back_by_the_rate_limiter(connect: Connect) -> None:
+    # One sample per inserted step past 4, no tolerance, and nobody samples: after 5 steps inserts are held.
+    tab = connect(table(rate_limiter=RateLimiter(1.0, min_size_to_sample=4, tolerance=0.0)))
+    chunk = make_chunk(5, 0)
+    tab.insert_once([chunk], ChunkIds(PRODUCER, (0,)), timeout=0)
+    with pytest.raises(InsertTimeout):
+        tab.insert_once([make_chunk(4, 10)], ChunkIds(PRODUCER, (1,)), timeout=0)
+    assert tab.insert_once([chunk], ChunkIds(PRODUCER, (0,)), timeout=0).duplicate == [True]
+    info = tab.info()
+    assert (info["inserted_steps"], info["duplicates"]) == (5, 1)
+
+
+def test_copies_waiting_in_the_rate_limiter_store_the_chunk_once(connect: Connect) -> None:
+    # The limiter holds every copy back; while they wait the lock is free, so each must look again
+    # once admitted: exactly one stores the chunk, the others are duplicates.
+    tab = connect(table(rate_limiter=RateLimiter(1.0, min_size_to_sample=2, tolerance=0.0)))
+    tab.insert(make_chunk(3, 0))  # one window owed to the learner: inserts wait
+    chunk, results, errors = make_chunk(3, 50), [], []
+
+    def send() -> None:
+        try:
+            results.append(tab.insert_once([chunk], ChunkIds(PRODUCER, (7,)), timeout=30.0))
+        except Exception as e:  # surfaced by the assertion below
+            errors.append(e)
+
+    threads = [threading.Thread(target=send) for _ in range(6)]
+    for th in threads:
+        th.start()
+    while tab.info()["insert_waits"] < 6:  # all six are waiting
+        threading.Event().wait(0.01)
+    tab.sample(2, timeout=0)  # the learner catches up: one copy is admitted and stores 3 steps
+    while not results and not errors:
+        threading.Event().wait(0.01)
+    tab.sample(2, timeout=0)  # and again: the other copies are admitted and find the chunk stored
+    for th in threads:
+        th.join(30)
+    assert not errors and len(results) == 6
+    assert sorted(r.duplicate[0] for r in results) == [False] + [True] * 5
+    assert all(r.keys[0].tolist() == [4, 5, 6] for r in results)
+    info = tab.info()
+    assert (info["inserted_chunks"], info["inserted_steps"], info["duplicates"]) == (2, 6, 5)
+
+
+@pytest.mark.parametrize(
+    ("ids", "message"),
+    [
+        (ChunkIds(0, (0, 1)), r"producer must be in \[1, 2\*\*64\)"),
+        (ChunkIds(PRODUCER, (0,)), "1 sequence numbers for 2 chunks"),
+        (ChunkIds(PRODUCER, (3, 3)), "sequence numbers repeat within one request"),
+        (ChunkIds(PRODUCER, (0, -1)), "must be in"),
+        (ChunkIds(PRODUCER, (0, 1), acked_below=-5), "must be in"),
+    ],
+)
+def test_bad_ids_are_named_and_store_nothing(connect: Connect, ids: ChunkIds, message: str) -> None:
+    tab = connect(table())
+    with pytest.raises(ValueError, match=message):
+        tab.insert_once([make_chunk(2, 0), make_chunk(2, 10)], ids)
+    info = tab.info()
+    assert (info["inserted_chunks"], info["duplicates"], info["producers"]) == (0, 0, 0)
+
+
+def test_a_table_loaded_from_a_snapshot_knows_the_chunks_the_snapshot_holds(connect: Connect, tmp_path: Path) -> None:
+    """What kill -9 and a restart from the last snapshot do to a producer that keeps its
+    unacknowledged chunks: those stored before the snapshot come back as duplicates, those stored
+    after it are stored again, and an acknowledged one stored after it is gone."""
+    crashed = connect(table())
+    crashed.insert_once([make_chunk(2, 0), make_chunk(2, 10)], ChunkIds(PRODUCER, (0, 1)))  # 0 acknowledged,
+    crashed.insert_once([make_chunk(2, 20)], ChunkIds(PRODUCER, (2,), acked_below=1))  # 1, 2: replies lost
+    crashed.save(tmp_path / "snapshot.npz")
+    crashed.insert_once([make_chunk(2, 30)], ChunkIds(PRODUCER, (3,), acked_below=1))  # reply lost
+    crashed.insert_once([make_chunk(2, 40)], ChunkIds(PRODUCER, (4,), acked_below=1))  # acknowledged
+    restarted = connect(table())
+    restarted.load(tmp_path / "snapshot.npz")
+    assert restarted.info()["producers"] == 1
+    resent = restarted.insert_once(
+        [make_chunk(2, 10), make_chunk(2, 20), make_chunk(2, 30)], ChunkIds(PRODUCER, (1, 2, 3), acked_below=1)
+    )
+    assert resent.duplicate == [True, True, False]
+    assert [k.tolist() for k in resent.keys] == [[3, 4], [6, 7], [9, 10]]
+    info = restarted.info()
+    assert (info["inserted_chunks"], info["duplicates"]) == (4, 2)
+    assert stored_observations(restarted) == [0.0, 1.0, 10.0, 11.0, 20.0, 21.0, 30.0, 31.0]  # 40 is lost
+
+
+def test_a_snapshot_with_a_bad_ledger_is_refused(connect: Connect, tmp_path: Path) -> None:
+    tab = connect(table())
+    tab.insert_once([make_chunk(2, 0)], ChunkIds(PRODUCER, (5,)))
+    path = tmp_path / "replay.npz"
+    tab.save(path)
+    with np.load(path, allow_pickle=False) as f:
+        data = {name: f[name] for name in f.files}
+    meta = json.loads(str(data["meta"]))
+    assert meta["ledger"] == [[PRODUCER, 0, [[5, 0]]]]
+    meta["ledger"] = [[PRODUCER, 0, [[5, 99]]]]  # a key the table never issued
+    data["meta"] = np.array(json.dumps(meta))
+    np.savez(tmp_path / "bad.npz", **data)
+    fresh = connect(table())
+    with pytest.raises(ValueError, match="keys below next_key"):
+        fresh.load(tmp_path / "bad.npz")
+    assert fresh.info()["producers"] == 0
+
+
+# ---------------------------------------------------------------------- the ledger's bounds
+
+
+def test_past_the_cap_the_oldest_numbers_are_forgotten_so_a_resend_is_stored_again_not_lost(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    monkeypatch.setattr(dedup, "MAX_OPEN_PER_PRODUCER", 3)
+    ledger = ChunkLedger()
+    for seq in range(5):
+        ledger.settle(ChunkIds(PRODUCER, (seq,)))
+        ledger.record(PRODUCER, seq, 10 * seq)
+    assert ledger.lookup(ChunkIds(PRODUCER, (0, 1, 2, 3, 4, 5))) == [None, None, 20, 30, 40, None]
+
+
+def test_the_least_recently_seen_producer_is_forgotten_first(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(dedup, "MAX_PRODUCERS", 2)
+    ledger = ChunkLedger()
+    for producer in (1, 2, 1, 3):  # 2 is the least recent when 3 arrives
+        ledger.settle(ChunkIds(producer, (0,)))
+        ledger.record(producer, 0, producer)
+    assert len(ledger) == 2
+    assert [ledger.lookup(ChunkIds(p, (0,)))[0] for p in (1, 2, 3)] == [1, None, 3]
+
+
+@pytest.mark.parametrize(
+    ("state", "message"),
+    [
+        ([[0, 0, []]], "integer in"),
+        ([[1, "0", []]], "integer in"),
+        ([[1, 5, [[4, 0]]]], ">= its floor 5"),
+        ([[1, 0, [[4, 0], [4, 1]]]], "unique"),
+        ([[1, 0, []], [1, 0, []]], "listed twice"),
+    ],
+)
+def test_a_malformed_ledger_state_is_named(state: list[Any], message: str) -> None:
+    with pytest.raises(ValueError, match=message):
+        ChunkLedger.from_state(state, next_key=10)
