@@ -334,7 +334,7 @@ def test_the_clients_carry_tls_and_the_token_on_blocking_and_future_calls(
     with ReplayClient(served.address, (VECTOR,), 2, credentials=actor, retry=ONCE) as replay:
         assert len(replay.insert(make_chunk(5, 0))) == 5
         pending = replay.insert_async([make_chunk(5, 6)])  # a .future() call: ds/actor.py pipelines these
-        assert [len(keys) for keys in pending.result()] == [5]
+        assert [len(keys) for keys in pending.result().keys] == [5]
         assert replay.info()["inserted_steps"] == 10
         with pytest.raises(ReplayRpcError) as denied:
             replay.sample(4, timeout=1.0)  # an actor does not sample
