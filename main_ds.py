@@ -23,6 +23,7 @@ from pathlib import Path
 from algorithm.checkpoint import CheckpointError
 from algorithm.config import ConfigError, apply_overrides, config_from_yaml, config_to_yaml, load_config
 from algorithm.config_schema import Config
+from algorithm.sac import MAX_EXPLORATION_NOISE
 from algorithm.trainer import RunDir
 from ds import k8s, roles
 from ds.evolver_state import EvolverStateError
@@ -47,8 +48,8 @@ def noise_level(text: str) -> float:
         value = float(text)
     except ValueError:
         value = -1.0
-    if not 0.0 <= value < float("inf"):
-        raise argparse.ArgumentTypeError(f"{text!r} is not a noise level (a number >= 0)")
+    if not 0.0 <= value <= MAX_EXPLORATION_NOISE:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a noise level (a number in [0, {MAX_EXPLORATION_NOISE:g}])")
     return value
 
 

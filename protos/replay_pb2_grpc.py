@@ -84,8 +84,8 @@ class ReplayServiceServicer:
         """Stores chunks, each contiguously, and returns each chunk's T new keys (uint64, increasing,
         never reused). Called by actors. All or nothing: every chunk is validated before any is
         stored, and the rate limiter admits the request's total steps at once.
-        Errors: INVALID_ARGUMENT (a tensor breaks its spec, a chunk breaks the chunk rules, a chunk
-        is longer than capacity - 1 steps, or timeout_s < 0; nothing is stored), DEADLINE_EXCEEDED
+        Errors: INVALID_ARGUMENT (no chunks, a tensor breaks its spec, a chunk breaks the chunk rules, a
+        chunk is longer than capacity - 1 steps, or timeout_s < 0; nothing is stored), DEADLINE_EXCEEDED
         (the rate limiter held the insert back for timeout_s or until the call's deadline; nothing is
         stored), RESOURCE_EXHAUSTED (message over the server's size limit; nothing is stored).
         """
@@ -134,8 +134,8 @@ class ReplayServiceServicer:
 
     def Save(self, request, context):
         """Writes the whole table atomically to a file on the server. Called by the learner when it
-        checkpoints, or by operators. Errors: INVALID_ARGUMENT (empty path), FAILED_PRECONDITION
-        (the file cannot be written).
+        checkpoints, or by operators. Errors: INVALID_ARGUMENT (empty path, or one holding a NUL),
+        FAILED_PRECONDITION (the file cannot be written).
         """
         context.set_code(grpc.StatusCode.UNIMPLEMENTED)
         context.set_details('Method not implemented!')
@@ -144,7 +144,7 @@ class ReplayServiceServicer:
     def Load(self, request, context):
         """Replaces the table's contents with a file written by Save. Called by the replay role on
         restart or by operators. Errors: INVALID_ARGUMENT (empty path; a missing, unreadable, corrupt
-        or mismatched file; the table is unchanged either way).
+        or mismatched file, named in the message; the table is unchanged either way).
         """
         context.set_code(grpc.StatusCode.UNIMPLEMENTED)
         context.set_details('Method not implemented!')

@@ -234,8 +234,6 @@ class PrioritizedTable:
                 t = self._check_chunk(chunk)
                 new_p = None if p is None else self._transform(self._check_priorities(p, t, "insert"))
             except ValueError as e:
-                if len(chunks) == 1:
-                    raise
                 raise ValueError(f"chunks[{i}]: {e}") from e
             checked.append((chunk, t, new_p))
         with self._lock:
@@ -599,8 +597,9 @@ class PrioritizedTable:
                 raise ValueError(f"chunk.{name}: expected {dtype} {shape}, got {arr.dtype} {arr.shape}")
             if dtype.kind == "f" and not np.isfinite(arr).all():
                 raise ValueError(f"chunk.{name} has non-finite values")
-        if chunk.terminated[:-1].any() or chunk.truncated[:-1].any():
-            raise ValueError("only the last step of a chunk may be terminated or truncated")
+        for name in ("terminated", "truncated"):
+            if getattr(chunk, name)[:-1].any():
+                raise ValueError(f"chunk.{name}: only the last step of a chunk may be terminated or truncated")
         return t
 
 
