@@ -56,8 +56,13 @@ _Loader.add_implicit_resolver("tag:yaml.org,2002:float", _FLOAT_RE, list("-+0123
 def parse_yaml(text: str, source: str) -> Any:
     try:
         return yaml.load(text, Loader=_Loader)
+    except yaml.MarkedYAMLError as e:  # where and what, on one line (str(e) spans several)
+        mark = e.problem_mark or e.context_mark
+        where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark is not None else ""
+        what = ": ".join(part for part in (e.context, e.problem) if part)
+        raise ConfigError(f"{source}: not valid YAML{where}: {what}") from None
     except yaml.YAMLError as e:
-        raise ConfigError(f"{source}: not valid YAML: {e}") from None
+        raise ConfigError(f"{source}: not valid YAML: {' '.join(str(e).split())}") from None
 
 
 def read_yaml(path: Path) -> Any:
@@ -160,7 +165,7 @@ def _format_errors(err: ValidationError, sources: dict[str, str]) -> str:
         elif e["type"] == "value_error":
             msg = msg.removeprefix("Value error, ")
         lines.append(f"{dotted or 'config'} ({source}): {msg}" + _got(e))
-    return "invalid config:\n  " + "\n  ".join(lines)
+    return "invalid config: " + "; ".join(lines)  # one line, like every command-line error
 
 
 def _source_of(loc: list[str], sources: dict[str, str]) -> str:

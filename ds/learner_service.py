@@ -317,7 +317,7 @@ class LearnerServicer(learner_pb2_grpc.LearnerServiceServicer):
             prev_actions = from_tensor(request.prev_actions, specs["prev_actions"], dims)
             rnn_state = from_tensor(request.rnn_state, specs["rnn_state"], dims)
         if not 0 <= request.noise <= MAX_EXPLORATION_NOISE:  # also NaN
-            raise WireError("noise", f"must be in [0, {MAX_EXPLORATION_NOISE:g}], got {request.noise}")
+            raise WireError("noise", f"must be in [0, {MAX_EXPLORATION_NOISE:.0f}], got {request.noise}")
         return obs, prev_actions, rnn_state, float(request.noise)
 
 

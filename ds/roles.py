@@ -44,7 +44,7 @@ from algorithm.nn.user import ModelBuilder
 from algorithm.replay import PrioritizedTable
 from algorithm.sac import SAC
 from algorithm.spaces import EnvSpec
-from algorithm.trainer import EVAL_SEED_OFFSET, RunDir, seed_everything
+from algorithm.trainer import EVAL_SEED_OFFSET, RunDir, load_replay_snapshot, seed_everything
 from ds import evolver_service, learner_service, replay_service
 from ds.actor import DistributedActor
 from ds.evolver import Evolver
@@ -272,7 +272,7 @@ def _serve_replay(role: RoleContext, keeper: AssignmentKeeper | None, metrics_ev
     path = RunDir(role.run_dir).replay
     saving = cfg.replay_config.save_replay
     if saving and path.exists():
-        table.load(path)
+        load_replay_snapshot(table, path)  # a bad file stops the role (exit 2) before it is saved over
         log.info("replay restored from %s: %d steps", path, table.info()["size"])
     checker = health.HealthServicer()
     address = f"{cfg.net_config.bind_host}:{cfg.net_config.replay_port}"

@@ -400,7 +400,7 @@ class PrioritizedTable:
         data, meta = persistence.read_checked(Path(path), self._layout(), expected)
         try:
             attributes, limiter_state = self._validated_state(data, meta)
-        except (KeyError, TypeError, ValueError) as e:
+        except (KeyError, TypeError, ValueError, AttributeError, IndexError, ArithmeticError) as e:
             raise ValueError(f"{path}: inconsistent replay file ({type(e).__name__}: {e})") from e
         with self._lock:
             self.rate_limiter.load_state_dict(limiter_state)
