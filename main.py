@@ -31,7 +31,7 @@ import numpy as np
 import torch
 
 from algorithm.checkpoint import CheckpointError, checkpoint_path, list_checkpoints, load_checkpoint, restoring
-from algorithm.config import ConfigError, apply_overrides, config_from_yaml, load_config
+from algorithm.config import ConfigError, apply_overrides, config_from_file, load_config
 from algorithm.config_schema import Config
 from algorithm.evaluation import evaluate
 from algorithm.nn.user import ModelBuilder, model_builder
@@ -256,9 +256,7 @@ def train(args: argparse.Namespace) -> int:
         saved_config = RunDir(run_dir).config
         if saved_config.exists():
             # Resuming: the run's own resolved config (seed included) wins; command-line overrides still apply.
-            run_config = apply_overrides(
-                config_from_yaml(saved_config.read_text(), str(saved_config)), cli_overrides(args)
-            )
+            run_config = apply_overrides(config_from_file(saved_config), cli_overrides(args))
         elif run_config.sac_config.seed is None:
             run_config.sac_config.seed = random.SystemRandom().randrange(2**31)  # recorded in config.yaml
         elif args.repeat > 1:
@@ -316,7 +314,7 @@ def play(args: argparse.Namespace) -> int:
         name = run_dir.relative_to(run_root)
         raise UsageError(f"--run: {run_dir} holds a population; play one learner with -n {name}/<learner>, "
                          f"one of: {', '.join(learners)}")  # fmt: skip
-    config = apply_overrides(config_from_yaml(paths.config.read_text(), str(paths.config)), cli_overrides(args))
+    config = apply_overrides(config_from_file(paths.config), cli_overrides(args))
     setup_logging(run_dir, args.logger_in_file)
     ckpt = checkpoint_path(paths.model, args.ckpt)
     state = load_checkpoint(ckpt)

@@ -21,7 +21,7 @@ import time
 from pathlib import Path
 
 from algorithm.checkpoint import CheckpointError
-from algorithm.config import ConfigError, apply_overrides, config_from_yaml, config_to_yaml, load_config
+from algorithm.config import ConfigError, apply_overrides, config_from_file, config_to_yaml, load_config
 from algorithm.config_schema import Config
 from algorithm.sac import MAX_EXPLORATION_NOISE
 from algorithm.trainer import RunDir
@@ -113,7 +113,7 @@ def resolve(args: argparse.Namespace) -> tuple[Config, Path]:
     run_dir = run_directory(args.model_root, args.env, name)
     saved = RunDir(run_dir).config
     if saved.exists():
-        config = apply_overrides(config_from_yaml(saved.read_text(), str(saved)), overrides)
+        config = apply_overrides(config_from_file(saved), overrides)
     elif config.sac_config.seed is None:
         config.sac_config.seed = random.SystemRandom().randrange(2**31)
     config.base_config.name = name

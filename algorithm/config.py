@@ -66,11 +66,17 @@ def parse_yaml(text: str, source: str) -> Any:
 
 
 def read_yaml(path: Path) -> Any:
+    return parse_yaml(read_config_text(path), str(path))
+
+
+def read_config_text(path: Path) -> str:
+    """The text of a config file; :class:`ConfigError` when it cannot be read or is not UTF-8."""
     try:
-        text = path.read_text()
+        return path.read_bytes().decode("utf-8")
     except OSError as e:
         raise ConfigError(f"cannot read config file {path}: {e.strerror}") from None
-    return parse_yaml(text, str(path))
+    except UnicodeDecodeError as e:
+        raise ConfigError(f"{path}: not UTF-8 text (byte {e.object[e.start]:#04x} at offset {e.start})") from None
 
 
 @dataclass
@@ -244,6 +250,11 @@ def _validate(
     except ValidationError as e:
         raise ConfigError(_format_errors(e, sources)) from None
     return ResolvedConfig(config, sources)
+
+
+def config_from_file(path: Path) -> Config:
+    """:func:`config_from_yaml` of a file (a run directory's ``config.yaml``)."""
+    return config_from_yaml(read_config_text(path), str(path))
 
 
 def config_from_yaml(text: str, source: str = "config.yaml") -> Config:

@@ -119,16 +119,16 @@ def test_any_number_for_any_key_gives_a_config_or_a_one_line_error(field: tuple[
 @given(
     document=st.dictionaries(st.sampled_from(["default", "fast"]) | st.text(max_size=5), VALUES, max_size=3)
     | st.dictionaries(st.just("default"), st.dictionaries(st.sampled_from(SECTIONS), VALUES, max_size=3)),
-    text=st.none() | st.text(max_size=40),
+    raw=st.none() | st.binary(max_size=40) | st.text(max_size=40).map(lambda t: t.encode("utf-8", "replace")),
     section=st.none() | st.sampled_from(["fast", "missing", "default"]),
 )
 def test_any_task_file_gives_a_config_or_a_one_line_error(
-    tmp_path: Path, document: dict[str, Any], text: str | None, section: str | None
+    tmp_path: Path, document: dict[str, Any], raw: bytes | None, section: str | None
 ) -> None:
-    """A task's config.yaml with any structure, or any text at all (broken YAML)."""
+    """A task's config.yaml with any structure, or any bytes at all (broken YAML, not UTF-8)."""
     task = tmp_path / "task"
     task.mkdir(exist_ok=True)
-    (task / "config.yaml").write_text(yaml.safe_dump(document) if text is None else text)
+    (task / "config.yaml").write_bytes(yaml.safe_dump(document).encode() if raw is None else raw)
     assert_config_or_one_line_error(lambda: load_config(task, section).config)
 
 
@@ -281,6 +281,8 @@ DAMAGED_RUNS: list[tuple[str, Callable[[Path], None], list[str], str]] = [
      ["main_ds.py", "learner"], f"sac_config.n_stepz ({RUN}/config.yaml): unknown key (did you mean 'n_step'?)"),
     ("saved config with a wrong type", lambda r: replace_in(r / "config.yaml", "  n_step: 3", "  n_step: three"),
      ["main.py"], f"sac_config.n_step ({RUN}/config.yaml): Input should be a valid integer"),
+    ("saved config not UTF-8", lambda r: (r / "config.yaml").write_bytes(b"sac_config:\n  scene: caf\xe9\n"),
+     ["main_ds.py", "replay"], f"{RUN}/config.yaml: not UTF-8 text (byte 0xe9 at offset 24)"),
 ]  # fmt: skip
 # The same contract for bad command lines, on an empty folder: no run directory may appear. One case per
 # stage a command line passes: flags, the config, the task's env, building the models (after the run

@@ -50,6 +50,12 @@ FUZZ = settings(max_examples=40, deadline=None, suppress_health_check=[HealthChe
 WIRE = sorted(WIRE_DTYPES)
 
 
+def text(min_size: int = 0, max_size: int = 20, without: str = "") -> st.SearchStrategy[str]:
+    """Any text a proto string field can carry (UTF-8: no lone surrogates)."""
+    letters = st.characters(blacklist_categories=("Cs",), blacklist_characters=without)
+    return st.text(letters, min_size=min_size, max_size=max_size)
+
+
 def refused(call: Callable[..., Any], request: Any, code: grpc.StatusCode = INVALID) -> str:
     """Make the call; it must fail with ``code``. Returns the details."""
     with pytest.raises(grpc.RpcError) as e:
@@ -79,7 +85,7 @@ def broken(draw: st.DrawFn, good: replay_pb2.Tensor, nonnegative: bool = False) 
         kinds.append("bool")
     kind = draw(st.sampled_from(kinds))
     if kind == "dtype":  # a wire dtype with matching bytes, or any other string
-        new = draw((st.sampled_from(WIRE) | st.text(max_size=8)).filter(lambda d: d != dtype))
+        new = draw((st.sampled_from(WIRE) | text(max_size=8)).filter(lambda d: d != dtype))
         size = count * (np.dtype(new).itemsize if new in WIRE_DTYPES else 1)
         return replay_pb2.Tensor(dtype=new, shape=shape, data=draw(st.binary(min_size=size, max_size=size))), kind
     if kind == "shape":  # negative, huge or merely other dimensions; bytes that fit it when they can
@@ -324,6 +330,32 @@ def test_an_unknown_field_at_any_depth_is_refused_naming_where(
 
 
 @FUZZ
+@given(
+    method=st.sampled_from(["Sample", "UpdatePriorities", "UpdateRnnStates", "Info", "Save", "Load"]),
+    field=unknown_field(),
+)
+def test_an_unknown_field_in_any_other_replay_request_is_refused(
+    replay: Replay, method: str, field: tuple[int, bytes]
+) -> None:
+    """Each request is valid but for the unknown field (a Sample would draw, a Save would write)."""
+    keys = to_tensor(np.arange(2, dtype=np.uint64))
+    request: Message = {
+        "Sample": replay_pb2.SampleRequest(batch_size=2, timeout_s=0.0),
+        "UpdatePriorities": replay_pb2.UpdatePrioritiesRequest(keys=keys, priorities=to_tensor(np.ones(2))),
+        "UpdateRnnStates": replay_pb2.UpdateRnnStatesRequest(
+            keys=keys, states=to_tensor(np.ones((2, RNN), np.float32))
+        ),
+        "Info": replay_pb2.InfoRequest(),
+        "Save": replay_pb2.SaveRequest(path=str(replay.folder / "unknown.npz")),
+        "Load": replay_pb2.LoadRequest(path=str(replay.folder / "good.npz")),
+    }[method]
+    with_unknown_field(request, field[1])
+    assert f"unknown field number {field[0]}" in refused(getattr(replay.stub, method), request)
+    assert not (replay.folder / "unknown.npz").exists()
+    replay.assert_unchanged()
+
+
+@FUZZ
 @given(cut=st.integers(0, 10**6))
 def test_a_truncated_request_is_refused(replay: Replay, cut: int) -> None:
     """One chunk is one top-level field: every cut is inside it (or leaves no chunk at all)."""
@@ -480,12 +512,15 @@ def test_get_action_with_a_broken_field_is_refused_naming_it(learner: Learner, d
     assert learner.state() == learner.baseline
 
 
-def test_get_action_with_recurrent_fields_the_policy_does_not_have_is_refused(learner: Learner) -> None:
+def test_get_action_with_recurrent_fields_that_do_not_match_the_policy_is_refused(learner: Learner) -> None:
     request = learner.action_request()
     if learner.rnn_state_size:
-        pytest.skip("the recurrent learner's fields are fuzzed above")
-    request.rnn_state.CopyFrom(to_tensor(np.zeros((2, 4), np.float32)))
-    assert "rnn_state is set but this learner's policy is not recurrent" in refused(learner.stub.GetAction, request)
+        request.ClearField("rnn_state")
+        message = "rnn_state is required: this learner's policy is recurrent"
+    else:
+        request.rnn_state.CopyFrom(to_tensor(np.zeros((2, 4), np.float32)))
+        message = "rnn_state is set but this learner's policy is not recurrent"
+    assert message in refused(learner.stub.GetAction, request)
     assert learner.state() == learner.baseline
 
 
@@ -493,7 +528,7 @@ def test_get_action_with_recurrent_fields_the_policy_does_not_have_is_refused(le
 @given(
     what=st.sampled_from(["preferred_index", "env_steps", "actor_id"]),
     number=st.integers(-(2**31), -1),
-    actor_id=st.text(max_size=20),
+    actor_id=text(),
 )
 def test_registration_and_heartbeats_with_bad_fields_are_refused(
     learner: Learner, what: str, number: int, actor_id: str
@@ -513,7 +548,7 @@ def test_registration_and_heartbeats_with_bad_fields_are_refused(
 
 @FUZZ
 @given(
-    method=st.sampled_from(["RegisterActor", "Heartbeat", "GetParams", "GetAction"]),
+    method=st.sampled_from(["RegisterActor", "Heartbeat", "GetParams", "GetWeights", "GetAction"]),
     field=unknown_field(),
     garbage=st.binary(min_size=1, max_size=64),
 )
@@ -524,6 +559,7 @@ def test_unknown_fields_and_random_bytes_are_refused_by_the_learner(
         "RegisterActor": learner_pb2.RegisterActorRequest(name="x"),
         "Heartbeat": learner_pb2.HeartbeatRequest(actor_id="x"),
         "GetParams": learner_pb2.GetParamsRequest(),
+        "GetWeights": learner_pb2.GetWeightsRequest(),
         "GetAction": learner.action_request(),
     }[method]
     with_unknown_field(request, field[1])
@@ -578,7 +614,7 @@ def evolver(tmp_path_factory: pytest.TempPathFactory) -> Iterator[EvolverServer]
 
 
 BAD_ADDRESSES = (
-    st.text(alphabet=st.characters(blacklist_characters=":"), min_size=1, max_size=12)  # no port at all
+    text(min_size=1, max_size=12, without=":")  # no port at all
     | st.builds(lambda h, p: f"{h}:{p}", st.just("replay"), st.integers(65536, 2**40) | st.just(0))
     | st.builds(lambda p: f"replay:{p}", st.text(alphabet="-+x. ", min_size=1, max_size=4))  # not a number
     | st.builds(lambda h: f"{h}:61002", st.sampled_from(["", "re play", "tab\there", "new\nline"]))
@@ -628,7 +664,7 @@ def bad_evolver_call(draw: st.DrawFn, me: int) -> tuple[str, Message, grpc.Statu
     if case == "replay address":
         request = evolver_pb2.AssignRequest(role=evolver_pb2.REPLAY, name="r", address=draw(BAD_ADDRESSES))
         return "Assign", request, INVALID, "address"
-    assignment = draw(st.text(max_size=20))
+    assignment = draw(text())
     request = evolver_pb2.AssignmentHeartbeatRequest(assignment_id=assignment)
     return "AssignmentHeartbeat", request, grpc.StatusCode.NOT_FOUND, repr(assignment)
 
@@ -643,7 +679,9 @@ def test_evolver_calls_with_a_bad_field_or_unknown_id_are_refused(evolver: Evolv
 
 @FUZZ
 @given(
-    method=st.sampled_from(["RegisterLearner", "LearnerHeartbeat", "PostReward", "Assign", "Info"]),
+    method=st.sampled_from(
+        ["RegisterLearner", "LearnerHeartbeat", "PostReward", "GetSample", "Assign", "AssignmentHeartbeat", "Info"]
+    ),
     field=unknown_field(),
 )
 def test_unknown_fields_are_refused_by_the_evolver(
@@ -653,7 +691,9 @@ def test_unknown_fields_are_refused_by_the_evolver(
         "RegisterLearner": evolver_pb2.RegisterLearnerRequest(name="l", host="h", learner_port=1),
         "LearnerHeartbeat": evolver_pb2.LearnerHeartbeatRequest(learner_id=evolver.learner_id),
         "PostReward": evolver_pb2.PostRewardRequest(learner_id=evolver.learner_id, mean_return=1.0),
+        "GetSample": evolver_pb2.GetSampleRequest(learner_id=evolver.learner_id),
         "Assign": evolver_pb2.AssignRequest(role=evolver_pb2.ACTOR, name="a"),
+        "AssignmentHeartbeat": evolver_pb2.AssignmentHeartbeatRequest(assignment_id="actor-0"),
         "Info": evolver_pb2.EvolverInfoRequest(),
     }[method]
     with_unknown_field(request, field[1])
