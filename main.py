@@ -30,7 +30,7 @@ import gymnasium
 import numpy as np
 import torch
 
-from algorithm.checkpoint import CheckpointError, checkpoint_path, list_checkpoints, load_checkpoint, restoring
+from algorithm.checkpoint import CheckpointError, list_checkpoints, load_for_resume, restoring
 from algorithm.config import ConfigError, apply_overrides, config_from_file, load_config
 from algorithm.config_schema import Config
 from algorithm.evaluation import evaluate
@@ -316,8 +316,7 @@ def play(args: argparse.Namespace) -> int:
                          f"one of: {', '.join(learners)}")  # fmt: skip
     config = apply_overrides(config_from_file(paths.config), cli_overrides(args))
     setup_logging(run_dir, args.logger_in_file)
-    ckpt = checkpoint_path(paths.model, args.ckpt)
-    state = load_checkpoint(ckpt)
+    ckpt, state = load_for_resume(paths.model, args.ckpt)
     seed = int(config.sac_config.seed or 0)
     seed_everything(seed)
     episodes = args.episodes or config.eval_config.eval_episodes

@@ -103,9 +103,9 @@ def load_checkpoint(path: Path) -> dict[str, Any]:
 
 
 def load_for_resume(model_dir: Path, step: int | None = None) -> tuple[Path, dict[str, Any]]:
-    """The path and contents of checkpoint ``step`` (None: the latest) to resume from. When the
-    latest is damaged the error says so and names the older ones to pass as ``--ckpt``: a run never
-    falls back to an older checkpoint by itself, which would silently throw the newer work away."""
+    """The path and contents of checkpoint ``step`` (None: the latest) to resume from or play. When
+    the latest is damaged the error says so and names the older ones to pass as ``--ckpt``: a run
+    never falls back to an older checkpoint by itself, which would silently throw the newer work away."""
     path = checkpoint_path(model_dir, step)
     try:
         return path, load_checkpoint(path)
@@ -114,8 +114,7 @@ def load_for_resume(model_dir: Path, step: int | None = None) -> tuple[Path, dic
         if step is not None or not older:
             raise
         raise CheckpointError(
-            f"{e}; nothing was overwritten: to resume from an older checkpoint, pass --ckpt {older[-1]} "
-            f"(older ones: {older})"
+            f"{e}; nothing was overwritten: to use an older checkpoint, pass --ckpt {older[-1]} (older ones: {older})"
         ) from None
 
 

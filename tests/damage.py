@@ -9,10 +9,11 @@ from pathlib import Path
 
 
 def flip_in_largest_record(path: Path, xor: int = 0x40) -> None:
-    """Flip one bit in the middle of the largest member of a zip file (a checkpoint's largest tensor,
-    a replay snapshot's largest array): the bytes change, the archive's layout does not."""
+    """Flip one bit in the middle of the largest data member of a zip file (a checkpoint's largest
+    tensor, not its pickle; a replay snapshot's largest array): the bytes change, the layout does not."""
     with zipfile.ZipFile(path) as archive:
-        info = max(archive.infolist(), key=lambda i: i.file_size)
+        members = archive.infolist()
+        info = max([m for m in members if "/data/" in m.filename] or members, key=lambda m: m.file_size)
     data = bytearray(path.read_bytes())
     name_length, extra_length = struct.unpack_from("<HH", data, info.header_offset + 26)  # local file header
     data[info.header_offset + 30 + name_length + extra_length + info.file_size // 2] ^= xor
