@@ -262,7 +262,8 @@ def replace_in(path: Path, old: str, new: str) -> None:
 RUN = "models/gym/pendulum/run"
 # (name, damage to the copy of the run, command, what the error line names; " ... " separates fragments).
 # The first case's override would change the saved config.yaml if anything were written before the
-# checkpoint is read.
+# checkpoint is read. DAMAGED_RUNS run as processes, DAMAGED_CONFIGS (which fail before anything is
+# built) through main() in this process.
 DAMAGED_RUNS: list[tuple[str, Callable[[Path], None], list[str], str]] = [
     ("latest checkpoint flipped", lambda r: flip_in_largest_record(r / "model/40.pt"),
      ["main.py", "--override", "eval.eval_episodes=3"],
@@ -276,6 +277,8 @@ DAMAGED_RUNS: list[tuple[str, Callable[[Path], None], list[str], str]] = [
      f"replay snapshot {RUN}/replay/replay.npz: not a readable replay file"),
     ("replay snapshot flipped", lambda r: flip_in_largest_record(r / "replay/replay.npz"), ["main_ds.py", "replay"],
      f"replay snapshot {RUN}/replay/replay.npz: not a readable replay file (BadZipFile: Bad CRC-32"),
+]  # fmt: skip
+DAMAGED_CONFIGS: list[tuple[str, Callable[[Path], None], list[str], str]] = [
     ("saved config broken", lambda r: replace_in(r / "config.yaml", "  n_step: 3", "  n_step: [3"), ["main.py"],
      f"{RUN}/config.yaml: not valid YAML at line"),
     ("saved config with an unknown key", lambda r: replace_in(r / "config.yaml", "  n_step:", "  n_stepz:"),
@@ -286,11 +289,10 @@ DAMAGED_RUNS: list[tuple[str, Callable[[Path], None], list[str], str]] = [
      ["main_ds.py", "replay"], f"{RUN}/config.yaml: not UTF-8 text (byte 0xe9 at offset 24)"),
 ]  # fmt: skip
 # The same contract for bad command lines, on an empty folder: no run directory may appear. One case per
-# stage a command line passes: flags, the config, the task's env, building the models (after the run
-# directory would have been made).
+# stage a command line passes: flags, the task's env, building the models (after the run directory
+# would have been made); every config error is on the in-process list above.
 FRESH: list[tuple[str, list[str], str]] = [
     ("a bad flag", ["main.py", "--agents", "0"], "argument --agents: '0' is not a positive integer"),
-    ("a wrong type", ["main.py", "--override", "sac.n_step=abc"], "sac_config.n_step (override 'sac.n_step=abc')"),
     ("an env that cannot be made", ["main_ds.py", "replay", "--override", "base.build_path=NoSuchEnv-v0"],
      "base_config.build_path 'NoSuchEnv-v0'"),
     ("models that cannot be built", ["main.py", "--override", "nn.critic_only=[nope]"],
@@ -347,3 +349,18 @@ def test_a_bad_command_line_is_one_line_exit_2_and_creates_nothing(
     assert returncode == 2, stderr
     assert stderr.strip().splitlines() == [stderr.strip()] and named in stderr, stderr  # one line, no traceback
     assert not any(folder.iterdir()), "something was created"
+
+
+@pytest.mark.parametrize("case", DAMAGED_CONFIGS, ids=[c[0] for c in DAMAGED_CONFIGS])
+def test_a_run_with_a_damaged_config_is_refused_naming_it_and_left_as_it_was(
+    trained: Path, in_tmp: Path, capsys: pytest.CaptureFixture[str], case: tuple[Any, ...]
+) -> None:
+    _, damage, command, named = case
+    shutil.copytree(trained / "models", in_tmp / "models")
+    damage(in_tmp / RUN)
+    before = tree_digest(in_tmp / "models")
+    entry = main.main if command[0] == "main.py" else main_ds.main
+    code, stderr = call(entry, [*PENDULUM_ARGS, *command[1:], "-n", "run"], capsys)
+    lines = stderr.strip().splitlines()
+    assert code == 2 and len(lines) == 1 and lines[0].startswith("error: ") and named in lines[0], stderr
+    assert tree_digest(in_tmp / "models") == before
