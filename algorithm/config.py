@@ -259,8 +259,10 @@ def config_from_file(path: Path) -> Config:
 
 def config_from_yaml(text: str, source: str = "config.yaml") -> Config:
     """Parse a resolved config written by :func:`config_to_yaml` (e.g. a run directory's)."""
-    data = parse_yaml(text, source)
+    data = parse_yaml(text, source) or {}
+    if not isinstance(data, dict):
+        raise ConfigError(f"{source}: top level must be a mapping of sections, got {type(data).__name__}")
     try:
-        return Config.model_validate(data or {})
+        return Config.model_validate(data)
     except ValidationError as e:
-        raise ConfigError(_format_errors(e, {k: source for k in (data or {})})) from None
+        raise ConfigError(_format_errors(e, {k: source for k in data})) from None

@@ -25,7 +25,7 @@ from typing import Any, get_args
 import pytest
 import torch
 import yaml
-from hypothesis import HealthCheck, given, settings
+from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 
 import main
@@ -134,6 +134,8 @@ def test_any_task_file_gives_a_config_or_a_one_line_error(
 
 @settings(max_examples=60, deadline=None)
 @given(edit=st.tuples(st.sampled_from(KEYS), VALUES) | st.text(max_size=60))
+@example(edit="1")  # a number for the whole file: once a TypeError from the error formatting
+@example(edit="- sac_config")
 def test_any_saved_run_config_gives_a_config_or_a_one_line_error(edit: tuple[str, Any] | str) -> None:
     """A run directory's config.yaml (what a resume reads) with a key set to anything, or replaced by any text."""
     if isinstance(edit, str):
