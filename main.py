@@ -1,6 +1,10 @@
 """Single-process ASAC: ``python main.py gym/pendulum`` trains; ``--run`` plays a checkpoint.
 
 Thin by design: parse flags, resolve the config, wire env factories into algorithm/ (ARCHITECTURE.md 1).
+
+Bad input (flags, task names, config files, overrides, checkpoints) ends the process with one line
+``error: ...`` on stderr naming the problem, exit code 2, before anything starts; a run directory
+this process made for a run that then could not start is removed again.
 """
 
 from __future__ import annotations
@@ -17,13 +21,17 @@ import random
 import shutil
 import sys
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from pathlib import Path
+from typing import NoReturn
 
+import gymnasium
 import numpy as np
+import torch
 
-from algorithm.checkpoint import CheckpointError, checkpoint_path, list_checkpoints, load_checkpoint
-from algorithm.config import ConfigError, apply_overrides, config_from_yaml, load_config
+from algorithm.checkpoint import CheckpointError, list_checkpoints, load_for_resume, restoring
+from algorithm.config import ConfigError, apply_overrides, config_from_file, load_config
 from algorithm.config_schema import Config
 from algorithm.evaluation import evaluate
 from algorithm.nn.user import ModelBuilder, model_builder
@@ -40,8 +48,57 @@ class UsageError(Exception):
     """Bad task name, run name or flag combination; printed without a traceback."""
 
 
+class ArgumentParser(argparse.ArgumentParser):
+    """argparse with its errors on one line (``main.py: error: ... (see --help)``, exit code 2)
+    rather than after the whole usage block, like every other error of the command line."""
+
+    def error(self, message: str) -> NoReturn:
+        self.exit(2, f"{self.prog}: error: {one_line(message)} (see --help)\n")
+
+
+def one_line(text: object) -> str:
+    """``text`` with its line breaks (a YAML mark, a torch size mismatch list) folded into spaces."""
+    return " ".join(str(text).split())
+
+
+def positive(text: str) -> int:
+    value = int(text) if text.isascii() and text.isdigit() else 0
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a positive integer")
+    return value
+
+
+def step_number(text: str) -> int:
+    if not (text.isascii() and text.isdigit()):
+        raise argparse.ArgumentTypeError(f"{text!r} is not a checkpoint step (an integer >= 0)")
+    return int(text)
+
+
+def torch_device(text: str) -> str:
+    """``cpu``, ``cuda``, ``cuda:N`` or ``mps``; whether this machine has it is :func:`check_device`'s
+    question (a command line may be written for another machine, as the k8s manifests are)."""
+    try:
+        device = torch.device(text)
+    except (RuntimeError, ValueError):
+        device = None
+    if device is None or device.type not in ("cpu", "cuda", "mps"):
+        raise argparse.ArgumentTypeError(f"{text!r} is not a torch device ASAC runs on (cpu, cuda, cuda:1, mps)")
+    return text
+
+
+def check_device(text: str) -> None:
+    """:class:`UsageError` unless this machine has the ``--device``: before anything starts."""
+    device = torch.device(text)
+    if device.type == "cuda":
+        count = torch.cuda.device_count() if torch.cuda.is_available() else 0
+        if (device.index or 0) >= count:
+            raise UsageError(f"--device {text}: this machine has {count} CUDA devices")
+    elif device.type == "mps" and not torch.backends.mps.is_available():
+        raise UsageError(f"--device {text}: MPS is not available on this machine")
+
+
 def build_parser(prog: str = "main.py") -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(
+    p = ArgumentParser(
         prog=prog,
         description="Train or play ASAC (Soft Actor-Critic) on a task from envs/.",
         epilog="examples:\n  python main.py gym/pendulum\n"
@@ -61,10 +118,12 @@ def add_common_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--logger_in_file", action="store_true", help="also log to <run dir>/log.txt")
     p.add_argument("-n", "--name", help="run name ('{time}' becomes the start time); default base_config.name")
     p.add_argument("--nn", help="model file in the task folder (default base_config.nn)")
-    p.add_argument("--ckpt", type=int, help="checkpoint step to resume from or play")
-    p.add_argument("--agents", type=int, help="parallel envs (base_config.n_agents)")
-    p.add_argument("--repeat", type=int, default=1, help="train K runs one after another (seeds seed, seed+1, ...)")
-    p.add_argument("--device", default="cpu", help="torch device for the learner, e.g. cpu or cuda")
+    p.add_argument("--ckpt", type=step_number, help="checkpoint step to resume from or play")
+    p.add_argument("--agents", type=positive, help="parallel envs (base_config.n_agents)")
+    p.add_argument(
+        "--repeat", type=positive, default=1, help="train K runs one after another (seeds seed, seed+1, ...)"
+    )
+    p.add_argument("--device", type=torch_device, default="cpu", help="torch device for the learner, e.g. cpu or cuda")
     p.add_argument(
         "--override",
         action="append",
@@ -73,7 +132,7 @@ def add_common_args(p: argparse.ArgumentParser) -> None:
         help="set any config key, e.g. sac.n_step=5 (repeatable)",
     )
     p.add_argument("--model_root", default="models", help="where run folders go (default ./models)")
-    p.add_argument("--episodes", type=int, help="with --run: episodes to play (default eval_config.eval_episodes)")
+    p.add_argument("--episodes", type=positive, help="with --run: episodes to play (default eval_config.eval_episodes)")
     p.add_argument("--no_progress", action="store_true", help="no progress line")
 
 
@@ -83,6 +142,36 @@ def task_dir(task: str) -> Path:
         known = sorted(str(p.parent.relative_to(ENVS_DIR)) for p in ENVS_DIR.glob("*/*/config.yaml"))
         raise UsageError(f"unknown task {task!r}: no envs/{task}/config.yaml. Known tasks: {', '.join(known)}")
     return path
+
+
+def run_directory(model_root: str, task: str, name: str) -> Path:
+    """``<model_root>/<task>/<name>``; the name must stay inside the task's folder (it may have
+    subfolders: ``-n myrun/learner_1`` plays one learner of a population)."""
+    parts = Path(name).parts
+    if not name.strip() or Path(name).is_absolute() or ".." in parts or "\0" in name:
+        raise UsageError(f"run name {name!r} must be a relative path inside {model_root}/{task}/ (no '..')")
+    return Path(model_root) / task / name
+
+
+@contextmanager
+def removed_if_not_started(run_dir: Path) -> Iterator[None]:
+    """Remove the folders this block creates on the way to ``run_dir`` if it raises: a run that
+    could not start leaves no run directory behind. An existing one is never touched, nor a new one
+    holding anything but what setting up a run writes (another role on a shared volume may have
+    started meanwhile and written its own files)."""
+    created = next((p for p in reversed((run_dir, *run_dir.parents)) if not p.exists()), None)
+    try:
+        yield
+    except BaseException:
+        if created is not None and created.exists() and all(_written_by_setup(p) for p in created.rglob("*")):
+            shutil.rmtree(created)
+        raise
+
+
+def _written_by_setup(path: Path) -> bool:
+    """Folders, the copied model file, a log file (--logger_in_file), the resolved config."""
+    name = path.name
+    return path.is_dir() or name in ("nn.py", "config.yaml") or (name.startswith("log") and name.endswith(".txt"))
 
 
 def cli_overrides(args: argparse.Namespace) -> list[str]:
@@ -128,6 +217,19 @@ def env_factory(config: Config) -> Callable[[int, int | None], VectorEnv]:
     return vector_env_factory(base.build_path, env_kwargs=base.env_kwargs, max_episode_steps=limit)
 
 
+def check_env(config: Config) -> None:
+    """Make one env of the config and close it: an unknown ``build_path`` or bad ``env_kwargs`` is a
+    :class:`ConfigError` before anything starts, not an exception in a role that already runs."""
+    base = config.base_config
+    try:
+        env_factory(config)(1, 0).close()
+    except (ValueError, TypeError, gymnasium.error.Error) as e:
+        raise ConfigError(
+            f"base_config.build_path {base.build_path!r} with env_kwargs {base.env_kwargs}: "
+            f"cannot make the env ({type(e).__name__}: {e})"
+        ) from None
+
+
 def setup_logging(run_dir: Path | None, in_file: bool) -> None:
     handlers: list[logging.Handler] = [logging.StreamHandler(sys.stderr)]
     if in_file and run_dir is not None:
@@ -140,37 +242,43 @@ def setup_logging(run_dir: Path | None, in_file: bool) -> None:
 
 def train(args: argparse.Namespace) -> int:
     task = task_dir(args.env)
+    check_device(args.device)
     resolved = load_config(task, args.config, cli_overrides(args))
     config = resolved.config
+    check_env(config)
     name_template = args.name or config.base_config.name
     for repeat in range(args.repeat):
         run_config = config.model_copy(deep=True)
         name = name_template.replace("{time}", time.strftime("%Y%m%d%H%M%S"))
         if args.repeat > 1:
             name = f"{name}_{repeat}"
-        run_dir = Path(args.model_root) / args.env / name
+        run_dir = run_directory(args.model_root, args.env, name)
         saved_config = RunDir(run_dir).config
         if saved_config.exists():
             # Resuming: the run's own resolved config (seed included) wins; command-line overrides still apply.
-            run_config = apply_overrides(
-                config_from_yaml(saved_config.read_text(), str(saved_config)), cli_overrides(args)
-            )
+            run_config = apply_overrides(config_from_file(saved_config), cli_overrides(args))
         elif run_config.sac_config.seed is None:
             run_config.sac_config.seed = random.SystemRandom().randrange(2**31)  # recorded in config.yaml
         elif args.repeat > 1:
             run_config.sac_config.seed = int(run_config.sac_config.seed) + repeat
         run_config.base_config.name = name
-        copy_model_file(task, run_config, run_dir, explicit=args.nn is not None)
-        setup_logging(run_dir, args.logger_in_file)
+        with removed_if_not_started(run_dir):
+            copy_model_file(task, run_config, run_dir, explicit=args.nn is not None)
+            setup_logging(run_dir, args.logger_in_file)
+            try:
+                trainer = EmbeddedTrainer(
+                    run_config,
+                    run_dir,
+                    env_factory(run_config),
+                    device=args.device,
+                    progress=not args.no_progress,
+                    ckpt_step=args.ckpt,
+                )
+            except ConfigError:
+                raise
+            except (ValueError, TypeError, gymnasium.error.Error) as e:  # the config does not fit the task
+                raise ConfigError(f"cannot start {run_dir} with this config: {type(e).__name__}: {e}") from None
         log.info("run %s (seed %s)", run_dir, run_config.sac_config.seed)
-        trainer = EmbeddedTrainer(
-            run_config,
-            run_dir,
-            env_factory(run_config),
-            device=args.device,
-            progress=not args.no_progress,
-            ckpt_step=args.ckpt,
-        )
         if trainer.env_steps:
             log.info("resumed at %d env steps, %d updates", trainer.env_steps, trainer.updates)
         summary = trainer.run()
@@ -189,6 +297,7 @@ def train(args: argparse.Namespace) -> int:
 
 def play(args: argparse.Namespace) -> int:
     task_dir(args.env)  # validates the task name
+    check_device(args.device)
     run_root = Path(args.model_root) / args.env
     if args.name is None or "{time}" in args.name:
         runs = sorted((p for p in run_root.glob("*") if RunDir(p).config.exists()), key=lambda p: p.stat().st_mtime)
@@ -196,7 +305,7 @@ def play(args: argparse.Namespace) -> int:
             raise UsageError(f"--run: no trained runs under {run_root}; train first or give -n NAME")
         run_dir = runs[-1]
     else:
-        run_dir = run_root / args.name
+        run_dir = run_directory(args.model_root, args.env, args.name)
     paths = RunDir(run_dir)
     if not paths.config.exists():
         raise UsageError(f"--run: {run_dir} is not a run folder (no config.yaml)")
@@ -205,10 +314,9 @@ def play(args: argparse.Namespace) -> int:
         name = run_dir.relative_to(run_root)
         raise UsageError(f"--run: {run_dir} holds a population; play one learner with -n {name}/<learner>, "
                          f"one of: {', '.join(learners)}")  # fmt: skip
-    config = apply_overrides(config_from_yaml(paths.config.read_text(), str(paths.config)), cli_overrides(args))
+    config = apply_overrides(config_from_file(paths.config), cli_overrides(args))
     setup_logging(run_dir, args.logger_in_file)
-    ckpt = checkpoint_path(paths.model, args.ckpt)
-    state = load_checkpoint(ckpt)
+    ckpt, state = load_for_resume(paths.model, args.ckpt)
     seed = int(config.sac_config.seed or 0)
     seed_everything(seed)
     episodes = args.episodes or config.eval_config.eval_episodes
@@ -226,10 +334,8 @@ def play(args: argparse.Namespace) -> int:
 
 
 def _load_policy(sac: SAC, state: dict, ckpt: Path) -> None:
-    try:
+    with restoring(ckpt):
         sac.load_state_dict(state["sac"])
-    except (KeyError, RuntimeError, ValueError) as e:
-        raise CheckpointError(f"checkpoint {ckpt} does not match this task's models: {e}") from None
 
 
 def _play_rendered(
@@ -285,7 +391,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         return play(args) if args.run else train(args)
     except (UsageError, ConfigError, CheckpointError) as e:
-        print(f"error: {e}", file=sys.stderr)
+        print(f"error: {one_line(e)}", file=sys.stderr)
         return 2
 
 

@@ -21,13 +21,29 @@ import time
 from pathlib import Path
 
 from algorithm.checkpoint import CheckpointError
-from algorithm.config import ConfigError, apply_overrides, config_from_yaml, config_to_yaml, load_config
+from algorithm.config import ConfigError, apply_overrides, config_from_file, config_to_yaml, load_config
 from algorithm.config_schema import Config
+from algorithm.sac import MAX_EXPLORATION_NOISE
 from algorithm.trainer import RunDir
 from ds import k8s, roles, security
 from ds.evolver_state import EvolverStateError
 from ds.local import run_local
-from main import UsageError, add_common_args, cli_overrides, copy_model_file, env_factory, play, run_model_builder
+from main import (
+    ArgumentParser,
+    UsageError,
+    add_common_args,
+    check_device,
+    check_env,
+    cli_overrides,
+    copy_model_file,
+    env_factory,
+    one_line,
+    play,
+    positive,
+    removed_if_not_started,
+    run_directory,
+    run_model_builder,
+)
 from main import task_dir as resolve_task
 
 ROLES = {"replay": "replay", "r": "replay", "learner": "learner", "l": "learner", "actor": "actor", "a": "actor",
@@ -37,7 +53,7 @@ TLS_FLAGS = ("tls_cert", "tls_key", "tls_ca")
 
 
 def port(text: str) -> int:
-    value = int(text) if text.isdigit() else -1
+    value = int(text) if text.isascii() and text.isdigit() else -1
     if not 0 <= value <= 65535:
         raise argparse.ArgumentTypeError(f"{text!r} is not a port number (0-65535)")
     return value
@@ -48,20 +64,15 @@ def noise_level(text: str) -> float:
         value = float(text)
     except ValueError:
         value = -1.0
-    if not 0.0 <= value < float("inf"):
-        raise argparse.ArgumentTypeError(f"{text!r} is not a noise level (a number >= 0)")
-    return value
-
-
-def positive(text: str) -> int:
-    value = int(text) if text.isdigit() else 0
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a positive integer")
+    if not 0.0 <= value <= MAX_EXPLORATION_NOISE:
+        raise argparse.ArgumentTypeError(
+            f"{text!r} is not a noise level (a number in [0, {MAX_EXPLORATION_NOISE:.0f}])"
+        )
     return value
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(
+    p = ArgumentParser(
         prog="main_ds.py",
         description="Run one role of distributed ASAC, or all of them as local subprocesses.",
         epilog="examples:\n  python main_ds.py gym/pendulum local --actors 2\n"
@@ -99,15 +110,16 @@ def build_parser() -> argparse.ArgumentParser:
 
 def resolve(args: argparse.Namespace) -> tuple[Config, Path]:
     """The run's config (a resumed run's saved one wins; overrides and net flags still apply) and
-    its directory, with the seed resolved and the model file copied, as main.py does."""
+    its directory, with the seed resolved, as main.py does; everything checked, nothing written."""
     task = resolve_task(args.env)
+    check_device(args.device)
     overrides = cli_overrides(args)
     config = load_config(task, args.config, overrides).config
     name = (args.name or config.base_config.name).replace("{time}", time.strftime("%Y%m%d%H%M%S"))
-    run_dir = Path(args.model_root) / args.env / name
+    run_dir = run_directory(args.model_root, args.env, name)
     saved = RunDir(run_dir).config
     if saved.exists():
-        config = apply_overrides(config_from_yaml(saved.read_text(), str(saved)), overrides)
+        config = apply_overrides(config_from_file(saved), overrides)
     elif config.sac_config.seed is None:
         config.sac_config.seed = random.SystemRandom().randrange(2**31)
     config.base_config.name = name
@@ -129,7 +141,8 @@ def resolve(args: argparse.Namespace) -> tuple[Config, Path]:
         if (path := getattr(args, name)) is not None:
             setattr(net, name, path)
     credentials(config, ROLES[args.role])  # a missing secret or a bad certificate stops here, before anything starts
-    copy_model_file(task, config, run_dir, explicit=args.nn is not None)
+    if ROLES[args.role] != "evolver":  # the one role without envs
+        check_env(config)
     return config, run_dir
 
 
@@ -181,20 +194,22 @@ def run(args: argparse.Namespace) -> int:
     if role == "local" and args.evolver_host is not None:
         raise UsageError("local starts its own evolver; --evolver_host is for roles started one by one")
     config, run_dir = resolve(args)
-    setup_logging(run_dir, role, args.logger_in_file)
-    context = roles.RoleContext(
-        config,
-        run_dir,
-        env_factory(config),
-        run_model_builder(RunDir(run_dir)),
-        args.device,
-        roles.stop_on_signals(),
-        credentials=credentials(config, role),
-        overrides=tuple(cli_overrides(args)),
-    )
-    if role in ("local", "evolver") or (role == "learner" and not context.uses_evolver):
-        run_dir.mkdir(parents=True, exist_ok=True)  # a population's learners write learner_<id>/config.yaml
-        RunDir(run_dir).config.write_text(config_to_yaml(config))
+    with removed_if_not_started(run_dir):
+        copy_model_file(resolve_task(args.env), config, run_dir, explicit=args.nn is not None)
+        setup_logging(run_dir, role, args.logger_in_file)
+        context = roles.RoleContext(
+            config,
+            run_dir,
+            env_factory(config),
+            run_model_builder(RunDir(run_dir)),
+            args.device,
+            roles.stop_on_signals(),
+            credentials=credentials(config, role),
+            overrides=tuple(cli_overrides(args)),
+        )
+        if role in ("local", "evolver") or (role == "learner" and not context.uses_evolver):
+            run_dir.mkdir(parents=True, exist_ok=True)  # a population's learners write learner_<id>/config.yaml
+            RunDir(run_dir).config.write_text(config_to_yaml(config))
     if role == "local":
         return local(args, config, run_dir, context.credentials)
     log.info("%s of run %s (seed %s)", role, run_dir, config.sac_config.seed)
@@ -230,10 +245,10 @@ def main(argv: list[str] | None = None) -> int:
     try:
         return run(args)
     except (UsageError, ConfigError, CheckpointError, EvolverStateError) as e:
-        print(f"error: {e}", file=sys.stderr)
+        print(f"error: {one_line(e)}", file=sys.stderr)
         return 2
     except roles.RoleError as e:
-        print(f"error: {e}", file=sys.stderr)
+        print(f"error: {one_line(e)}", file=sys.stderr)
         return 1
 
 

@@ -56,16 +56,27 @@ _Loader.add_implicit_resolver("tag:yaml.org,2002:float", _FLOAT_RE, list("-+0123
 def parse_yaml(text: str, source: str) -> Any:
     try:
         return yaml.load(text, Loader=_Loader)
+    except yaml.MarkedYAMLError as e:  # where and what, on one line (str(e) spans several)
+        mark = e.problem_mark or e.context_mark
+        where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark is not None else ""
+        what = ": ".join(part for part in (e.context, e.problem) if part)
+        raise ConfigError(f"{source}: not valid YAML{where}: {what}") from None
     except yaml.YAMLError as e:
-        raise ConfigError(f"{source}: not valid YAML: {e}") from None
+        raise ConfigError(f"{source}: not valid YAML: {' '.join(str(e).split())}") from None
 
 
 def read_yaml(path: Path) -> Any:
+    return parse_yaml(read_config_text(path), str(path))
+
+
+def read_config_text(path: Path) -> str:
+    """The text of a config file; :class:`ConfigError` when it cannot be read or is not UTF-8."""
     try:
-        text = path.read_text()
+        return path.read_bytes().decode("utf-8")
     except OSError as e:
         raise ConfigError(f"cannot read config file {path}: {e.strerror}") from None
-    return parse_yaml(text, str(path))
+    except UnicodeDecodeError as e:
+        raise ConfigError(f"{path}: not UTF-8 text (byte {e.object[e.start]:#04x} at offset {e.start})") from None
 
 
 @dataclass
@@ -160,7 +171,7 @@ def _format_errors(err: ValidationError, sources: dict[str, str]) -> str:
         elif e["type"] == "value_error":
             msg = msg.removeprefix("Value error, ")
         lines.append(f"{dotted or 'config'} ({source}): {msg}" + _got(e))
-    return "invalid config:\n  " + "\n  ".join(lines)
+    return "invalid config: " + "; ".join(lines)  # one line, like every command-line error
 
 
 def _source_of(loc: list[str], sources: dict[str, str]) -> str:
@@ -241,10 +252,17 @@ def _validate(
     return ResolvedConfig(config, sources)
 
 
+def config_from_file(path: Path) -> Config:
+    """:func:`config_from_yaml` of a file (a run directory's ``config.yaml``)."""
+    return config_from_yaml(read_config_text(path), str(path))
+
+
 def config_from_yaml(text: str, source: str = "config.yaml") -> Config:
     """Parse a resolved config written by :func:`config_to_yaml` (e.g. a run directory's)."""
-    data = parse_yaml(text, source)
+    data = parse_yaml(text, source) or {}
+    if not isinstance(data, dict):
+        raise ConfigError(f"{source}: top level must be a mapping of sections, got {type(data).__name__}")
     try:
-        return Config.model_validate(data or {})
+        return Config.model_validate(data)
     except ValidationError as e:
-        raise ConfigError(_format_errors(e, {k: source for k in (data or {})})) from None
+        raise ConfigError(_format_errors(e, {k: source for k in data})) from None

@@ -16,9 +16,10 @@ from algorithm.evolution import parse_random_params
 
 
 class Section(BaseModel):
-    """Base for every section: unknown keys are errors, assignments are validated."""
+    """Base for every section: unknown keys are errors, assignments are validated, and no number may
+    be NaN or infinite (``.inf`` passed ``learning_rate > 0``; a NaN ``init_log_alpha`` trained NaNs)."""
 
-    model_config = ConfigDict(extra="forbid", validate_assignment=True, strict=False)
+    model_config = ConfigDict(extra="forbid", validate_assignment=True, strict=False, allow_inf_nan=False)
 
 
 class BaseConfig(Section):
@@ -97,6 +98,11 @@ class ReplayConfig(Section):
     def _check_td_range(self) -> ReplayConfig:
         if self.td_error_min > self.td_error_max:
             raise ValueError("td_error_min must be <= td_error_max")
+        if self.min_size_to_sample > self.capacity - 1:  # a chunk's bootstrap row takes one row
+            raise ValueError(
+                f"min_size_to_sample ({self.min_size_to_sample}) must be < capacity ({self.capacity}): "
+                "at most capacity - 1 steps are stored, so sampling would never start"
+            )
         return self
 
     @property

@@ -56,6 +56,10 @@ from algorithm.returns import bootstrap_index, gather_positions, n_step_target, 
 from algorithm.spaces import EnvSpec
 from algorithm.types import Batch
 
+# The largest extra exploration noise (a std added before the tanh) acting accepts. Far past it tanh
+# saturates every action anyway; near 1e37 the float32 std overflows and log-probs become NaN.
+MAX_EXPLORATION_NOISE = 1e6
+
 
 def uses_bfloat16(compute_dtype: str, device: torch.device, cpuinfo: Path = Path("/proc/cpuinfo")) -> bool:
     """Resolve ``sac_config.compute_dtype``: ``auto`` means bfloat16 where the hardware computes it

@@ -26,11 +26,12 @@ import torch
 
 from algorithm.actor import ActorLoop, VectorEnvLike
 from algorithm.checkpoint import (
+    CheckpointError,
     capture_rng,
-    checkpoint_path,
     list_checkpoints,
-    load_checkpoint,
+    load_for_resume,
     restore_rng,
+    restoring,
     save_checkpoint,
 )
 from algorithm.config import config_to_yaml
@@ -76,6 +77,17 @@ class RunDir:
         return self.root / "nn.py"
 
 
+def load_replay_snapshot(table: PrioritizedTable, path: Path) -> None:
+    """``table.load(path)``, with a file that cannot be loaded (damaged, truncated, another task's)
+    as a :class:`CheckpointError`: the table and the file stay as they are."""
+    try:
+        table.load(path)
+    except ValueError as e:
+        raise CheckpointError(
+            f"replay snapshot {e}; nothing was overwritten: repair it, or move it away to start with an empty replay"
+        ) from None
+
+
 @dataclass
 class TrainSummary:
     env_steps: int
@@ -111,7 +123,6 @@ class EmbeddedTrainer:
             raise ValueError("EmbeddedTrainer needs a resolved sac_config.seed (main.py picks one)")
         self.config = config
         self.paths = RunDir(Path(run_dir))
-        self.paths.root.mkdir(parents=True, exist_ok=True)
         base, sac_cfg, replay_cfg = config.base_config, config.sac_config, config.replay_config
         seed = int(sac_cfg.seed)  # type: ignore[arg-type]
         if base.torch_threads:
@@ -166,9 +177,11 @@ class EmbeddedTrainer:
         self.timers = Timers()
         self.progress = progress
 
-        self.paths.config.write_text(config_to_yaml(config))
-        if list_checkpoints(self.paths.model):
+        # Restored before anything is written: a run whose checkpoint cannot be read keeps its files.
+        if list_checkpoints(self.paths.model) or ckpt_step is not None:  # --ckpt on a new run: say so
             self.restore(ckpt_step)
+        self.paths.root.mkdir(parents=True, exist_ok=True)
+        self.paths.config.write_text(config_to_yaml(config))
         self.writer = MetricsWriter(self.paths.log)
         self.writer.text("config", config_to_yaml(config), self.env_steps)
 
@@ -318,12 +331,18 @@ class EmbeddedTrainer:
         return save_checkpoint(self.paths.model, self.env_steps, state, keep=cfg.keep_checkpoints)
 
     def restore(self, step: int | None = None) -> None:
-        state = load_checkpoint(checkpoint_path(self.paths.model, step))
-        self.sac.load_state_dict(state["sac"])
-        for key, value in state["counters"].items():
-            setattr(self, key, value)
-        restore_rng(state["rng"])
-        self.actor.rng.bit_generator.state = state["actor_rng"]
+        """Resume from checkpoint ``step`` (default: the latest) and, with save_replay, the saved
+        replay. A damaged or foreign file is a :class:`CheckpointError` naming it, never a silent
+        fallback to an older checkpoint: the caller stops and the user decides (``--ckpt``)."""
+        path, state = load_for_resume(self.paths.model, step)
+        with restoring(path):
+            self.sac.load_state_dict(state["sac"])
+            for key, value in state["counters"].items():
+                if key not in self.counters():
+                    raise KeyError(f"unknown counter {key!r}")
+                setattr(self, key, value)
+            restore_rng(state["rng"])
+            self.actor.rng.bit_generator.state = state["actor_rng"]
         self.actor.total_steps = self.env_steps  # random_steps counts from the run's start, not the resume
         if self.config.replay_config.save_replay and self.paths.replay.exists():
-            self.table.load(self.paths.replay)
+            load_replay_snapshot(self.table, self.paths.replay)

@@ -58,7 +58,7 @@ import yaml
 from algorithm.config_schema import Config
 from algorithm.evolution import Population, RoundResult, cem_due
 from algorithm.logging import MetricsWriter
-from ds.evolver_registry import LearnerRegistry, Return, check_port
+from ds.evolver_registry import LearnerRegistry, Return, check_address, check_host, check_port
 from ds.evolver_state import (
     FORMAT,
     SAMPLES_DIR,
@@ -159,8 +159,11 @@ class Evolver:
         evolver never gave out, :class:`~ds.evolver_state.LearnerRetired` for a retired one."""
         if not host:
             raise ValueError("host: empty; say where actors reach this learner")
+        check_host("host", host)
         check_port("learner_port", learner_port, lowest=1)
         check_port("params_port", params_port, lowest=0)
+        if replay_address:
+            check_address("replay_address", replay_address)
         ports = (learner_port, params_port, replay_address)
         with self._pop_lock:
             if previous_id is not None:

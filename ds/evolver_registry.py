@@ -187,8 +187,10 @@ class LearnerRegistry:
         """An assignment (ds/evolver_assign.py) and whether it is new or moved (then save)."""
         if not isinstance(role, Role):
             raise ValueError(f"role: must be ACTOR or REPLAY, got {role!r}")
-        if role is Role.REPLAY and not address:
-            raise ValueError("address: a replay must say where it serves")
+        if role is Role.REPLAY:
+            if not address:
+                raise ValueError("address: a replay must say where it serves")
+            check_address("address", address)
         with self._lock:
             self.dirty |= bool(self.assignments.expire())
             assignment, changed = self.assignments.assign(role, name, address, previous, self.learners, self._live)
@@ -367,6 +369,21 @@ class LearnerRegistry:
 def check_port(name: str, port: int, lowest: int) -> None:
     if not lowest <= port <= 65535:
         raise ValueError(f"{name}: must be in {lowest}..65535, got {port}")
+
+
+def check_host(name: str, host: str) -> None:
+    """A host name or address others can dial: non-empty, no spaces or control characters."""
+    if not host or not host.isprintable() or any(c.isspace() for c in host):
+        raise ValueError(f"{name}: {host!r} is not a host name or address")
+
+
+def check_address(name: str, address: str) -> None:
+    """``host:port`` (``[v6]:port`` too), as actors and learners dial it; a bad one would be handed
+    on to every peer assigned to it."""
+    host, _, port = address.rpartition(":")
+    if not (port.isascii() and port.isdigit()) or not 1 <= int(port) <= 65535:
+        raise ValueError(f"{name}: {address!r} is not host:port with a port in 1..65535")
+    check_host(name, host)
 
 
 def _check_count(name: str, value: int) -> None:

@@ -228,7 +228,8 @@ def serve_evolver(
     :func:`ds.security.listen`. Stop it with ``server.stop(grace)``."""
     options = rpc.channel_options(max_message_bytes)
     server = security.new_server("evolver", SERVICE_NAME, CALLERS, credentials, max_workers, options)
-    evolver_pb2_grpc.add_EvolverServiceServicer_to_server(EvolverServicer(evolver, max_message_bytes), server)
+    servicer = EvolverServicer(evolver, max_message_bytes)
+    rpc.add_servicer(server, servicer, evolver_pb2.DESCRIPTOR.services_by_name["EvolverService"])
     health_servicer = health.HealthServicer()
     health_pb2_grpc.add_HealthServicer_to_server(health_servicer, server)
     rpc.set_serving(health_servicer, SERVICE_NAME, False)

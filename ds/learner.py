@@ -40,10 +40,10 @@ import numpy as np
 from algorithm.actor import VectorEnvLike
 from algorithm.checkpoint import (
     capture_rng,
-    checkpoint_path,
     list_checkpoints,
-    load_checkpoint,
+    load_for_resume,
     restore_rng,
+    restoring,
     save_checkpoint,
 )
 from algorithm.config import config_to_yaml
@@ -137,7 +137,7 @@ class Learner:
         self.timers = Timers()
         self.eval_seed = int(config.sac_config.seed or 0) + EVAL_SEED_OFFSET
         self._log_replay = Throttle(30.0)
-        if list_checkpoints(self.paths.model):
+        if list_checkpoints(self.paths.model) or ckpt_step is not None:  # --ckpt on a new run: say so
             self.restore(ckpt_step)
         if member is not None and self.weights_round:
             member.link.loaded(self.weights_round)
@@ -352,15 +352,17 @@ class Learner:
         return path
 
     def restore(self, step: int | None = None) -> None:
-        path = checkpoint_path(self.paths.model, step)
-        state = load_checkpoint(path)
-        self.sac.load_state_dict(state["sac"])
-        counters = state["counters"]
-        self.env_steps = EnvSteps(counters["env_steps"], counters["replay_inserted_seen"])
-        self.updates = int(counters["updates"])
-        self.wall_seconds = float(counters["wall_seconds"])
-        self.next_eval, self.next_save = int(counters["next_eval"]), int(counters["next_save"])
-        self.evaluations = int(counters["evaluations"])
-        self.weights_round = int(counters.get("weights_round", 0))  # checkpoints from before the evolver lack it
-        restore_rng(state["rng"])
+        """Resume from checkpoint ``step`` (default: the latest); a damaged or foreign file is a
+        :class:`~algorithm.checkpoint.CheckpointError` naming it, never a fallback to an older one."""
+        path, state = load_for_resume(self.paths.model, step)
+        with restoring(path):
+            self.sac.load_state_dict(state["sac"])
+            counters = state["counters"]
+            self.env_steps = EnvSteps(int(counters["env_steps"]), int(counters["replay_inserted_seen"]))
+            self.updates = int(counters["updates"])
+            self.wall_seconds = float(counters["wall_seconds"])
+            self.next_eval, self.next_save = int(counters["next_eval"]), int(counters["next_save"])
+            self.evaluations = int(counters["evaluations"])
+            self.weights_round = int(counters.get("weights_round", 0))  # checkpoints from before the evolver lack it
+            restore_rng(state["rng"])
         log.info("resumed from %s at %d env steps, %d updates", path, self.env_steps.total, self.updates)

@@ -43,7 +43,7 @@ import numpy as np
 import torch
 from grpc_health.v1 import health, health_pb2_grpc
 
-from algorithm.sac import SAC
+from algorithm.sac import MAX_EXPLORATION_NOISE, SAC
 from algorithm.spaces import EnvSpec
 from ds import rpc, security
 from ds.replay_codec import GRPC_DEFAULT_MESSAGE_BYTES
@@ -253,6 +253,8 @@ class LearnerServicer(learner_pb2_grpc.LearnerServiceServicer):
     def Heartbeat(
         self, request: learner_pb2.HeartbeatRequest, context: grpc.ServicerContext
     ) -> learner_pb2.HeartbeatReply:
+        if request.env_steps < 0:
+            context.abort(grpc.StatusCode.INVALID_ARGUMENT, f"env_steps must be >= 0, got {request.env_steps}")
         if not self.registry.renew(request.actor_id, request.env_steps):
             context.abort(grpc.StatusCode.NOT_FOUND, f"no live actor {request.actor_id!r} (lease expired?): register")
         return learner_pb2.HeartbeatReply(learner_id=self.learner_id, params_version=self.store.version)
@@ -326,8 +328,8 @@ class LearnerServicer(learner_pb2_grpc.LearnerServiceServicer):
             specs = {name: TensorSpec(name, _F32, (width,), True, ("N",)) for name, width in recurrent.items()}
             prev_actions = from_tensor(request.prev_actions, specs["prev_actions"], dims)
             rnn_state = from_tensor(request.rnn_state, specs["rnn_state"], dims)
-        if not (np.isfinite(request.noise) and request.noise >= 0):
-            raise WireError("noise", f"must be finite and >= 0, got {request.noise}")
+        if not 0 <= request.noise <= MAX_EXPLORATION_NOISE:  # also NaN
+            raise WireError("noise", f"must be in [0, {MAX_EXPLORATION_NOISE:.0f}], got {request.noise}")
         return obs, prev_actions, rnn_state, float(request.noise)
 
 
@@ -354,7 +356,7 @@ def serve_learner(
     ``credentials`` and ``health_port``: see :func:`ds.security.listen`."""
     options = rpc.channel_options(max_message_bytes)
     server = security.new_server("learner", SERVICE_NAME, CALLERS, credentials, max_workers, options)
-    learner_pb2_grpc.add_LearnerServiceServicer_to_server(servicer, server)
+    rpc.add_servicer(server, servicer, learner_pb2.DESCRIPTOR.services_by_name["LearnerService"])
     health_servicer = health.HealthServicer()
     health_pb2_grpc.add_HealthServicer_to_server(health_servicer, server)
     rpc.set_serving(health_servicer, SERVICE_NAME, False)

@@ -117,6 +117,8 @@ class ReplayServicer(replay_pb2_grpc.ReplayServiceServicer):
 
     def Insert(self, request: replay_pb2.InsertRequest, context: grpc.ServicerContext) -> replay_pb2.InsertReply:
         with _status_codes(context):
+            if not request.chunks:
+                raise WireError("chunks", "is empty: an Insert carries at least one chunk")
             # Decode every chunk first: a bad one anywhere rejects the whole request untouched.
             decoded = [self.specs.chunk_from_proto(c, f"chunks[{i}]") for i, c in enumerate(request.chunks)]
             chunks, priorities = [chunk for chunk, _ in decoded], [p for _, p in decoded]
@@ -175,6 +177,8 @@ class ReplayServicer(replay_pb2_grpc.ReplayServiceServicer):
 def _path(path: str) -> Path:
     if not path:
         raise WireError("path", "is empty")
+    if "\0" in path:  # the OS would refuse it with a message that does not say which field
+        raise WireError("path", f"holds a NUL character: {path!r}")
     return Path(path)
 
 
@@ -185,7 +189,8 @@ def _wait_seconds(request: Any, context: grpc.ServicerContext) -> float | None:
     if request.HasField("timeout_s"):
         if not request.timeout_s >= 0:  # also NaN
             raise WireError("timeout_s", f"must be >= 0, got {request.timeout_s}")
-        limits.append(request.timeout_s)
+        if request.timeout_s < threading.TIMEOUT_MAX:  # longer (inf) is no limit: the lock cannot wait that long
+            limits.append(request.timeout_s)
     remaining = context.time_remaining()  # about 9e18 for a call without deadline
     if remaining is not None and remaining < threading.TIMEOUT_MAX:
         limits.append(max(0.0, remaining))
@@ -237,7 +242,7 @@ def serve_replay(
     options = channel_options(max_message_bytes)
     server = security.new_server("replay", SERVICE_NAME, CALLERS, credentials, max_workers, options, interceptors)
     servicer = ReplayServicer(table, table.sensors, table.action_size, table.rnn_state_size, max_message_bytes)
-    replay_pb2_grpc.add_ReplayServiceServicer_to_server(servicer, server)
+    rpc.add_servicer(server, servicer, replay_pb2.DESCRIPTOR.services_by_name["ReplayService"])
     health_servicer = health_servicer or health.HealthServicer()
     health_pb2_grpc.add_HealthServicer_to_server(health_servicer, server)
     set_serving(health_servicer, False)

@@ -45,7 +45,7 @@ from algorithm.nn.user import ModelBuilder
 from algorithm.replay import PrioritizedTable
 from algorithm.sac import SAC
 from algorithm.spaces import EnvSpec
-from algorithm.trainer import EVAL_SEED_OFFSET, RunDir, seed_everything
+from algorithm.trainer import EVAL_SEED_OFFSET, RunDir, load_replay_snapshot, seed_everything
 from ds import evolver_service, learner_service, replay_service
 from ds.actor import DistributedActor
 from ds.evolver import Evolver
@@ -290,7 +290,7 @@ def _serve_replay(role: RoleContext, keeper: AssignmentKeeper | None, metrics_ev
     saving = cfg.replay_config.save_replay
     save_every_min = cfg.replay_config.save_replay_per_minute or sac_cfg.save_model_per_minute
     if saving and path.exists():
-        table.load(path)
+        load_replay_snapshot(table, path)  # a bad file stops the role (exit 2) before it is saved over
         info = table.info()
         log.info("replay restored from %s: %d steps, the chunk ids of %d actors", path, info["size"], info["producers"])
     checker = health.HealthServicer()

@@ -81,7 +81,8 @@ class EvolverServiceServicer:
         by learners at start, and with previous_id after a restart or when an rpc answered NOT_FOUND:
         a known previous_id gets the same id and config back (and its address is updated). Errors:
         INVALID_ARGUMENT (learner_port or params_port out of range, empty host the caller's address
-        cannot replace), NOT_FOUND (previous_id was never given out by this evolver's state),
+        cannot replace, a host with spaces, a replay_address that is not host:port), NOT_FOUND
+        (previous_id was never given out by this evolver's state),
         FAILED_PRECONDITION (previous_id was retired: it must not come back).
         """
         context.set_code(grpc.StatusCode.UNIMPLEMENTED)
@@ -121,7 +122,7 @@ class EvolverServiceServicer:
         max_actors_each_learner actors; gives a replay the live learner with the lowest id that has
         no replay (the learner learns the replay's address from its next heartbeat). Called by actors
         and replays started without addresses, at start and after AssignmentHeartbeat answered
-        NOT_FOUND. Errors: INVALID_ARGUMENT (role unspecified or unknown, REPLAY without address),
+        NOT_FOUND. Errors: INVALID_ARGUMENT (role unspecified or unknown, REPLAY without a host:port address),
         UNAVAILABLE (no learner registered yet, or none has room: retry).
         """
         context.set_code(grpc.StatusCode.UNIMPLEMENTED)

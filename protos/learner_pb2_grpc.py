@@ -76,8 +76,8 @@ class LearnerServiceServicer:
         raise NotImplementedError('Method not implemented!')
 
     def Heartbeat(self, request, context):
-        """Renews an actor's lease. Called by actors every few seconds. Errors: NOT_FOUND (unknown or
-        expired actor_id: register again).
+        """Renews an actor's lease. Called by actors every few seconds. Errors: INVALID_ARGUMENT
+        (env_steps < 0), NOT_FOUND (unknown or expired actor_id: register again).
         """
         context.set_code(grpc.StatusCode.UNIMPLEMENTED)
         context.set_details('Method not implemented!')
@@ -106,8 +106,8 @@ class LearnerServiceServicer:
     def GetAction(self, request, context):
         """Acts for N observations with the latest published weights and the given noise; the actor
         stores the returned behaviour log-probabilities. Called every env step by actors with
-        update_policy_mode: false. Errors: INVALID_ARGUMENT (a tensor breaks its spec, noise < 0 or not
-        finite, recurrent fields missing or unexpected), FAILED_PRECONDITION (this learner runs with
+        update_policy_mode: false. Errors: INVALID_ARGUMENT (a tensor breaks its spec, noise outside
+        [0, 1e6] or NaN, recurrent fields missing or unexpected), FAILED_PRECONDITION (this learner runs with
         update_policy_mode: true and keeps no acting copy), UNAVAILABLE (nothing published yet).
         """
         context.set_code(grpc.StatusCode.UNIMPLEMENTED)

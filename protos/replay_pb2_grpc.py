@@ -92,9 +92,9 @@ class ReplayServiceServicer:
         role's periodic snapshot), so a replay restarted from a snapshot recognises every chunk the
         snapshot holds. A chunk stored after the last snapshot is lost when the replay dies without
         saving (kill -9); if its reply had reached the actor the actor does not send it again.
-        Errors: INVALID_ARGUMENT (a tensor breaks its spec, a chunk breaks the chunk rules, a chunk
-        is longer than capacity - 1 steps, timeout_s < 0, or sequence is not one distinct number
-        per chunk with a producer, or not empty without one; nothing is stored), DEADLINE_EXCEEDED
+        Errors: INVALID_ARGUMENT (no chunks, a tensor breaks its spec, a chunk breaks the chunk rules,
+        a chunk is longer than capacity - 1 steps, timeout_s < 0, or sequence is not one distinct
+        number per chunk with a producer, or not empty without one; nothing is stored), DEADLINE_EXCEEDED
         (the rate limiter held the insert back for timeout_s or until the call's deadline; nothing is
         stored), RESOURCE_EXHAUSTED (message over the server's size limit; nothing is stored).
         """
@@ -143,8 +143,8 @@ class ReplayServiceServicer:
 
     def Save(self, request, context):
         """Writes the whole table atomically to a file on the server. Called by the learner when it
-        checkpoints, or by operators. Errors: INVALID_ARGUMENT (empty path), FAILED_PRECONDITION
-        (the file cannot be written).
+        checkpoints, or by operators. Errors: INVALID_ARGUMENT (empty path, or one holding a NUL),
+        FAILED_PRECONDITION (the file cannot be written).
         """
         context.set_code(grpc.StatusCode.UNIMPLEMENTED)
         context.set_details('Method not implemented!')
@@ -153,7 +153,7 @@ class ReplayServiceServicer:
     def Load(self, request, context):
         """Replaces the table's contents with a file written by Save. Called by the replay role on
         restart or by operators. Errors: INVALID_ARGUMENT (empty path; a missing, unreadable, corrupt
-        or mismatched file; the table is unchanged either way).
+        or mismatched file, named in the message; the table is unchanged either way).
         """
         context.set_code(grpc.StatusCode.UNIMPLEMENTED)
         context.set_details('Method not implemented!')

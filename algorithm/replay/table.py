@@ -261,8 +261,6 @@ class PrioritizedTable:
                 t = self._check_chunk(chunk)
                 new_p = None if p is None else self._transform(self._check_priorities(p, t, "insert"))
             except ValueError as e:
-                if len(chunks) == 1:
-                    raise
                 raise ValueError(f"chunks[{i}]: {e}") from e
             checked.append((chunk, t, new_p))
         return checked
@@ -457,7 +455,7 @@ class PrioritizedTable:
         data, meta = persistence.read_checked(Path(path), self._layout(), expected)
         try:
             attributes, limiter_state = self._validated_state(data, meta)
-        except (KeyError, TypeError, ValueError) as e:
+        except (KeyError, TypeError, ValueError, AttributeError, IndexError, ArithmeticError) as e:
             raise ValueError(f"{path}: inconsistent replay file ({type(e).__name__}: {e})") from e
         with self._lock:
             self.rate_limiter.load_state_dict(limiter_state)
@@ -656,8 +654,9 @@ class PrioritizedTable:
                 raise ValueError(f"chunk.{name}: expected {dtype} {shape}, got {arr.dtype} {arr.shape}")
             if dtype.kind == "f" and not np.isfinite(arr).all():
                 raise ValueError(f"chunk.{name} has non-finite values")
-        if chunk.terminated[:-1].any() or chunk.truncated[:-1].any():
-            raise ValueError("only the last step of a chunk may be terminated or truncated")
+        for name in ("terminated", "truncated"):
+            if getattr(chunk, name)[:-1].any():
+                raise ValueError(f"chunk.{name}: only the last step of a chunk may be terminated or truncated")
         return t
 
 

@@ -15,6 +15,8 @@ from typing import Any, cast
 import grpc
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from algorithm.config import config_from_yaml
 from algorithm.config_schema import Config
@@ -24,10 +26,13 @@ from ds.evolver_service import EvolverClient, EvolverRequestRejected, serve_evol
 from ds.evolver_state import (
     SAMPLES_DIR,
     STATE_FILE,
+    EvolverInfo,
     EvolverStateError,
     Instruction,
     LearnerRetired,
     NoWorkYet,
+    PendingSample,
+    Role,
     UnknownAssignment,
     UnknownLearner,
 )
@@ -437,6 +442,63 @@ def test_an_unreadable_state_is_an_error_naming_the_file_and_nothing_is_overwrit
     sample.write_bytes(b"not a zip file")
     with pytest.raises(EvolverStateError, match=re.escape(f"pending sample {sample} ") + ".* is unreadable"):
         Evolver(evolver_config(), setup.state_dir, "exp")
+
+
+@pytest.fixture(scope="module")
+def saved_population(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, EvolverInfo]:
+    """A saved evolver state with learners, a return, an assignment and a pending sample file."""
+    folder = tmp_path_factory.mktemp("population") / "evolver"
+    evolver = Evolver(evolver_config(), folder, "exp", lease_s=600.0)
+    ids = [evolver.register_learner(f"l{k}", "h", 61001 + k, 0, f"replay-{k}:1").learner_id for k in range(2)]
+    evolver.post_reward(ids[0], 1.5, 10)
+    evolver.assign(Role.ACTOR, "a0")
+    evolver.registry.pending[ids[1]] = PendingSample(ids[1], 1, weights_of(0.5))
+    evolver.save()
+    return folder, evolver.info()
+
+
+@settings(max_examples=40, deadline=None)
+@given(file=st.sampled_from(["state", "sample"]), how=st.sampled_from(["cut", "flip"]), at=st.integers(0, 10**6),
+       xor=st.integers(1, 255))  # fmt: skip
+def test_a_damaged_state_or_sample_is_an_error_naming_it_or_loads_unchanged(
+    saved_population: tuple[Path, EvolverInfo], tmp_path_factory: pytest.TempPathFactory, file: str, how: str,
+    at: int, xor: int
+) -> None:  # fmt: skip
+    """A flipped digit is still valid JSON: the state's digest catches it (and the zip CRC a sample's)."""
+    good, info = saved_population
+    folder = tmp_path_factory.mktemp("damaged") / "evolver"
+    shutil.copytree(good, folder)
+    path = folder / STATE_FILE if file == "state" else next((folder / SAMPLES_DIR).iterdir())
+    data = bytearray(path.read_bytes())
+    if how == "cut":
+        data = data[: at % len(data)]
+    else:
+        data[at % len(data)] ^= xor
+    path.write_bytes(bytes(data))
+    try:
+        loaded = Evolver(evolver_config(), folder, "exp", lease_s=600.0)
+    except EvolverStateError as e:
+        assert str(path) in str(e)
+    else:
+        assert loaded.info() == info
+        if file == "sample":
+            np.testing.assert_array_equal(loaded.registry.pending[1].weights["q.weight"], weights_of(0.5)["q.weight"])
+    assert path.read_bytes() == bytes(data)  # loading wrote nothing over it
+
+
+def test_a_state_changed_to_other_valid_json_is_refused(
+    saved_population: tuple[Path, EvolverInfo], tmp_path: Path
+) -> None:
+    """One digit of a port flipped: valid JSON and a plausible population, but not the one saved."""
+    folder = tmp_path / "evolver"
+    shutil.copytree(saved_population[0], folder)
+    state = folder / STATE_FILE
+    edited = state.read_text().replace('"learner_port": 61001', '"learner_port": 61009', 1)
+    assert edited != state.read_text()
+    state.write_text(edited)
+    with pytest.raises(EvolverStateError, match=re.escape(f"evolver state {state} is damaged")):
+        Evolver(evolver_config(), folder, "exp")
+    assert state.read_text() == edited
 
 
 # ---------------------------------------------------------------------- the learner's GetWeights and metrics

@@ -4,6 +4,8 @@ batches are prefetched without loss, full queues block and are counted, priority
 
 from __future__ import annotations
 
+import re
+import shutil
 import socket
 import threading
 import time
@@ -12,7 +14,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 
+from algorithm.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
 from algorithm.config import load_config
 from algorithm.replay import PrioritizedTable
 from algorithm.sac import SAC
@@ -23,6 +27,7 @@ from ds.replay_feeds import BatchPrefetcher, PriorityUpdater, merge_priorities
 from ds.replay_service import ReplayClient, RetryPolicy, serve_replay
 from envs.make import make_vector_env
 from tests.algorithm.replay.chunks import VECTOR, make_chunk
+from tests.damage import flip_in_largest_record, tree_digest
 
 from .conftest import ServeOverGrpc
 
@@ -282,3 +287,31 @@ def test_a_recurrent_learner_refreshes_the_stored_states_over_grpc(over_grpc: Se
         thread.join(30)
         publisher.close()
     assert table.info()["rnn_state_updates"] > 0 and learner.rnn_refreshes_skipped == 0
+
+
+@pytest.mark.parametrize("damage", ["flipped byte", "another task's weights"])
+def test_a_damaged_latest_checkpoint_stops_the_learner_naming_it(tmp_path: Path, damage: str) -> None:
+    """No silent fallback to the older checkpoint: the error names the file and the --ckpt to pass."""
+    table = pendulum_table(0)
+    first = make_learner(tmp_path, table, threading.Event())  # type: ignore[arg-type]
+    first.publisher.close()
+    good = first.save()  # model/0.pt
+    latest = tmp_path / "model/10.pt"
+    if damage == "flipped byte":
+        shutil.copyfile(good, latest)
+        flip_in_largest_record(latest)
+    else:  # a valid checkpoint whose first layer is shaped for another observation size
+        state = load_checkpoint(good)
+        models = state["sac"]["models"]
+        name = next(k for k, v in models.items() if v.ndim == 2)
+        models[name] = torch.zeros(models[name].shape[0], models[name].shape[1] + 5)
+        save_checkpoint(tmp_path / "model", 10, {k: v for k, v in state.items() if k != "format_version"}, keep=5)
+    before = tree_digest(tmp_path)
+    with pytest.raises(CheckpointError, match=re.escape(f"checkpoint {latest} ")) as e:
+        make_learner(tmp_path, table, threading.Event())  # type: ignore[arg-type]
+    message = str(e.value)
+    if damage == "flipped byte":
+        assert "is damaged: its contents do not match the digest" in message and "--ckpt 0" in message
+    else:
+        assert "does not fit this run's models" in message and "size mismatch" in message
+    assert tree_digest(tmp_path) == before

@@ -329,18 +329,22 @@ def test_a_waiting_sample_returns_once_actors_catch_up(over_grpc: ServeOverGrpc)
     assert got and got[0].batch_size == 8
 
 
-def test_a_call_without_deadline_or_timeout_waits_until_it_can_be_served(over_grpc: ServeOverGrpc) -> None:
+@pytest.mark.parametrize("timeout_s", [None, math.inf, 1e300], ids=["absent", "inf", "1e300"])
+def test_a_call_without_deadline_or_timeout_waits_until_it_can_be_served(
+    over_grpc: ServeOverGrpc, timeout_s: float | None
+) -> None:
+    """An infinite (or longer than a lock can wait) timeout_s waits like an absent one."""
     table = PrioritizedTable(100, (VECTOR,), 2, 1, rate_limiter=RateLimiter(1.0, 5, enforce_ratio=False))
     client = over_grpc(table)  # kept: its server stops when it is collected
     raw = replay_pb2_grpc.ReplayServiceStub(client.channel)
-    got: list[replay_pb2.SampleReply] = []
-    waiter = threading.Thread(target=lambda: got.append(raw.Sample(replay_pb2.SampleRequest(batch_size=3))))
-    waiter.start()
+    request = replay_pb2.SampleRequest(batch_size=3)
+    if timeout_s is not None:
+        request.timeout_s = timeout_s
+    waiting = raw.Sample.future(request)
     time.sleep(0.3)
-    assert not got
+    assert not waiting.done()
     table.insert(make_chunk(6, 0))
-    waiter.join(10)
-    assert got and list(got[0].keys.shape) == [3]
+    assert list(waiting.result(timeout=10).keys.shape) == [3]
 
 
 def free_port() -> int:

@@ -127,6 +127,9 @@ def corrupt(path: Path, tmp_path: Path, **changes: Any) -> Path:
         ("counters", "rate limiter counters"),
         ("keys", "row keys"),
         ("rng", "inconsistent replay file"),
+        ("compression method", "not a readable replay file"),
+        ("counters of another type", "inconsistent replay file"),
+        ("infinite next key", "inconsistent replay file"),
     ],
 )
 def test_bad_file_raises_and_leaves_the_table_intact(connect: Connect, tmp_path: Path, case: str, message: str) -> None:
@@ -164,8 +167,17 @@ def test_bad_file_raises_and_leaves_the_table_intact(connect: Connect, tmp_path:
         path = corrupt(good, tmp_path, rate_limiter={**meta["rate_limiter"], "evicted": 0})
     elif case == "keys":
         path = corrupt(good, tmp_path, row_key=np.roll(row_key, 1))
-    else:
+    elif case == "rng":
         path = corrupt(good, tmp_path, rng={"bit_generator": "PCG64", "state": "nonsense"})
+    elif case == "compression method":  # in the zip's central directory: numpy's reader cannot even start
+        data = bytearray(good.read_bytes())
+        data[data.find(b"PK\x01\x02") + 10] = 77
+        path = tmp_path / "method.npz"
+        path.write_bytes(bytes(data))
+    elif case == "counters of another type":
+        path = corrupt(good, tmp_path, counters=[1, 2])
+    else:
+        path = corrupt(good, tmp_path, next_key=float("inf"))
 
     tab, twin = populated(connect, seed=2), populated(connect, seed=2)
     with pytest.raises(ValueError, match=message):
