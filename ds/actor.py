@@ -12,8 +12,14 @@ takes the latest weights with ``GetParams`` and then keeps the newest broadcast 
 steps (``update_policy_mode: true``), or asks the learner for every action (``false``); and runs
 :class:`~algorithm.actor.ActorLoop` with a :class:`ReplaySink`, which never drops a chunk: the
 replay's rate limiter holding inserts back (the learner is behind) and an unreachable replay are
-waited out, counted and logged. Every few seconds it renews its lease; a learner that restarted
-(new id) or forgot it (lease expired) is registered with again, keeping the index.
+waited out, counted and logged. Every few seconds (at most a third of its lease) it renews its
+lease; a learner that restarted (new id) or forgot it (lease expired: this process was stopped or
+cut off for longer) is registered with again, keeping the index. A replay that does not answer
+(down, or stalled) is waited for; chunks stay in the sink until the replay acknowledges them.
+
+Nothing non-finite goes out or comes in: chunks with NaN/inf are dropped by the loop (counted:
+``actor/nonfinite_steps``) and broadcast weights that fail :func:`~ds.params.decode_params` (NaN/inf
+values, a bad MAC, a wrong shape) are never loaded (counted: ``actor/params_rejected``, logged).
 """
 
 from __future__ import annotations
@@ -42,7 +48,7 @@ from ds import learner_service, replay_service
 from ds.learner_service import LearnerClient, LeaseExpired, Registration, RemotePolicy
 from ds.params import ParamsError, ParamsSubscriber, decode_params, params_spec
 from ds.replay_codec import chunk_payload_bytes
-from ds.replay_feeds import Throttle
+from ds.replay_feeds import Throttle, unavailable
 from ds.replay_service import PendingInsert, ReplayClient, ReplayRpcError
 from ds.rpc import peer_gone, wait_until_serving
 
@@ -121,6 +127,11 @@ class ReplaySink:
             self._settle_oldest()  # the actor is ahead of the replay: wait for it
         if len(self._pending) < self.in_flight:
             self._send_queued()
+
+    def backlog(self) -> int:
+        """Chunks handed in and not yet stored: inserts on their way plus chunks waiting to be sent.
+        Bounded: at most ``in_flight`` inserts of ``max_chunks_per_insert`` chunks, and as many waiting."""
+        return sum(len(p.chunks) for p in self._pending) + len(self._queued)
 
     def flush(self) -> None:
         """Wait until every chunk handed in is stored (or, once stopping, counted as unsent)."""
@@ -240,12 +251,15 @@ class DistributedActor:
         self.subscriber: ParamsSubscriber | None = None
         self.params_version = -1
         self.params_applied = 0
+        self.params_rejected = 0
+        self.loop: ActorLoop | None = None
         self.env_steps = 0
         self.episodes = 0
         self.done = False
         self.sink = ReplaySink(replay, lambda: self.stop.is_set() or self.done, between=self._between)
         self._last_beat = time.monotonic()
         self._log_learner = Throttle(30.0)
+        self._log_params = Throttle(30.0)
 
     # -- the loop ---------------------------------------------------------------------------
     def run(self) -> ActorSummary:
@@ -260,7 +274,7 @@ class DistributedActor:
         if self.update_mode:
             self._fetch_params()
         env = self.make_env(self.config.base_config.n_agents, seed)
-        loop = ActorLoop(
+        self.loop = loop = ActorLoop(
             env,
             policy,
             self.sink,
@@ -319,6 +333,10 @@ class DistributedActor:
             "actor/insert_duplicates": float(sink.duplicates),
             "actor/params_version": float(self.params_version),
             "actor/params_applied": float(self.params_applied),
+            "actor/params_rejected": float(self.params_rejected),
+            "actor/nonfinite_steps": float(0 if self.loop is None else self.loop.nonfinite_steps),
+            "actor/insert_backlog": float(sink.backlog()),
+            "actor/unsent_steps": float(sink.unsent_steps),
             "time/env_steps_per_second": steps_per_s,
         }
 
@@ -335,6 +353,9 @@ class DistributedActor:
         reg = self.learner.register(self.name, preferred)
         if self.registration is not None and reg.learner_id != self.registration.learner_id:
             log.info("learner restarted: registered again as %s (index %d)", reg.actor_id, reg.index)
+        elif self.registration is not None:
+            log.info("the learner dropped %s (its lease of %.1f s ran out): registered again as %s (index %d)",
+                     self.registration.actor_id, reg.lease_s, reg.actor_id, reg.index)  # fmt: skip
         if self.update_mode and (self.subscriber is None or self.registration is None
                                  or reg.learner_id != self.registration.learner_id):  # fmt: skip
             if self.subscriber is not None:
@@ -357,9 +378,16 @@ class DistributedActor:
             ) from None
 
     def _take_new_params(self) -> None:
-        if self.subscriber is None:
+        subscriber = self.subscriber
+        if subscriber is None:
             return
-        newer = self.subscriber.latest()
+        rejected = subscriber.rejected
+        newer = subscriber.latest()
+        if subscriber.rejected > rejected:  # never loaded: NaN/inf values, a bad MAC, a wrong layout
+            self.params_rejected += subscriber.rejected - rejected
+            if self._log_params():
+                log.warning("rejected %d parameter broadcasts so far, acting with version %d; last: %s",
+                            self.params_rejected, self.params_version, subscriber.last_error)  # fmt: skip
         if newer is not None:
             self._apply(*newer)
 
@@ -371,8 +399,10 @@ class DistributedActor:
         self.params_applied += 1
 
     def _between(self) -> None:
-        """Heartbeat and done check, every ``heartbeat_s`` seconds (also while an insert waits)."""
-        if time.monotonic() - self._last_beat < self.heartbeat_s:
+        """Heartbeat and done check, every ``heartbeat_s`` seconds or a third of the lease, whichever is
+        shorter (also while an insert waits)."""
+        lease_s = self.registration.lease_s if self.registration is not None else self.heartbeat_s
+        if time.monotonic() - self._last_beat < min(self.heartbeat_s, lease_s / 3):
             return
         self._last_beat = time.monotonic()
         max_step = self.config.base_config.max_step
@@ -382,7 +412,7 @@ class DistributedActor:
                 self.done = True  # a waiting insert gives up: the run's budget is spent
                 return
         except ReplayRpcError as e:
-            if e.code != grpc.StatusCode.UNAVAILABLE:
+            if not unavailable(e):  # gone or not answering (stalled): the sink waits for it too
                 raise
         assert self.registration is not None
         try:
