@@ -12,9 +12,10 @@ takes the latest weights with ``GetParams`` and then keeps the newest broadcast 
 steps (``update_policy_mode: true``), or asks the learner for every action (``false``); and runs
 :class:`~algorithm.actor.ActorLoop` with a :class:`ReplaySink`, which never drops a chunk: the
 replay's rate limiter holding inserts back (the learner is behind) and an unreachable replay are
-waited out, counted and logged. Every few seconds (at most a third of its lease) it renews its
-lease; a learner that restarted (new id) or forgot it (lease expired: this process was stopped or
-cut off for longer) is registered with again, keeping the index. A replay that does not answer
+waited out, counted and logged. A heartbeat thread renews its lease every few seconds (at most a
+third of the lease), whatever the acting thread waits for; a learner that restarted (new id) or
+forgot it (lease expired: this process was stopped or cut off for longer) is registered with again,
+keeping the index. A replay that does not answer
 (down, or stalled) is waited for; chunks stay in the sink until the replay acknowledges them.
 
 Nothing non-finite goes out or comes in: chunks with NaN/inf are dropped by the loop (counted:
@@ -180,7 +181,7 @@ class ReplaySink:
         except InsertTimeout as e:
             self.insert_waits += 1
             if self._log():
-                log.info("replay holds inserts back (the learner is behind); waiting: %s", e)
+                log.info("replay holds inserts back (the learner is behind) or does not answer; waiting: %s", e)
         except ReplayRpcError as e:
             if e.code != grpc.StatusCode.UNAVAILABLE:
                 raise
@@ -257,7 +258,11 @@ class DistributedActor:
         self.episodes = 0
         self.done = False
         self.sink = ReplaySink(replay, lambda: self.stop.is_set() or self.done, between=self._between)
-        self._last_beat = time.monotonic()
+        self._last_check = time.monotonic()
+        self._last_rejoin = -float("inf")
+        self._rejoin = threading.Event()  # set by the heartbeat thread: the learner forgot us, or restarted
+        self._beats_done = threading.Event()
+        self._beat_error: grpc.RpcError | None = None
         self._log_learner = Throttle(30.0)
         self._log_params = Throttle(30.0)
 
@@ -288,6 +293,8 @@ class DistributedActor:
         log.info("actor %s: index %d, noise %.3f, env seed %d, %d envs", reg.actor_id, index, noise, seed, env.num_envs)
         rate, last_metrics, iterations = RateMeter(), time.monotonic(), 0
         max_iter = self.config.base_config.max_iter
+        beats = threading.Thread(target=self._heartbeats, name="heartbeat", daemon=True)
+        beats.start()
         try:
             while not self.stop.is_set() and not self.done:
                 try:
@@ -312,6 +319,8 @@ class DistributedActor:
                 loop.flush()
             self.sink.flush()
         finally:
+            self._beats_done.set()
+            beats.join(timeout=1.0)  # a heartbeat still on its way ends with the channel (daemon thread)
             writer.write(self._metrics(rate.mark(self.env_steps)), self.env_steps)
             writer.close()
             env.close()
@@ -398,39 +407,62 @@ class DistributedActor:
         self.params_version = version
         self.params_applied += 1
 
-    def _between(self) -> None:
-        """Heartbeat and done check, every ``heartbeat_s`` seconds or a third of the lease, whichever is
-        shorter (also while an insert waits)."""
+    def _beat_interval(self) -> float:
         lease_s = self.registration.lease_s if self.registration is not None else self.heartbeat_s
-        if time.monotonic() - self._last_beat < min(self.heartbeat_s, lease_s / 3):
+        return min(self.heartbeat_s, lease_s / 3)
+
+    def _heartbeats(self) -> None:
+        """The heartbeat thread: renew the lease every :meth:`_beat_interval` whatever the acting
+        thread is doing (stepping a slow env, waiting for a stalled replay: in the acting thread such
+        waits let leases run out), and ask it to register again (:meth:`_between`) when the learner no
+        longer knows this actor or has restarted (another learner id)."""
+        while not self._beats_done.wait(self._beat_interval()):
+            reg = self.registration
+            if reg is None or self._rejoin.is_set():
+                continue
+            try:
+                learner_id, _ = self.learner.heartbeat(reg.actor_id, self.env_steps)
+                known = learner_id == reg.learner_id
+            except LeaseExpired:
+                known = False
+            except grpc.RpcError as e:
+                if self._beats_done.is_set():
+                    return
+                if not peer_gone(e.code()) and e.code() != grpc.StatusCode.DEADLINE_EXCEEDED:
+                    self._beat_error = e  # raised in the acting thread: errors surface
+                    return
+                self._learner_unreachable(e)
+                continue
+            if not known and self.registration is reg:  # (a registration made meanwhile is not stale)
+                self._rejoin.set()
+
+    def _between(self) -> None:
+        """In the acting thread, between steps (and while an insert waits): register again when the
+        heartbeat thread asks (at most once per heartbeat interval while the learner does not answer),
+        and every ``heartbeat_s`` seconds check whether the run's budget is spent."""
+        if self._beat_error is not None:
+            raise self._beat_error
+        now = time.monotonic()
+        if self._rejoin.is_set() and now - self._last_rejoin >= self._beat_interval():
+            self._last_rejoin = now
+            try:
+                self._register()
+                if self.update_mode:
+                    self._fetch_params()
+                self._rejoin.clear()
+            except grpc.RpcError as e:
+                self._learner_unreachable(e)
+        if now - self._last_check < self.heartbeat_s:
             return
-        self._last_beat = time.monotonic()
+        self._last_check = now
         max_step = self.config.base_config.max_step
         try:
             if max_step >= 0 and self.replay.info()["inserted_steps"] >= max_step:
                 log.info("the replay has %d+ env steps (base_config.max_step): done", max_step)
                 self.done = True  # a waiting insert gives up: the run's budget is spent
-                return
         except ReplayRpcError as e:
             if not unavailable(e):  # gone or not answering (stalled): the sink waits for it too
                 raise
-        assert self.registration is not None
-        try:
-            learner_id, _ = self.learner.heartbeat(self.registration.actor_id, self.env_steps)
-            known = learner_id == self.registration.learner_id
-        except LeaseExpired:
-            known = False
-        except grpc.RpcError as e:
-            self._learner_unreachable(e)
-            return
-        if known:
-            return
-        try:
-            self._register()
-            if self.update_mode:
-                self._fetch_params()
-        except grpc.RpcError as e:
-            self._learner_unreachable(e)
 
     def _learner_unreachable(self, error: grpc.RpcError) -> None:
         if not peer_gone(error.code()) and error.code() != grpc.StatusCode.DEADLINE_EXCEEDED:

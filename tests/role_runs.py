@@ -81,7 +81,7 @@ class RoleRun:
         self.cwd, self.name, self.common, self.task = cwd, name, common, task
         self.replay_port, self.learner_port = free_port(), free_port()
         self.procs: dict[str, subprocess.Popen[bytes]] = {}
-        self.killed: set[str] = set()  # roles this test killed: their exit is no failure
+        self.ended: set[str] = set()  # roles the test ended with a signal: their exit is no failure
         self.run = cwd / "models" / task / name
 
     def start(self, label: str, role: str, *extra: str) -> subprocess.Popen[bytes]:
@@ -94,7 +94,7 @@ class RoleRun:
             proc = subprocess.Popen([*command, *self.common, *extra], cwd=self.cwd, env=ENV, stdout=out,
                                     stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, process_group=0)  # fmt: skip
         self.procs[label] = proc
-        self.killed.discard(label)
+        self.ended.discard(label)
         return proc
 
     def log(self, label: str) -> Path:
@@ -109,11 +109,11 @@ class RoleRun:
         return "\n".join(f"--- {label}\n{self.text(label)[-2500:]}" for label in self.procs)
 
     def wait_for(self, what: str, ready: Callable[[], bool], timeout_s: float) -> None:
-        """Poll ``ready`` until it holds; fail naming ``what`` when a role exits (one not killed by
+        """Poll ``ready`` until it holds; fail naming ``what`` when a role exits (one not ended by
         :meth:`signal`) or time is up."""
         deadline = time.monotonic() + timeout_s
         while not ready():
-            exited = {x: p.returncode for x, p in self.procs.items() if p.poll() is not None and x not in self.killed}
+            exited = {x: p.returncode for x, p in self.procs.items() if p.poll() is not None and x not in self.ended}
             assert not exited, f"{exited} exited while waiting for {what}\n{self.logs()}"
             assert time.monotonic() < deadline, f"no {what} within {timeout_s:.0f} s\n{self.logs()}"
             time.sleep(0.5)
@@ -137,9 +137,9 @@ class RoleRun:
                             retry=RetryPolicy(attempts=1))  # fmt: skip
 
     def signal(self, label: str, signum: int) -> None:
-        """Send ``signum`` to ``label``'s process group; after SIGKILL its exit is expected."""
-        if signum == signal.SIGKILL:
-            self.killed.add(label)
+        """Send ``signum`` to ``label``'s process group; after SIGKILL, SIGINT or SIGTERM its exit is expected."""
+        if signum in (signal.SIGKILL, signal.SIGINT, signal.SIGTERM):
+            self.ended.add(label)
         with contextlib.suppress(ProcessLookupError):
             os.killpg(self.procs[label].pid, signum)
 

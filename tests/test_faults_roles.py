@@ -127,3 +127,104 @@ def _finite(state: object) -> bool:
     if isinstance(state, float):
         return bool(np.isfinite(state))
     return True
+
+
+# ---------------------------------------------------------------------- peers that stop answering
+
+LEASE_S, RPC_TIMEOUT_S = 3.0, 2.0
+TINY = (
+    "sac.seed=0",
+    "nn.hidden_units=[16,16]",
+    "replay.batch_size=32",
+    "replay.samples_per_insert_tolerance=1e12",  # no rate limit: actors at full speed, the learner as fast as it can
+    "replay.min_size_to_sample=200",
+    "eval.eval_per_step=0",
+    "base.max_step=-1",
+    "actor.chunk_length=20",
+    "sac.write_summary_per_step=20",
+)
+
+
+def final(run: RoleRun, folder: str, tag: str) -> float:
+    """The last value of ``tag`` a role wrote (its closing write, once it has stopped)."""
+    written = scalars(run.run / "log" / folder, tag)
+    assert written, f"no {tag} in log/{folder}"
+    return written[-1][2]
+
+
+@pytest.mark.slow
+def test_a_stopped_replay_and_a_stopped_actor_are_waited_for_and_rejoin(tmp_path: Path) -> None:
+    """SIGSTOP the replay for longer than the clients' deadlines (net_config.rpc_timeout_s), then
+    SIGCONT: the learner and the actors wait (no crash) and go on inserting and sampling. SIGSTOP an
+    actor for longer than its lease (net_config.lease_s), then SIGCONT: the learner drops it (logged),
+    and it registers again, under its old index, and inserts again. At the end every step each actor
+    collected was acknowledged by the replay (none lost in the stalls)."""
+    started = time.monotonic()
+    run = RoleRun(tmp_path, "stopped", flags(*TINY, f"net.lease_s={LEASE_S}", f"net.rpc_timeout_s={RPC_TIMEOUT_S}"))
+    for label, role in (("replay", "replay"), ("learner", "learner"), ("actor-0", "actor"), ("actor-1", "actor")):
+        run.start(label, role)
+    run.wait_for_line("learner", r"registered as actor-\d-\w+ \(index \d\); 2 live", 120)
+    replay = run.replay_client(PENDULUM.sensors, PENDULUM.action.size)
+
+    def grown(key: str, than: int) -> bool:
+        try:
+            return int(replay.info()[key]) > than
+        except Exception:  # noqa: BLE001 - a replay that does not answer yet: poll again
+            return False
+
+    run.wait_for("the learner sampling", lambda: grown("sampled_windows", 0), 60)
+
+    # The replay stops answering for 4 deadlines; its connections stay open.
+    before = replay.info()
+    mark = {label: len(run.text(label)) for label in run.procs}
+    run.signal("replay", signal.SIGSTOP)
+    time.sleep(4 * RPC_TIMEOUT_S)
+    run.signal("replay", signal.SIGCONT)
+    run.wait_for("inserts after the replay resumed", lambda: grown("inserted_steps", before["inserted_steps"]), 60)
+    after_stall = replay.info()
+    run.wait_for("samples after the replay resumed", lambda: grown("sampled_windows", after_stall["sampled_windows"]), 60)
+    assert all(running(p.pid) for p in run.procs.values()), run.logs()
+    learner_waited = run.text("learner")[mark["learner"]:]
+    assert re.search(r"replay unreachable, waiting for it: .*DEADLINE_EXCEEDED", learner_waited), learner_waited
+    for k in range(2):  # each actor's inserts timed out and were kept (sent again, not dropped)
+        waited = run.text(f"actor-{k}")[mark[f"actor-{k}"]:]
+        assert "waiting: replay Insert" in waited, waited
+
+    # An actor stops answering for longer than its lease.
+    pid = run.procs["actor-1"].pid
+    leases = re.findall(rf"\(pid {pid}\) registered as (actor-(\d)-\w+) ", run.text("learner"))
+    assert len(leases) == 1, leases  # the stalled replay did not cost it its lease
+    actor_id, index = leases[0]
+    mark = {label: len(run.text(label)) for label in run.procs}
+    run.signal("actor-1", signal.SIGSTOP)
+    dropped = run.wait_for_line("learner", rf"{actor_id} \(.*, index {index}\) dropped: no heartbeat for ([\d.]+) s "
+                                rf"\(lease {LEASE_S} s\); 1 live", 60, mark["learner"])  # fmt: skip
+    assert float(dropped.group(1)) >= LEASE_S
+    run.signal("actor-1", signal.SIGCONT)
+    again = run.wait_for_line("actor-1", rf"the learner dropped {actor_id} \(its lease of {LEASE_S} s ran out\): "
+                              rf"registered again as (actor-{index}-\w+) \(index {index}\)", 60, mark["actor-1"])  # fmt: skip
+    run.wait_for_line("learner", rf"registered as {again.group(1)} \(index {index}\); 2 live", 30, mark["learner"])
+
+    # With actor-0 stopped cleanly, the replay's inserts are actor-1's own: it inserts again.
+    run.signal("actor-0", signal.SIGINT)
+    assert run.procs["actor-0"].wait(timeout=60) == 130, run.text("actor-0")[-3000:]
+    alone = replay.info()["inserted_steps"]
+    run.wait_for("inserts from the actor that was stopped", lambda: grown("inserted_steps", alone), 60)
+    run.signal("actor-1", signal.SIGINT)
+    assert run.procs["actor-1"].wait(timeout=60) == 130, run.text("actor-1")[-3000:]
+    stored = replay.info()["inserted_steps"]  # every insert has been answered
+    replay.close()
+
+    codes = run.stop_all()
+    assert codes == {"replay": 130, "learner": 130, "actor-0": 130, "actor-1": 130}, (codes, run.logs())
+    acknowledged = 0.0
+    for k in range(2):
+        collected = final(run, f"actor_{k}", "actor/env_steps")
+        inserted = final(run, f"actor_{k}", "actor/inserted_steps")
+        assert final(run, f"actor_{k}", "actor/unsent_steps") == 0
+        assert inserted == collected, f"actor {k}: {collected} steps collected, {inserted} acknowledged"
+        acknowledged += inserted
+    assert stored >= acknowledged
+    print(f"replay stalled {4 * RPC_TIMEOUT_S:.0f} s, actor stalled past its lease; {acknowledged:.0f} steps "
+          f"acknowledged, {stored:.0f} stored ({stored - acknowledged:.0f} stored twice after a lost answer); "
+          f"{time.monotonic() - started:.0f} s")  # fmt: skip
