@@ -17,6 +17,8 @@ import torch
 
 from algorithm.checkpoint import list_checkpoints, load_checkpoint
 from envs.make import make_vector_env
+from tests import fault_envs
+from tests.ds.test_reconnect import Learner, Replay
 from tests.role_runs import RoleRun, flags, running, scalars
 
 pytestmark = [pytest.mark.fault, pytest.mark.grpc]
@@ -228,3 +230,98 @@ def test_a_stopped_replay_and_a_stopped_actor_are_waited_for_and_rejoin(tmp_path
     print(f"replay stalled {4 * RPC_TIMEOUT_S:.0f} s, actor stalled past its lease; {acknowledged:.0f} steps "
           f"acknowledged, {stored:.0f} stored ({stored - acknowledged:.0f} stored twice after a lost answer); "
           f"{time.monotonic() - started:.0f} s")  # fmt: skip
+
+
+# ---------------------------------------------------------------------- NaN and inf
+
+CHUNK = 50
+
+
+@pytest.mark.slow
+def test_nan_from_the_env_never_reaches_replay_and_overflowing_updates_are_skipped(tmp_path: Path) -> None:
+    """Two actors on Pendulum with NaN rewards and NaN final observations at known steps, and a few
+    huge (finite) rewards (tests/fault_envs.py): each chunk holding a NaN is dropped by its actor
+    (counted exactly, logged), never inserted; the huge rewards are stored, and the updates whose
+    loss overflows are skipped by the learner (counted, logged). The actors and the learner run on,
+    and the learner's last checkpoint holds finite weights, optimizer moments and temperature."""
+    started = time.monotonic()
+    run = RoleRun(tmp_path, "nan", flags(*TINY, f"base.build_path={fault_envs.BUILD_PATH}",
+                                         f"actor.chunk_length={CHUNK}"))  # fmt: skip
+    for label, role in (("replay", "replay"), ("learner", "learner"), ("actor-0", "actor"), ("actor-1", "actor")):
+        run.start(label, role)
+    for k in range(2):  # the first drop is logged at once (then one line per 30 s, with totals)
+        run.wait_for_line(f"actor-{k}", rf"dropped a chunk of {CHUNK} steps with non-finite values in rewards", 120)
+    run.wait_for_line("learner", r"update skipped: non-finite loss or gradient \(\d+ skipped so far", 120)
+    time.sleep(3.0)  # thousands of steps more: NaN final observations too (counted below)
+    replay = run.replay_client(PENDULUM.sensors, PENDULUM.action.size)
+    for label in ("actor-0", "actor-1"):
+        run.signal(label, signal.SIGINT)
+        assert run.procs[label].wait(timeout=60) == 130, run.text(label)[-3000:]
+    stored = replay.info()["inserted_steps"]
+    replay.close()
+    codes = run.stop_all()
+    assert codes == {"replay": 130, "learner": 130, "actor-0": 130, "actor-1": 130}, (codes, run.logs())
+
+    acknowledged = 0.0
+    for k in range(2):
+        collected = int(final(run, f"actor_{k}", "actor/env_steps"))
+        assert collected >= 3 * fault_envs.EPISODE_STEPS  # both kinds of NaN, and a huge reward
+        dropped = final(run, f"actor_{k}", "actor/nonfinite_steps")
+        assert dropped == fault_envs.dropped_steps(collected, CHUNK, flushed=True), (k, collected, dropped)
+        inserted = final(run, f"actor_{k}", "actor/inserted_steps")
+        assert inserted + dropped == collected and final(run, f"actor_{k}", "actor/unsent_steps") == 0
+        acknowledged += inserted
+    assert stored >= acknowledged
+
+    skipped = final(run, "learner", "learner/nonfinite_skipped")
+    updates = final(run, "learner", "learner/updates")
+    assert 0 < skipped < updates  # some updates skipped, most applied
+    step = list_checkpoints(run.run / "model")[-1]
+    state = load_checkpoint(run.run / f"model/{step}.pt")["sac"]
+    assert state["nonfinite_skipped"] >= skipped
+    for key in ("models", "target_q", "target_representation", "log_alpha", "optimizers"):
+        assert _finite(state[key]), key
+    print(f"dropped {[final(run, f'actor_{k}', 'actor/nonfinite_steps') for k in range(2)]} steps, skipped "
+          f"{skipped:.0f} of {updates:.0f} updates; {time.monotonic() - started:.0f} s")  # fmt: skip
+
+
+def test_an_actor_never_loads_broadcast_weights_with_nan_even_correctly_signed(tmp_path: Path) -> None:
+    """An actor process subscribed to a learner (here the test's own learner service and ZeroMQ
+    publisher, signing with the run's token) receives a version whose weights hold a NaN, with a
+    valid MAC: it rejects it (logged, ``actor/params_rejected``), acts on with the version it has,
+    and takes the next valid version. Its chunks stay finite: NaN weights would make NaN actions."""
+    token = b"run secret"
+    (tmp_path / "token").write_bytes(token)
+    run = RoleRun(tmp_path, "nan_weights", flags("sac.seed=0", "base.max_step=-1", "nn.hidden_units=[16,16]",
+                                                 "actor.chunk_length=16", f"net.token_file={tmp_path / 'token'}"))  # fmt: skip
+    replay, learner = Replay(run.replay_port), Learner(run.learner_port, version=1, seed=1, token=token)
+    try:
+        run.start("actor", "actor")
+        run.wait_for_line("actor", r"actor actor-0-\w+: index 0", 120)  # registered; version 1 loaded (GetParams)
+        poisoned = {k: v.clone() for k, v in learner.sac.acting_state_dict().items()}
+        name = next(k for k, v in poisoned.items() if v.is_floating_point() and v.numel() > 1)
+        poisoned[name].view(-1)[3] = float("nan")
+        learner.publisher.publish(2, poisoned)  # signed with the token: only the values are wrong
+
+        def rejected() -> bool:
+            learner.publisher.republish()  # until the actor has seen it (ZeroMQ joins are not instant)
+            return re.search(r"rejected \d+ parameter broadcasts so far", run.text("actor")) is not None
+
+        run.wait_for("the poisoned version rejected", rejected, 60)
+        assert re.search(rf"acting with version 1; last: {re.escape(name)}: 1 non-finite values", run.text("actor"))
+        learner.publish(3)
+        for _ in range(15):  # the valid version, a few times over 3 s
+            time.sleep(0.2)
+            learner.publisher.republish()
+        run.signal("actor", signal.SIGINT)
+        assert run.procs["actor"].wait(timeout=60) == 130, run.text("actor")[-3000:]
+    finally:
+        run.stop_all()
+        learner.stop()
+        replay.stop()
+    assert final(run, "actor_0", "actor/params_version") == 3
+    assert final(run, "actor_0", "actor/params_applied") == 2  # versions 1 and 3
+    assert final(run, "actor_0", "actor/params_rejected") >= 1
+    assert final(run, "actor_0", "actor/nonfinite_steps") == 0
+    collected = final(run, "actor_0", "actor/env_steps")
+    assert final(run, "actor_0", "actor/inserted_steps") == collected == replay.inserted() > 0
