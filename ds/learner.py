@@ -189,8 +189,9 @@ class Learner:
                 with self.timers.phase("update"):
                     result = self.sac.update(batch, with_metrics=with_metrics)
                 if result.skipped and self._log_skipped():
-                    log.warning("update skipped: non-finite loss or gradient (%d skipped so far; %d in a row stop the "
-                                "learner)", self.sac.nonfinite_skipped, self.config.sac_config.max_nonfinite_steps)  # fmt: skip
+                    skipped, limit = self.sac.nonfinite_skipped, self.config.sac_config.max_nonfinite_steps
+                    log.warning("update skipped: non-finite loss or gradient (%d skipped so far; %d in a row stop "
+                                "the learner)", skipped, limit)  # fmt: skip
                 if priorities_matter and not result.skipped:
                     with self.timers.phase("priorities"):
                         self.priorities.put(batch.keys, result.td_abs)

@@ -52,8 +52,9 @@ def test_learner_kill_9_actors_and_replay_wait_and_the_restarted_learner_resumes
     from its last checkpoint (env steps, updates, log_alpha and every optimizer's step count as in the
     file), the actors register with it again, and the run reaches the learning test's return band."""
     started = time.monotonic()
-    run = RoleRun(tmp_path, "kill_learner", flags("sac.seed=0", f"base.max_step={BUDGET}", "eval.eval_per_step=500",
-                                                  "sac.save_model_per_step=500", f"sac.write_summary_per_step={SUMMARY_EVERY}"))  # fmt: skip
+    common = flags("sac.seed=0", f"base.max_step={BUDGET}", "eval.eval_per_step=500", "sac.save_model_per_step=500",
+                   f"sac.write_summary_per_step={SUMMARY_EVERY}")  # fmt: skip
+    run = RoleRun(tmp_path, "kill_learner", common)
     run.start("replay", "replay")
     run.start("learner", "learner")
     for k in range(2):
@@ -93,7 +94,9 @@ def test_learner_kill_9_actors_and_replay_wait_and_the_restarted_learner_resumes
                for name, o in sac["optimizers"].items()}  # fmt: skip
     assert ast.literal_eval(steps) == in_file and min(in_file.values()) > 0, (steps, in_file)
     for k in range(2):
-        run.wait_for_line(f"actor-{k}", r"learner restarted: registered again as actor-\d-", 60, killed_at[f"actor-{k}"])
+        run.wait_for_line(
+            f"actor-{k}", r"learner restarted: registered again as actor-\d-", 60, killed_at[f"actor-{k}"]
+        )
 
     deadline = time.monotonic() + 300
     while not any(float(r["return_mean"]) >= THRESHOLD for r in evaluations(run)[rows_before:]):
@@ -115,8 +118,9 @@ def test_learner_kill_9_actors_and_replay_wait_and_the_restarted_learner_resumes
     first_step, first = written[0]
     assert counters["updates"] < first <= counters["updates"] + SUMMARY_EVERY, written[:3]
     assert first_step >= counters["env_steps"]
-    print(f"killed after checkpoint {step} ({counters['updates']} updates); resumed; reached "
-          f"{float(best['return_mean']):.1f} at {best['env_steps']} env steps; {time.monotonic() - started:.0f} s")  # fmt: skip
+    reached = f"{float(best['return_mean']):.1f} at {best['env_steps']} env steps"
+    print(f"killed after checkpoint {step} ({counters['updates']} updates); resumed; reached {reached}; "
+          f"{time.monotonic() - started:.0f} s")  # fmt: skip
 
 
 def _finite(state: object) -> bool:
@@ -184,12 +188,14 @@ def test_a_stopped_replay_and_a_stopped_actor_are_waited_for_and_rejoin(tmp_path
     run.signal("replay", signal.SIGCONT)
     run.wait_for("inserts after the replay resumed", lambda: grown("inserted_steps", before["inserted_steps"]), 60)
     after_stall = replay.info()
-    run.wait_for("samples after the replay resumed", lambda: grown("sampled_windows", after_stall["sampled_windows"]), 60)
+    run.wait_for(
+        "samples after the replay resumed", lambda: grown("sampled_windows", after_stall["sampled_windows"]), 60
+    )
     assert all(running(p.pid) for p in run.procs.values()), run.logs()
-    learner_waited = run.text("learner")[mark["learner"]:]
+    learner_waited = run.text("learner")[mark["learner"] :]
     assert re.search(r"replay unreachable, waiting for it: .*DEADLINE_EXCEEDED", learner_waited), learner_waited
     for k in range(2):  # each actor's inserts timed out and were kept (sent again, not dropped)
-        waited = run.text(f"actor-{k}")[mark[f"actor-{k}"]:]
+        waited = run.text(f"actor-{k}")[mark[f"actor-{k}"] :]
         assert "waiting: replay Insert" in waited, waited
 
     # An actor stops answering for longer than its lease.
@@ -203,8 +209,10 @@ def test_a_stopped_replay_and_a_stopped_actor_are_waited_for_and_rejoin(tmp_path
                                 rf"\(lease {LEASE_S} s\); 1 live", 60, mark["learner"])  # fmt: skip
     assert float(dropped.group(1)) >= LEASE_S
     run.signal("actor-1", signal.SIGCONT)
-    again = run.wait_for_line("actor-1", rf"the learner dropped {actor_id} \(its lease of {LEASE_S} s ran out\): "
-                              rf"registered again as (actor-{index}-\w+) \(index {index}\)", 60, mark["actor-1"])  # fmt: skip
+    rejoined = rf"the learner dropped {actor_id} \(its lease of {LEASE_S} s ran out\): registered again as " + (
+        rf"(actor-{index}-\w+) \(index {index}\)"
+    )
+    again = run.wait_for_line("actor-1", rejoined, 60, mark["actor-1"])
     run.wait_for_line("learner", rf"registered as {again.group(1)} \(index {index}\); 2 live", 30, mark["learner"])
 
     # With actor-0 stopped cleanly, the replay's inserts are actor-1's own: it inserts again.
@@ -292,8 +300,9 @@ def test_an_actor_never_loads_broadcast_weights_with_nan_even_correctly_signed(t
     and takes the next valid version. Its chunks stay finite: NaN weights would make NaN actions."""
     token = b"run secret"
     (tmp_path / "token").write_bytes(token)
-    run = RoleRun(tmp_path, "nan_weights", flags("sac.seed=0", "base.max_step=-1", "nn.hidden_units=[16,16]",
-                                                 "actor.chunk_length=16", f"net.token_file={tmp_path / 'token'}"))  # fmt: skip
+    common = flags("sac.seed=0", "base.max_step=-1", "nn.hidden_units=[16,16]", "actor.chunk_length=16",
+                   f"net.token_file={tmp_path / 'token'}")  # fmt: skip
+    run = RoleRun(tmp_path, "nan_weights", common)
     replay, learner = Replay(run.replay_port), Learner(run.learner_port, version=1, seed=1, token=token)
     try:
         run.start("actor", "actor")
