@@ -296,6 +296,7 @@ def test_nan_from_the_env_never_reaches_replay_and_overflowing_updates_are_skipp
           f"{skipped:.0f} of {updates:.0f} updates; {time.monotonic() - started:.0f} s")  # fmt: skip
 
 
+@pytest.mark.slow
 def test_an_actor_never_loads_broadcast_weights_with_nan_even_correctly_signed(tmp_path: Path) -> None:
     """An actor process subscribed to a learner (here the test's own learner service and ZeroMQ
     publisher, signing with the run's token) receives a version whose weights hold a NaN, with a
