@@ -15,8 +15,8 @@ replay's rate limiter holding inserts back (the learner is behind) and an unreac
 waited out, counted and logged. A heartbeat thread renews its lease every few seconds (at most a
 third of the lease), whatever the acting thread waits for; a learner that restarted (new id) or
 forgot it (lease expired: this process was stopped or cut off for longer) is registered with again,
-keeping the index. A replay that does not answer
-(down, or stalled) is waited for; chunks stay in the sink until the replay acknowledges them.
+keeping the index. A replay that does not answer (down, or stalled) is waited for; chunks stay in
+the sink until the replay acknowledges them.
 
 Nothing non-finite goes out or comes in: chunks with NaN/inf are dropped by the loop (counted:
 ``actor/nonfinite_steps``) and broadcast weights that fail :func:`~ds.params.decode_params` (NaN/inf
