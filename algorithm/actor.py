@@ -9,10 +9,18 @@ Usage (one process; ``ds/`` runs the same loop with a gRPC table and ZeroMQ para
 
 The loop never needs to know where chunks go or where parameters come from: ``policy`` is anything
 with :meth:`Policy.act`, ``sink`` any callable taking a :class:`~algorithm.types.Chunk`.
+
+A chunk holding NaN or inf (an env that returned one as a reward or observation, or a policy that
+acted with one) never reaches the sink: it is dropped whole, counted (``nonfinite_chunks``,
+``nonfinite_steps``, :attr:`StepStats.nonfinite_steps`) and logged, and the loop goes on. Replay
+would refuse it anyway (every inserted float must be finite); dropping it here keeps one bad step
+from stopping an actor or the single-process trainer.
 """
 
 from __future__ import annotations
 
+import logging
+import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any, Protocol
@@ -21,6 +29,19 @@ import numpy as np
 
 from algorithm.spaces import ActionSpec, EnvSpec
 from algorithm.types import Chunk
+
+log = logging.getLogger("asac.actor")
+_LOG_EVERY_S = 30.0  # dropped chunks: the first is logged, then at most one line (with totals) per period
+
+
+def nonfinite_fields(chunk: Chunk) -> list[str]:
+    """Names of ``chunk``'s float fields that hold NaN or inf (``obs[i]`` per sensor); empty if none."""
+    fields = {f"obs[{i}]": o for i, o in enumerate(chunk.obs)}
+    fields |= {"actions": chunk.actions, "prev_actions": chunk.prev_actions, "rewards": chunk.rewards,
+               "behaviour_logp": chunk.behaviour_logp}  # fmt: skip
+    if chunk.rnn_state is not None:
+        fields["rnn_state"] = chunk.rnn_state
+    return [name for name, a in fields.items() if a.dtype.kind == "f" and not np.isfinite(a).all()]
 
 
 class Policy(Protocol):
@@ -175,8 +196,9 @@ def uniform_random_actions(
 class StepStats:
     env_steps: int
     finished: list[tuple[float, int]] = field(default_factory=list)  # (return, length) of ended episodes
-    chunks: int = 0
+    chunks: int = 0  # handed to the sink
     iteration_ended: bool = False
+    nonfinite_steps: int = 0  # steps of the chunks dropped for NaN/inf values
 
 
 class ActorLoop:
@@ -185,6 +207,7 @@ class ActorLoop:
     ``random_steps``: the first that many env steps (over all envs) use uniform random actions.
     ``reset_on_iteration``: when env 0's episode ends, every other env is cut (truncated, real final
     observation kept) and reset too, so all envs start the next iteration together.
+    Chunks with NaN/inf values are dropped, counted and logged (see the module docstring).
     """
 
     def __init__(
@@ -213,6 +236,9 @@ class ActorLoop:
         self.episode_return = np.zeros(n, dtype=np.float64)
         self.episode_length = np.zeros(n, dtype=np.int64)
         self.total_steps = 0
+        self.nonfinite_chunks = 0
+        self.nonfinite_steps = 0
+        self._last_log = -float("inf")
 
     def step(self) -> StepStats:
         n = self.env.num_envs
@@ -254,9 +280,9 @@ class ActorLoop:
             stats.iteration_ended = True
             if self.reset_on_iteration:
                 chunks.extend(self._reset_others())
-        for chunk in chunks:
-            self.sink(chunk)
-        stats.chunks = len(chunks)
+        dropped = self.nonfinite_steps
+        stats.chunks = sum(self._emit(chunk) for chunk in chunks)
+        stats.nonfinite_steps = self.nonfinite_steps - dropped
         return stats
 
     def flush(self) -> int:
@@ -265,9 +291,22 @@ class ActorLoop:
         for i in range(self.env.num_envs):
             chunk = self.builder.flush(i, [o[i] for o in self.obs], truncate=False)
             if chunk is not None:
-                self.sink(chunk)
-                count += 1
+                count += self._emit(chunk)
         return count
+
+    def _emit(self, chunk: Chunk) -> bool:
+        """Hand ``chunk`` to the sink, unless it holds NaN/inf: then count it, log it, and drop it."""
+        bad = nonfinite_fields(chunk)
+        if not bad:
+            self.sink(chunk)
+            return True
+        self.nonfinite_chunks += 1
+        self.nonfinite_steps += len(chunk)
+        if time.monotonic() - self._last_log >= _LOG_EVERY_S:
+            self._last_log = time.monotonic()
+            log.warning("dropped a chunk of %d steps with non-finite values in %s; %d chunks (%d steps) dropped so "
+                        "far", len(chunk), ", ".join(bad), self.nonfinite_chunks, self.nonfinite_steps)  # fmt: skip
+        return False
 
     def _reset_others(self) -> list[Chunk]:
         chunks = []

@@ -3,7 +3,8 @@
 A checkpoint is a plain dict of tensors, numbers, strings and containers (loaded with
 ``torch.load(weights_only=True)``, so a file from elsewhere cannot run code). It is written to a
 temp file in the same folder, fsynced and renamed, so a crash mid-write leaves the previous
-checkpoint intact and never a half-written ``<step>.pt``.
+checkpoint intact and never a half-written ``<step>.pt``. What such a crash leaves is a temp file
+(``.<step>.pt.*.tmp``): never taken for a checkpoint, and deleted by the next save.
 
 Each checkpoint carries a SHA-256 digest of its contents, checked on load: ``torch.load`` checks no
 CRCs, and of the single-byte flips of a small checkpoint about 70% loaded without an error, most of
@@ -39,6 +40,7 @@ FORMAT_VERSION = 2
 _READABLE_VERSIONS = (1, 2)
 _DIGEST = "digest"
 _NAME = re.compile(r"^(\d+)\.pt$")
+_TEMP = re.compile(r"^\.\d+\.pt\..*\.tmp$")  # algorithm/files.py's temp names for <step>.pt
 
 
 class CheckpointError(RuntimeError):
@@ -54,13 +56,17 @@ def list_checkpoints(model_dir: Path) -> list[int]:
 
 
 def save_checkpoint(model_dir: Path, step: int, state: dict[str, Any], keep: int) -> Path:
-    """Write ``state`` (with its digest) as ``<model_dir>/<step>.pt`` atomically; keep the last ``keep``."""
+    """Write ``state`` (with its digest) as ``<model_dir>/<step>.pt`` atomically, then delete all but
+    the last ``keep`` checkpoints and the temp files of saves that were killed mid-write (one process
+    writes a run's checkpoints)."""
     path = model_dir / f"{step}.pt"
     contents = {"format_version": FORMAT_VERSION, **state}
     contents[_DIGEST] = content_digest(contents)
     atomic_write(path, lambda f: torch.save(contents, f))
     for old in list_checkpoints(model_dir)[:-keep]:
         (model_dir / f"{old}.pt").unlink(missing_ok=True)
+    for leftover in (p for p in model_dir.iterdir() if _TEMP.match(p.name)):
+        leftover.unlink(missing_ok=True)
     return path
 
 

@@ -223,6 +223,18 @@ class NetConfig(Section):
     evolver_port: int = Field(61000, ge=0, le=65535)
     learner_host: str | None = Field(None, description="Learner address actors connect to; null = this host.")
     learner_port: int = Field(61001, ge=0, le=65535, description="Learner gRPC port (GetParams, GetAction).")
+    lease_s: float = Field(
+        15.0,
+        gt=0.0,
+        description="An actor the learner has not heard from (heartbeat) for this long is dropped and its index "
+        "freed; actors renew every min(3 s, lease_s / 3) and register again when dropped.",
+    )
+    rpc_timeout_s: float = Field(
+        10.0,
+        gt=0.0,
+        description="Deadline of one call from a learner or actor to the replay or learner (plus any wait the call "
+        "asks for); a peer that has not answered by then (stopped, stalled) is waited for and retried.",
+    )
     replay_host: str | None = Field(None, description="Replay address learners and actors connect to.")
     replay_port: int = Field(61002, ge=0, le=65535)
     params_port: int = Field(

@@ -280,6 +280,7 @@ class EmbeddedTrainer:
             "time/updates_per_second": updates_per_s,
             "time/wall_seconds": self.wall_seconds,
             "learner/updates": float(self.updates),
+            "actor/nonfinite_steps": float(self.actor.nonfinite_steps),  # dropped, logged by the ActorLoop
         }
         self.writer.write(metrics, self.env_steps)
 

@@ -12,8 +12,15 @@ takes the latest weights with ``GetParams`` and then keeps the newest broadcast 
 steps (``update_policy_mode: true``), or asks the learner for every action (``false``); and runs
 :class:`~algorithm.actor.ActorLoop` with a :class:`ReplaySink`, which never drops a chunk: the
 replay's rate limiter holding inserts back (the learner is behind) and an unreachable replay are
-waited out, counted and logged. Every few seconds it renews its lease; a learner that restarted
-(new id) or forgot it (lease expired) is registered with again, keeping the index.
+waited out, counted and logged. A heartbeat thread renews its lease every few seconds (at most a
+third of the lease), whatever the acting thread waits for; a learner that restarted (new id) or
+forgot it (lease expired: this process was stopped or cut off for longer) is registered with again,
+keeping the index. A replay that does not answer (down, or stalled) is waited for; chunks stay in
+the sink until the replay acknowledges them.
+
+Nothing non-finite goes out or comes in: chunks with NaN/inf are dropped by the loop (counted:
+``actor/nonfinite_steps``) and broadcast weights that fail :func:`~ds.params.decode_params` (NaN/inf
+values, a bad MAC, a wrong shape) are never loaded (counted: ``actor/params_rejected``, logged).
 """
 
 from __future__ import annotations
@@ -42,7 +49,7 @@ from ds import learner_service, replay_service
 from ds.learner_service import LearnerClient, LeaseExpired, Registration, RemotePolicy
 from ds.params import ParamsError, ParamsSubscriber, decode_params, params_spec
 from ds.replay_codec import chunk_payload_bytes
-from ds.replay_feeds import Throttle
+from ds.replay_feeds import Throttle, unavailable
 from ds.replay_service import PendingInsert, ReplayClient, ReplayRpcError
 from ds.rpc import peer_gone, wait_until_serving
 
@@ -122,6 +129,11 @@ class ReplaySink:
         if len(self._pending) < self.in_flight:
             self._send_queued()
 
+    def backlog(self) -> int:
+        """Chunks handed in and not yet stored: inserts on their way plus chunks waiting to be sent.
+        Bounded: at most ``in_flight`` inserts of ``max_chunks_per_insert`` chunks, and as many waiting."""
+        return sum(len(p.chunks) for p in self._pending) + len(self._queued)
+
     def flush(self) -> None:
         """Wait until every chunk handed in is stored (or, once stopping, counted as unsent)."""
         while self._pending or self._queued:
@@ -169,7 +181,7 @@ class ReplaySink:
         except InsertTimeout as e:
             self.insert_waits += 1
             if self._log():
-                log.info("replay holds inserts back (the learner is behind); waiting: %s", e)
+                log.info("replay holds inserts back (the learner is behind) or does not answer; waiting: %s", e)
         except ReplayRpcError as e:
             if e.code != grpc.StatusCode.UNAVAILABLE:
                 raise
@@ -240,12 +252,19 @@ class DistributedActor:
         self.subscriber: ParamsSubscriber | None = None
         self.params_version = -1
         self.params_applied = 0
+        self.params_rejected = 0
+        self.loop: ActorLoop | None = None
         self.env_steps = 0
         self.episodes = 0
         self.done = False
         self.sink = ReplaySink(replay, lambda: self.stop.is_set() or self.done, between=self._between)
-        self._last_beat = time.monotonic()
+        self._last_check = time.monotonic()
+        self._last_rejoin = -float("inf")
+        self._rejoin = threading.Event()  # set by the heartbeat thread: the learner forgot us, or restarted
+        self._beats_done = threading.Event()
+        self._beat_error: grpc.RpcError | None = None
         self._log_learner = Throttle(30.0)
+        self._log_params = Throttle(30.0)
 
     # -- the loop ---------------------------------------------------------------------------
     def run(self) -> ActorSummary:
@@ -260,7 +279,7 @@ class DistributedActor:
         if self.update_mode:
             self._fetch_params()
         env = self.make_env(self.config.base_config.n_agents, seed)
-        loop = ActorLoop(
+        self.loop = loop = ActorLoop(
             env,
             policy,
             self.sink,
@@ -274,6 +293,8 @@ class DistributedActor:
         log.info("actor %s: index %d, noise %.3f, env seed %d, %d envs", reg.actor_id, index, noise, seed, env.num_envs)
         rate, last_metrics, iterations = RateMeter(), time.monotonic(), 0
         max_iter = self.config.base_config.max_iter
+        beats = threading.Thread(target=self._heartbeats, name="heartbeat", daemon=True)
+        beats.start()
         try:
             while not self.stop.is_set() and not self.done:
                 try:
@@ -298,6 +319,8 @@ class DistributedActor:
                 loop.flush()
             self.sink.flush()
         finally:
+            self._beats_done.set()
+            beats.join(timeout=1.0)  # a heartbeat still on its way ends with the channel (daemon thread)
             writer.write(self._metrics(rate.mark(self.env_steps)), self.env_steps)
             writer.close()
             env.close()
@@ -319,6 +342,10 @@ class DistributedActor:
             "actor/insert_duplicates": float(sink.duplicates),
             "actor/params_version": float(self.params_version),
             "actor/params_applied": float(self.params_applied),
+            "actor/params_rejected": float(self.params_rejected),
+            "actor/nonfinite_steps": float(0 if self.loop is None else self.loop.nonfinite_steps),
+            "actor/insert_backlog": float(sink.backlog()),
+            "actor/unsent_steps": float(sink.unsent_steps),
             "time/env_steps_per_second": steps_per_s,
         }
 
@@ -335,6 +362,9 @@ class DistributedActor:
         reg = self.learner.register(self.name, preferred)
         if self.registration is not None and reg.learner_id != self.registration.learner_id:
             log.info("learner restarted: registered again as %s (index %d)", reg.actor_id, reg.index)
+        elif self.registration is not None:
+            log.info("the learner dropped %s (its lease of %.1f s ran out): registered again as %s (index %d)",
+                     self.registration.actor_id, reg.lease_s, reg.actor_id, reg.index)  # fmt: skip
         if self.update_mode and (self.subscriber is None or self.registration is None
                                  or reg.learner_id != self.registration.learner_id):  # fmt: skip
             if self.subscriber is not None:
@@ -357,9 +387,16 @@ class DistributedActor:
             ) from None
 
     def _take_new_params(self) -> None:
-        if self.subscriber is None:
+        subscriber = self.subscriber
+        if subscriber is None:
             return
-        newer = self.subscriber.latest()
+        rejected = subscriber.rejected
+        newer = subscriber.latest()
+        if subscriber.rejected > rejected:  # never loaded: NaN/inf values, a bad MAC, a wrong layout
+            self.params_rejected += subscriber.rejected - rejected
+            if self._log_params():
+                log.warning("rejected %d parameter broadcasts so far, acting with version %d; last: %s",
+                            self.params_rejected, self.params_version, subscriber.last_error)  # fmt: skip
         if newer is not None:
             self._apply(*newer)
 
@@ -370,37 +407,62 @@ class DistributedActor:
         self.params_version = version
         self.params_applied += 1
 
+    def _beat_interval(self) -> float:
+        lease_s = self.registration.lease_s if self.registration is not None else self.heartbeat_s
+        return min(self.heartbeat_s, lease_s / 3)
+
+    def _heartbeats(self) -> None:
+        """The heartbeat thread: renew the lease every :meth:`_beat_interval` whatever the acting
+        thread is doing (stepping a slow env, waiting for a stalled replay: in the acting thread such
+        waits let leases run out), and ask it to register again (:meth:`_between`) when the learner no
+        longer knows this actor or has restarted (another learner id)."""
+        while not self._beats_done.wait(self._beat_interval()):
+            reg = self.registration
+            if reg is None or self._rejoin.is_set():
+                continue
+            try:
+                learner_id, _ = self.learner.heartbeat(reg.actor_id, self.env_steps)
+                known = learner_id == reg.learner_id
+            except LeaseExpired:
+                known = False
+            except grpc.RpcError as e:
+                if self._beats_done.is_set():
+                    return
+                if not peer_gone(e.code()) and e.code() != grpc.StatusCode.DEADLINE_EXCEEDED:
+                    self._beat_error = e  # raised in the acting thread: errors surface
+                    return
+                self._learner_unreachable(e)
+                continue
+            if not known and self.registration is reg:  # (a registration made meanwhile is not stale)
+                self._rejoin.set()
+
     def _between(self) -> None:
-        """Heartbeat and done check, every ``heartbeat_s`` seconds (also while an insert waits)."""
-        if time.monotonic() - self._last_beat < self.heartbeat_s:
+        """In the acting thread, between steps (and while an insert waits): register again when the
+        heartbeat thread asks (at most once per heartbeat interval while the learner does not answer),
+        and every ``heartbeat_s`` seconds check whether the run's budget is spent."""
+        if self._beat_error is not None:
+            raise self._beat_error
+        now = time.monotonic()
+        if self._rejoin.is_set() and now - self._last_rejoin >= self._beat_interval():
+            self._last_rejoin = now
+            try:
+                self._register()
+                if self.update_mode:
+                    self._fetch_params()
+                self._rejoin.clear()
+            except grpc.RpcError as e:
+                self._learner_unreachable(e)
+        if now - self._last_check < self.heartbeat_s:
             return
-        self._last_beat = time.monotonic()
+        self._last_check = now
         max_step = self.config.base_config.max_step
         try:
             if max_step >= 0 and self.replay.info()["inserted_steps"] >= max_step:
                 log.info("the replay has %d+ env steps (base_config.max_step): done", max_step)
                 self.done = True  # a waiting insert gives up: the run's budget is spent
-                return
         except ReplayRpcError as e:
-            if e.code != grpc.StatusCode.UNAVAILABLE:
+            if not unavailable(e):  # gone or not answering (stalled): the sink waits for it too
                 raise
-        assert self.registration is not None
-        try:
-            learner_id, _ = self.learner.heartbeat(self.registration.actor_id, self.env_steps)
-            known = learner_id == self.registration.learner_id
-        except LeaseExpired:
-            known = False
-        except grpc.RpcError as e:
-            self._learner_unreachable(e)
-            return
-        if known:
-            return
-        try:
-            self._register()
-            if self.update_mode:
-                self._fetch_params()
-        except grpc.RpcError as e:
-            self._learner_unreachable(e)
 
     def _learner_unreachable(self, error: grpc.RpcError) -> None:
         if not peer_gone(error.code()) and error.code() != grpc.StatusCode.DEADLINE_EXCEEDED:

@@ -137,6 +137,7 @@ class Learner:
         self.timers = Timers()
         self.eval_seed = int(config.sac_config.seed or 0) + EVAL_SEED_OFFSET
         self._log_replay = Throttle(30.0)
+        self._log_skipped = Throttle(30.0)
         if list_checkpoints(self.paths.model) or ckpt_step is not None:  # --ckpt on a new run: say so
             self.restore(ckpt_step)
         if member is not None and self.weights_round:
@@ -187,6 +188,10 @@ class Learner:
                 with_metrics = self.updates % summary_every == 0
                 with self.timers.phase("update"):
                     result = self.sac.update(batch, with_metrics=with_metrics)
+                if result.skipped and self._log_skipped():
+                    skipped, limit = self.sac.nonfinite_skipped, self.config.sac_config.max_nonfinite_steps
+                    log.warning("update skipped: non-finite loss or gradient (%d skipped so far; %d in a row stop "
+                                "the learner)", skipped, limit)  # fmt: skip
                 if priorities_matter and not result.skipped:
                     with self.timers.phase("priorities"):
                         self.priorities.put(batch.keys, result.td_abs)
@@ -325,6 +330,8 @@ class Learner:
         }
         if self.registry is not None:
             metrics["learner/actors"] = float(len(self.registry.alive()))
+            metrics["learner/actors_registered"] = float(self.registry.registered)
+            metrics["learner/actors_expired"] = float(self.registry.expired)
         self.writer.write(metrics, self.env_steps.total)
 
     # -- checkpoints ------------------------------------------------------------------------
@@ -365,4 +372,14 @@ class Learner:
             self.evaluations = int(counters["evaluations"])
             self.weights_round = int(counters.get("weights_round", 0))  # checkpoints from before the evolver lack it
             restore_rng(state["rng"])
-        log.info("resumed from %s at %d env steps, %d updates", path, self.env_steps.total, self.updates)
+        # What was restored, read back from the live objects (the fault tests compare it with the file).
+        log.info("resumed from %s at %d env steps, %d updates (log_alpha %r, optimizer steps %s)", path,
+                 self.env_steps.total, self.updates, self.sac.log_alpha.item(), optimizer_steps(self.sac))  # fmt: skip
+
+
+def optimizer_steps(sac: SAC) -> dict[str, int]:
+    """Adam's step count per optimizer of ``sac`` (0 before its first step)."""
+    out = {}
+    for name, state in sac.state_dict()["optimizers"].items():
+        out[name] = max((int(s["step"]) for s in state["state"].values() if "step" in s), default=0)
+    return out

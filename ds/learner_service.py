@@ -30,6 +30,7 @@ and the evolver's (ds/evolver.py), which needs no EnvSpec::
 
 from __future__ import annotations
 
+import logging
 import threading
 import time
 import uuid
@@ -52,6 +53,7 @@ from ds.wire import TensorSpec, WireError, from_tensor, to_tensor
 from protos import learner_pb2, learner_pb2_grpc
 
 SERVICE_NAME = "asac.LearnerService"
+log = logging.getLogger("asac.learner")
 # Who calls what (under mutual TLS, no other role may): actors, except GetWeights, which feeds the
 # evolver's CEM round and is open to the evolver alone.
 CALLERS: security.Callers = {
@@ -103,7 +105,8 @@ class ActorRegistry:
     An actor gets the lowest index no live actor holds (its ``preferred_index`` if that one is
     free), so a restarted actor, or every actor after a learner restart, gets its old index back
     and with it the same seeds and exploration noise. A lease not renewed within ``lease_s``
-    seconds expires and frees the index. Thread-safe."""
+    seconds expires and frees the index. Registrations and expiries are logged and counted
+    (``registered``, ``expired``). Thread-safe."""
 
     def __init__(self, lease_s: float = 15.0, clock: Callable[[], float] = time.monotonic) -> None:
         self.lease_s = float(lease_s)
@@ -124,6 +127,7 @@ class ActorRegistry:
             lease = ActorLease(f"actor-{index}-{uuid.uuid4().hex[:8]}", index, name, self._clock() + self.lease_s)
             self._actors[lease.actor_id] = lease
             self.registered += 1
+            log.info("%s registered as %s (index %d); %d live", name, lease.actor_id, index, len(self._actors))
             return lease
 
     def renew(self, actor_id: str, env_steps: int) -> bool:
@@ -145,8 +149,11 @@ class ActorRegistry:
     def _expire(self) -> None:
         now = self._clock()
         for actor_id in [a.actor_id for a in self._actors.values() if a.expires < now]:
-            del self._actors[actor_id]
+            lease = self._actors.pop(actor_id)
             self.expired += 1
+            log.warning("%s (%s, index %d) dropped: no heartbeat for %.1f s (lease %.1f s); %d live", actor_id,
+                        lease.name, lease.index, now - lease.expires + self.lease_s, self.lease_s,
+                        len(self._actors))  # fmt: skip
 
 
 class ParamsStore:

@@ -11,7 +11,8 @@ Usage (ds/learner.py)::
         priorities.put(batch.keys, td_abs)            # blocks (counted) while the queue is full
     prefetcher.stop(); priorities.close(timeout=5)   # close sends what is queued first
 
-A replay that is short of data or unreachable (UNAVAILABLE) is waited out and logged now and then;
+A replay that is short of data, unreachable (UNAVAILABLE) or not answering (a stalled process:
+DEADLINE_EXCEEDED) is waited out and logged now and then;
 any other replay error stops the thread and is raised in the learner's thread by the next
 ``get``/``put`` (errors surface, they are not swallowed).
 """
@@ -49,8 +50,15 @@ class Throttle:
         return True
 
 
+_GONE = (grpc.StatusCode.UNAVAILABLE, grpc.StatusCode.DEADLINE_EXCEEDED)
+
+
 def unavailable(error: Exception) -> bool:
-    return isinstance(error, ReplayRpcError) and error.code == grpc.StatusCode.UNAVAILABLE
+    """Whether a replay call failed because the replay is gone (UNAVAILABLE) or did not answer
+    within its deadline (DEADLINE_EXCEEDED: a stopped or stalled process keeps its connections open,
+    so nothing but the deadline tells). Both are waited out; every call they guard here (Info,
+    Sample, UpdatePriorities, UpdateRnnStates) can be repeated without harm."""
+    return isinstance(error, ReplayRpcError) and error.code in _GONE
 
 
 class _Worker:

@@ -166,6 +166,7 @@ class RoleContext:
             rnn_state_size,
             max_message_bytes=limit,
             credentials=self.credentials,
+            rpc_timeout_s=self.config.net_config.rpc_timeout_s,
         )
 
     def evolver_client(self) -> EvolverClient | None:
@@ -428,7 +429,7 @@ def _train(
         replay = connect(replay_address)
         if not wait_until_serving(replay.channel, replay_service.SERVICE_NAME, "replay", replay.address, role.stop):
             return 130
-        store, registry = ParamsStore(), ActorRegistry()
+        store, registry = ParamsStore(), ActorRegistry(lease_s=net.lease_s)
         acting = None if cfg.actor_config.update_policy_mode else ActingPolicy(role.sac(spec))
         weights = None if member is None else member.snapshot
         servicer = LearnerServicer(spec, registry, store, publisher_port(publisher), acting, sac.rnn_state_size,
@@ -535,7 +536,8 @@ def _act(
     sac = role.sac(spec)
     replay = role.replay_client(spec, sac.rnn_state_size, replay_address)
     learner = LearnerClient(learner_address, spec, sac.rnn_state_size, max_message_bytes=learner_message_limit(sac),
-                            credentials=role.credentials)  # fmt: skip
+                            credentials=role.credentials,
+                            rpc_timeout_s=role.config.net_config.rpc_timeout_s)  # fmt: skip
     try:
         actor = DistributedActor(role.config, role.run_dir, role.make_env, sac, replay, learner, learner_host,
                                  noise=noise, stop=role.stop, token=role.token, name=name)  # fmt: skip

@@ -113,3 +113,24 @@ def test_uniform_random_actions_log_density() -> None:
     np.testing.assert_array_equal(actions[:, :3].sum(axis=1), 1.0)
     assert np.all(np.abs(actions[:, 3:]) <= 1.0)
     np.testing.assert_allclose(logp, -np.log(3) - 2 * np.log(2), rtol=1e-6)
+
+
+def test_chunks_with_nan_or_inf_are_dropped_counted_and_logged(caplog: pytest.LogCaptureFixture) -> None:
+    """tests/fault_envs.py's Pendulum: a NaN reward at step 60 of episode 1 and a NaN final
+    observation in episode 2. Exactly the two chunks holding them are dropped, every other step
+    reaches the sink, and the first drop is logged naming the field."""
+    from tests import fault_envs
+
+    env = make_vector_env(fault_envs.BUILD_PATH, 1, seed=0)
+    chunks: list[Chunk] = []
+    actor = ActorLoop(env, RecordingPolicy(env.spec.action.size), chunks.append, chunk_length=50, seed=0)
+    dropped = []
+    with caplog.at_level("WARNING", logger="asac.actor"):
+        for _ in range(600):
+            dropped.append(actor.step().nonfinite_steps)
+    assert actor.nonfinite_chunks == 2 and actor.nonfinite_steps == sum(dropped) == 100
+    assert [i for i, n in enumerate(dropped) if n] == [299, 599]  # each when its chunk was cut
+    assert sum(len(c) for c in chunks) == 500
+    for c in chunks:
+        assert all(np.isfinite(a).all() for a in (*c.obs, c.actions, c.rewards, c.behaviour_logp))
+    assert "dropped a chunk of 50 steps with non-finite values in rewards; 1 chunks (50 steps)" in caplog.text

@@ -4,6 +4,7 @@ batches are prefetched without loss, full queues block and are counted, priority
 
 from __future__ import annotations
 
+import logging
 import re
 import shutil
 import socket
@@ -315,3 +316,51 @@ def test_a_damaged_latest_checkpoint_stops_the_learner_naming_it(tmp_path: Path,
     else:
         assert "does not fit this run's models" in message and "size mismatch" in message
     assert tree_digest(tmp_path) == before
+
+
+class PoisonedReplay:
+    """A loopback replay client whose sampled batches number ``poisoned`` (1-based) get a NaN
+    reward on their way into the learner: a batch corrupted inside the learner's process, where no
+    wire check sees it."""
+
+    def __init__(self, client: ReplayClient, poisoned: set[int]) -> None:
+        self.client, self.poisoned, self.sampled = client, poisoned, 0
+
+    def sample(self, batch_size: int, timeout: float | None = None) -> object:
+        batch = self.client.sample(batch_size, timeout)
+        self.sampled += 1
+        if self.sampled in self.poisoned:
+            batch.rewards[0, 0] = np.nan
+        return batch
+
+    def __getattr__(self, name: str) -> object:
+        return getattr(self.client, name)
+
+
+def test_a_nan_in_a_batch_never_reaches_the_weights_and_is_counted_and_logged(
+    over_grpc: ServeOverGrpc, tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    replay = PoisonedReplay(over_grpc(pendulum_table(300)), poisoned={3, 7})
+    stop = threading.Event()
+    learner = make_learner(tmp_path, replay, stop)  # type: ignore[arg-type]
+    thread = threading.Thread(target=learner.run)
+    with caplog.at_level(logging.WARNING, logger="asac.learner"):
+        thread.start()
+        try:
+            until(lambda: learner.updates >= 20, timeout_s=60)
+        finally:
+            stop.set()
+            thread.join(30)
+            learner.publisher.close()
+    assert learner.sac.nonfinite_skipped == 2 and learner.sac.updates == learner.updates - 2
+    state = learner.sac.state_dict()
+    for part in (state["models"], state["target_q"]):
+        assert all(bool(torch.isfinite(v).all()) for v in part.values() if v.is_floating_point())
+    assert all(
+        bool(torch.isfinite(s).all())
+        for opt in state["optimizers"].values()
+        for param in opt["state"].values()
+        for s in param.values()
+    )
+    assert bool(torch.isfinite(state["log_alpha"]))
+    assert "update skipped: non-finite loss or gradient (1 skipped so far" in caplog.text  # then once per 30 s
