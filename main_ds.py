@@ -154,6 +154,16 @@ def credentials(config: Config, role: str) -> security.Credentials:
     return loaded
 
 
+def check_models(context: roles.RoleContext) -> None:
+    """Build the run's models once on the CPU: a config that fits the schema but not the task (an
+    unknown ``critic_only`` sensor, say) is a :class:`ConfigError` before anything starts, as in
+    main.py, not a traceback in a role that already runs."""
+    try:
+        context.sac(context.spec())
+    except (ValueError, TypeError) as e:
+        raise ConfigError(f"cannot build the models of this config: {type(e).__name__}: {e}") from None
+
+
 def setup_logging(run_dir: Path, role: str, in_file: bool) -> None:
     handlers: list[logging.Handler] = [logging.StreamHandler(sys.stderr)]
     if in_file:
@@ -207,6 +217,8 @@ def run(args: argparse.Namespace) -> int:
             credentials=credentials(config, role),
             overrides=tuple(cli_overrides(args)),
         )
+        if role != "evolver":  # the one role without models
+            check_models(context)
         if role in ("local", "evolver") or (role == "learner" and not context.uses_evolver):
             run_dir.mkdir(parents=True, exist_ok=True)  # a population's learners write learner_<id>/config.yaml
             RunDir(run_dir).config.write_text(config_to_yaml(config))
