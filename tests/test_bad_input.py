@@ -210,6 +210,7 @@ MAIN_DS_CASES = [
     *[(["replay", *args], named) for args, named in SHARED_CASES],
     (["actor", "--noise", "1e9"], "argument --noise: '1e9' is not a noise level (a number in [0, 1000000])"),
     (["local", "--learners", "0"], "argument --learners: '0' is not a positive integer"),
+    (["actor", "--override", "actor.noise_max=1e9"], "noise_max"),
     (["learner", "--override", "nn.critic_only=[nope]"], "critic_only names unknown sensors ['nope']"),
     (["local", "--override", "nn.critic_only=[nope]"], "critic_only names unknown sensors ['nope']"),
 ]
