@@ -16,6 +16,7 @@ import pytest
 
 from ds.security import ROLES
 from tests.pki import Pki
+from tests.role_runs import running
 
 ROOT = Path(__file__).resolve().parents[1]
 ENV = {**os.environ, "OMP_WAIT_POLICY": "PASSIVE", "OMP_NUM_THREADS": "1", "MUJOCO_GL": "egl"}
@@ -47,14 +48,6 @@ def start_ds(*args: str, cwd: Path, log: Path) -> subprocess.Popen[bytes]:
 
 def child_pids(output: str) -> dict[str, int]:
     return {name: int(pid) for name, pid in re.findall(r"started (\S+) \(pid (\d+)\)", output)}
-
-
-def running(pid: int) -> bool:
-    try:
-        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
-    except FileNotFoundError:
-        return False
-    return state != "Z"
 
 
 def no_process_mentions(name: str) -> bool:

@@ -23,6 +23,7 @@ from ds.evolver_service import EvolverClient
 from ds.evolver_state import EvolverInfo
 from ds.local import free_port
 from ds.rpc import RetryPolicy
+from tests.role_runs import running
 
 ROOT = Path(__file__).resolve().parents[1]
 ENV = {**os.environ, "OMP_WAIT_POLICY": "PASSIVE", "OMP_NUM_THREADS": "1", "MUJOCO_GL": "egl"}
@@ -138,14 +139,6 @@ def roles(tmp_path: Path) -> Iterator[RolesFactory]:
     yield make
     for group in made:
         group.stop_all()
-
-
-def running(pid: int) -> bool:
-    try:
-        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
-    except FileNotFoundError:
-        return False
-    return state != "Z"
 
 
 def learner_of(state: dict[str, Any], pid: int) -> dict[str, Any]:
