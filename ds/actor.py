@@ -51,7 +51,7 @@ from ds.params import ParamsError, ParamsSubscriber, decode_params, params_spec
 from ds.replay_codec import chunk_payload_bytes
 from ds.replay_feeds import Throttle, unavailable
 from ds.replay_service import PendingInsert, ReplayClient, ReplayRpcError
-from ds.rpc import peer_gone, wait_until_serving
+from ds.rpc import peer_unresponsive, wait_until_serving
 
 log = logging.getLogger("asac.actor")
 ACTOR_SEED_STRIDE = 1000  # actor i's env j gets seed + 1000 * (i + 1) + j: never a training or eval seed
@@ -428,7 +428,7 @@ class DistributedActor:
             except grpc.RpcError as e:
                 if self._beats_done.is_set():
                     return
-                if not peer_gone(e.code()) and e.code() != grpc.StatusCode.DEADLINE_EXCEEDED:
+                if not peer_unresponsive(e.code()):
                     self._beat_error = e  # raised in the acting thread: errors surface
                     return
                 self._learner_unreachable(e)
@@ -465,7 +465,7 @@ class DistributedActor:
                 raise
 
     def _learner_unreachable(self, error: grpc.RpcError) -> None:
-        if not peer_gone(error.code()) and error.code() != grpc.StatusCode.DEADLINE_EXCEEDED:
+        if not peer_unresponsive(error.code()):
             raise error
         if self._log_learner():
             code, version = error.code().name, self.params_version

@@ -52,7 +52,7 @@ from ds.evolver_state import (
     UnknownLearner,
 )
 from ds.replay_feeds import Throttle
-from ds.rpc import peer_gone
+from ds.rpc import peer_unresponsive
 
 log = logging.getLogger("asac.population")
 SLOT_FILE = "learner.json"
@@ -70,7 +70,7 @@ class SlotTaken(RuntimeError):
 
 def unreachable(error: grpc.RpcError) -> bool:
     """The evolver is down or restarting (wait and retry), rather than refusing the call."""
-    return peer_gone(error.code()) or error.code() == grpc.StatusCode.DEADLINE_EXCEEDED
+    return peer_unresponsive(error.code())
 
 
 # ---------------------------------------------------------------------- the learner's folder and config

@@ -25,12 +25,12 @@ import queue
 import threading
 import time
 
-import grpc
 import numpy as np
 
 from algorithm.replay import ReplayTable, SampleTimeout
 from algorithm.types import Batch
 from ds.replay_service import ReplayRpcError
+from ds.rpc import peer_unresponsive
 
 log = logging.getLogger("asac.learner")
 
@@ -50,15 +50,11 @@ class Throttle:
         return True
 
 
-_GONE = (grpc.StatusCode.UNAVAILABLE, grpc.StatusCode.DEADLINE_EXCEEDED)
-
-
 def unavailable(error: Exception) -> bool:
-    """Whether a replay call failed because the replay is gone (UNAVAILABLE) or did not answer
-    within its deadline (DEADLINE_EXCEEDED: a stopped or stalled process keeps its connections open,
-    so nothing but the deadline tells). Both are waited out; every call they guard here (Info,
+    """Whether a replay call failed because the replay is gone or did not answer within its deadline
+    (:func:`ds.rpc.peer_unresponsive`). Both are waited out; every call they guard here (Info,
     Sample, UpdatePriorities, UpdateRnnStates) can be repeated without harm."""
-    return isinstance(error, ReplayRpcError) and error.code in _GONE
+    return isinstance(error, ReplayRpcError) and peer_unresponsive(error.code)
 
 
 class _Worker:

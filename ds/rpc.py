@@ -160,6 +160,13 @@ def peer_gone(code: grpc.StatusCode) -> bool:
     return code in PEER_GONE
 
 
+def peer_unresponsive(code: grpc.StatusCode) -> bool:
+    """Whether a call failed because the server went away (:func:`peer_gone`) or did not answer
+    within its deadline (DEADLINE_EXCEEDED: a stopped or stalled process keeps its connections open,
+    so only the deadline tells). A caller whose call can be repeated waits and tries again."""
+    return peer_gone(code) or code == grpc.StatusCode.DEADLINE_EXCEEDED
+
+
 def call_with_retry(rpc: Callable[..., _T], request: Any, deadline_s: float, retry: RetryPolicy) -> _T:
     """One unary call with a deadline of ``deadline_s`` seconds, retried per ``retry`` while it
     fails because the server went away (:data:`PEER_GONE`). Raises the last ``grpc.RpcError`` (any

@@ -6,7 +6,7 @@ from __future__ import annotations
 import grpc
 import pytest
 
-from ds.rpc import RetryPolicy, call_with_retry
+from ds.rpc import RetryPolicy, call_with_retry, peer_gone, peer_unresponsive
 
 NO_WAIT = RetryPolicy(attempts=3, initial_backoff_s=0.0, max_backoff_s=0.0)
 
@@ -56,3 +56,12 @@ def test_a_refusal_is_not_retried(code: grpc.StatusCode) -> None:
     with pytest.raises(grpc.RpcError):
         call_with_retry(rpc, None, 1.0, NO_WAIT)
     assert rpc.calls == 1
+
+
+@pytest.mark.parametrize("code", list(grpc.StatusCode))
+def test_an_unresponsive_peer_is_one_gone_or_past_its_deadline(code: grpc.StatusCode) -> None:
+    """What the roles wait out (a stopped process keeps its connections: only the deadline tells)
+    versus what surfaces: a refusal is never mistaken for a peer to wait for."""
+    waited = {grpc.StatusCode.UNAVAILABLE, grpc.StatusCode.CANCELLED, grpc.StatusCode.DEADLINE_EXCEEDED}
+    assert peer_unresponsive(code) == (code in waited)
+    assert peer_gone(code) == (code in waited - {grpc.StatusCode.DEADLINE_EXCEEDED})
