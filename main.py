@@ -14,6 +14,10 @@ import os
 # Before torch is imported: with OpenMP's active waiting, multi-threaded torch slowed ~200x when
 # another process held a core (bench/learner.py); passive waiting costs nothing measurable.
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+# Before numpy is imported: NumPy's OpenBLAS runs the actors' policy (sac_config.numpy_acting) on
+# a few rows at a time; its worker threads only contend with the env and the learner there (one
+# actor with 64 envs acted 3.5x slower with a second core busy: 516 vs 149 us).
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import argparse
 import logging

@@ -9,8 +9,9 @@ from __future__ import annotations
 
 import os
 
-# Before torch is imported (see main.py).
+# Before torch and numpy are imported (see main.py).
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import argparse
 import logging

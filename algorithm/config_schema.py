@@ -156,6 +156,12 @@ class SacConfig(Section):
     use_normalization: bool = False
     max_nonfinite_steps: int = Field(100, ge=1, description="Consecutive skipped (non-finite) updates before stopping.")
     compile: bool = Field(False, description="torch.compile the losses; 5-10% slower on CPU (bench/learner.py).")
+    numpy_acting: bool = Field(
+        True,
+        description="Act with a NumPy copy of the policy's forward pass where it computes exactly what torch "
+        "would (vector sensors, MLP tanh-Gaussian policy, CPU; algorithm/nn/numpy_acting.py): several times "
+        "faster per env step for actors. false always acts with torch.",
+    )
     refresh_rnn_states: bool = Field(
         False,
         description="use_rnn: after each update, write the recurrent states the current network computes "

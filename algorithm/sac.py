@@ -50,6 +50,7 @@ from algorithm.nn.models import (
     squashed_gaussian_log_prob,
 )
 from algorithm.nn.noisy import NoisyLayer, reset_noise, set_noise
+from algorithm.nn.numpy_acting import numpy_actor_for
 from algorithm.nn.prediction import gated_gradients, observation_targets, prediction_losses
 from algorithm.nn.recurrent import RecurrentRepresentation
 from algorithm.returns import bootstrap_index, gather_positions, n_step_target, valid_steps, vtrace_target
@@ -178,6 +179,11 @@ class SAC:
         self._noisy = any(isinstance(m, NoisyLayer) for m in self.models.modules())
         rep = self.models.representation
         self.rnn_state_size = rep.rnn_state_size if isinstance(rep, RecurrentRepresentation) else 0
+        # act() in NumPy where that computes what torch would (nn/numpy_acting.py), else None.
+        self._numpy_actor = None
+        if sac.numpy_acting:
+            discrete = bool(act.discrete_branches)
+            self._numpy_actor = numpy_actor_for(self.models, self.device.type, bool(self.rnn_state_size), discrete)
         alpha_params = [p for p, used in ((self.log_alpha, act.continuous_dim > 0),
                                           (self.log_alpha_discrete, n_discrete_alphas > 0)) if used]  # fmt: skip
         self.critic_optimizer = self._adam(self._critic_params)
@@ -213,7 +219,6 @@ class SAC:
 
     # -- acting ---------------------------------------------------------------------------------
 
-    @torch.inference_mode()
     def act(self, obs: list[np.ndarray], deterministic: bool = False) -> tuple[np.ndarray, np.ndarray]:
         """Actions ``[N, A]`` float32 (``[one-hot per branch | continuous in [-1, 1]]``) and their
         behaviour log-probability ``[N]`` under the current policy, exploration included, for ``N``
@@ -225,6 +230,16 @@ class SAC:
         (``discrete_dqn_epsilon``), and reports the true probability of the mixture."""
         if self.rnn_state_size:
             raise TypeError("a recurrent policy (use_rnn) acts with act_recurrent(obs, prev_actions, rnn_state)")
+        if self._numpy_actor is None:
+            return self._act_torch(obs, deterministic)
+        self._check_obs(obs)
+        noise = None
+        if not deterministic:  # from the same generator, in the same order, as the torch path
+            noise = torch.randn(obs[0].shape[0], self.spec.action.continuous_dim, generator=self._act_rng).numpy()
+        return self._numpy_actor.act(obs, noise, 0.0 if deterministic else self.exploration_noise)
+
+    @torch.inference_mode()
+    def _act_torch(self, obs: list[np.ndarray], deterministic: bool) -> tuple[np.ndarray, np.ndarray]:
         return self._act_with_noise(self._obs_tensors(obs), deterministic, None)
 
     @torch.inference_mode()
@@ -254,15 +269,17 @@ class SAC:
         """The recurrent state an episode starts from (zeros ``[n, rnn_state_size]``)."""
         return np.zeros((n, self.rnn_state_size), dtype=np.float32)
 
-    def _obs_tensors(self, obs: list[np.ndarray]) -> list[Tensor]:
+    def _check_obs(self, obs: list[np.ndarray]) -> None:
         sensors = self.spec.sensors
         if len(obs) != len(sensors):
             raise ValueError(f"act: expected {len(sensors)} sensors {[s.name for s in sensors]}, got {len(obs)}")
-        tensors = []
         for o, s in zip(obs, sensors, strict=True):
             if o.ndim != len(s.shape) + 1 or tuple(o.shape[1:]) != s.shape:
                 raise ValueError(f"act: sensor {s.name!r} must be [N, {', '.join(map(str, s.shape))}], got {o.shape}")
-            tensors.append(torch.as_tensor(o, dtype=torch.float32, device=self.device))
+
+    def _obs_tensors(self, obs: list[np.ndarray]) -> list[Tensor]:
+        self._check_obs(obs)
+        tensors = [torch.as_tensor(o, dtype=torch.float32, device=self.device) for o in obs]
         return self._normalize(tensors)
 
     def _act_with_noise(

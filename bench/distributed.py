@@ -22,9 +22,14 @@ to back so machine noise hits all alike, and the median over rounds is printed.
 
 from __future__ import annotations
 
+import os
+
+# As main.py and main_ds.py set them before torch and numpy load.
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
 import argparse
 import csv
-import os
 import signal
 import statistics
 import subprocess

@@ -21,6 +21,12 @@ env, and torch limited to the same number of threads.
 
 from __future__ import annotations
 
+import os
+
+# As main.py sets them before torch and numpy load (both sides run under them).
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
 import argparse
 import csv
 import statistics
