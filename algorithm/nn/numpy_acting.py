@@ -77,9 +77,12 @@ def _trunk_layers(trunk: nn.Module) -> list[tuple[nn.Linear, Callable[[np.ndarra
     if type(trunk) is not nn.Sequential or len(trunk) % 2:
         return None
     layers = []
-    for linear, act in zip(trunk[::2], trunk[1::2], strict=True):
+    modules = list(trunk)
+    for linear, act in zip(modules[::2], modules[1::2], strict=True):
         fn = _ACTIVATIONS.get(type(act))
-        if fn is None or not _plain_linear(linear) or (isinstance(act, nn.ELU) and act.alpha != 1.0):
+        if fn is None or not isinstance(linear, nn.Linear) or not _plain_linear(linear):
+            return None
+        if isinstance(act, nn.ELU) and act.alpha != 1.0:
             return None
         layers.append((linear, fn))
     return layers
