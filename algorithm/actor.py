@@ -80,7 +80,8 @@ class ChunkBuilder:
     """Accumulates per-env steps and cuts :class:`Chunk` s at episode end or ``chunk_length`` steps.
 
     Buffers are ``[N, chunk_length + 1, ...]`` and every env writes its own row with one fancy-index
-    assignment per field, so a step costs the same for 1 or 64 envs; only emitting a chunk copies.
+    assignment per field (a plain slice while all envs are at the same step), so a step costs about
+    the same for 1 or 64 envs; only emitting a chunk copies.
     """
 
     def __init__(self, num_envs: int, spec: EnvSpec, chunk_length: int, rnn_state_size: int = 0) -> None:
@@ -114,7 +115,10 @@ class ChunkBuilder:
 
         ``obs`` is what the policy saw, ``final_obs`` the observation after the step (the true final
         one where an episode ended), ``rnn_state`` the recurrent state fed in with ``obs``."""
-        e, t = self._envs, self._t
+        e: np.ndarray | slice = self._envs
+        t: np.ndarray | int = self._t
+        if (self._t == self._t[0]).all():  # every env at the same step (the usual case): a strided copy
+            e, t = slice(None), int(self._t[0])
         if self._rnn is not None:
             self._rnn[e, t] = rnn_state
         for buf, o in zip(self._obs, obs, strict=True):

@@ -15,9 +15,10 @@ whose head is a plain ``Linear``, on the CPU. :func:`numpy_actor_for` returns No
 :class:`~algorithm.sac.SAC` then acts with torch as before.
 
 The arrays are views of the torch parameters (``Tensor.numpy()`` shares memory), so optimizer steps
-and ``load_state_dict`` (both in place) are seen without copying. The caller draws the noise (from
-the same torch generator the torch path uses), so both paths sample the same actions up to float32
-rounding.
+and ``load_state_dict`` (both in place) are seen without copying. The caller draws the noise
+(``SAC`` from its own seeded and checkpointed ``numpy.random.Generator``); given the same noise,
+both paths compute the same actions and log-probabilities up to float32 rounding
+(tests/algorithm/test_numpy_acting.py).
 """
 
 from __future__ import annotations

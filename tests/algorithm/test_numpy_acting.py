@@ -37,12 +37,32 @@ def observations(n: int, seed: int = 0, spec: EnvSpec = TWO_SENSORS) -> list[np.
     return [3.0 * rng.standard_normal((n, *s.shape)).astype(np.float32) for s in spec.sensors]
 
 
-def assert_same_acting(a: SAC, b: SAC, obs: list[np.ndarray]) -> None:
-    for deterministic in (True, False, False):
-        (x, logp_x), (y, logp_y) = a.act(obs, deterministic), b.act(obs, deterministic)
+def torch_sample(sac: SAC, obs: list[np.ndarray], noise: np.ndarray, extra: float) -> tuple[np.ndarray, np.ndarray]:
+    """What torch acting computes for the given standard-normal ``noise``."""
+    with torch.no_grad():
+        state = sac.models.representation(sac._obs_tensors(obs))
+        assert sac.models.policy is not None
+        if extra > 0:
+            action, log_prob = sac._widened_sample(state, torch.from_numpy(noise), extra)
+        else:
+            action, log_prob = sac.models.policy.sample(state, torch.from_numpy(noise))
+    return action.numpy(), log_prob.numpy()
+
+
+def assert_same_acting(a: SAC, b: SAC, obs: list[np.ndarray], extra: float = 0.0, seed: int = 0) -> None:
+    """Deterministic acting through ``act`` on both; stochastic acting with the same noise given to
+    the NumPy policy and to torch (each path draws from its own generator)."""
+    (x, logp_x), (y, logp_y) = a.act(obs, deterministic=True), b.act(obs, deterministic=True)
+    compared = [(x, logp_x, y, logp_y)]
+    noise = np.random.default_rng(seed).standard_normal((obs[0].shape[0], a.spec.action.continuous_dim))
+    assert a._numpy_actor is not None
+    noise = noise.astype(np.float32)
+    compared.append((*a._numpy_actor.act(obs, noise, extra), *torch_sample(b, obs, noise, extra)))
+    for x, logp_x, y, logp_y in compared:
         assert x.dtype == y.dtype == logp_x.dtype == logp_y.dtype == np.float32
         assert x.shape == y.shape and logp_x.shape == logp_y.shape
         np.testing.assert_allclose(x, y, atol=2e-6)
+        assert np.isfinite(logp_x).all()
         np.testing.assert_allclose(logp_x, logp_y, rtol=1e-5, atol=2e-5)
 
 
@@ -55,13 +75,8 @@ def test_numpy_acting_matches_torch(activation: str, n: int) -> None:
 
 def test_extra_exploration_noise_and_saturated_actions_match() -> None:
     a, b = pair()
-    for noise in (0.3, 5.0, 1e6):  # 1e6: every action saturates; the log-prob must stay finite and equal
-        a.exploration_noise = b.exploration_noise = noise
-        obs = observations(16, seed=int(noise))
-        (x, logp_x), (y, logp_y) = a.act(obs), b.act(obs)
-        np.testing.assert_allclose(x, y, atol=2e-6)
-        assert np.isfinite(logp_x).all()
-        np.testing.assert_allclose(logp_x, logp_y, rtol=1e-5)
+    for extra in (0.3, 5.0, 1e6):  # 1e6: every action saturates; the log-prob must stay finite and equal
+        assert_same_acting(a, b, observations(16, seed=int(extra)), extra=extra, seed=1)
 
 
 def test_normalized_observations_match_once_statistics_arrive() -> None:
@@ -97,18 +112,24 @@ def test_weights_changed_in_place_are_seen_by_the_numpy_policy() -> None:
     after = a.act(obs, deterministic=True)[0]
     assert not np.allclose(before, after)
     np.testing.assert_allclose(after, trained.act(obs, deterministic=True)[0], atol=2e-6)
-    b._act_rng.set_state(a._act_rng.get_state())  # load_state_dict also restored the acting generator
     assert_same_acting(a, b, obs)
 
 
-def test_both_paths_draw_the_same_noise_from_the_acting_generator() -> None:
-    a, b = pair()
+def test_numpy_acting_noise_is_seeded_and_checkpointed() -> None:
+    """The same seed acts the same; a SAC restored from a state dict continues the same noise."""
+    a, _ = pair()
+    twin, _ = pair()
     obs = observations(6)
-    for _ in range(3):
-        a.act(obs), b.act(obs)
-    assert torch.equal(a._act_rng.get_state(), b._act_rng.get_state())
+    first = [a.act(obs)[0] for _ in range(3)]
+    np.testing.assert_array_equal(np.stack(first), np.stack([twin.act(obs)[0] for _ in range(3)]))
+    assert not np.array_equal(first[0], first[1])  # fresh noise every call
+    saved = a.state_dict()
+    expected = a.act(obs)[0]
+    restored, _ = pair(seed=11)
+    restored.load_state_dict(saved)
+    np.testing.assert_array_equal(restored.act(obs)[0], expected)
     a.act(obs, deterministic=True)  # deterministic acting draws nothing
-    assert torch.equal(a._act_rng.get_state(), b._act_rng.get_state())
+    np.testing.assert_array_equal(a.act(obs)[0], restored.act(obs)[0])
 
 
 def test_bad_observations_are_refused_as_by_the_torch_path() -> None:
