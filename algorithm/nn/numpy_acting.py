@@ -4,8 +4,8 @@ An actor calls the policy once per env step on a handful of observations. At tha
 forward is almost all dispatch: ~120 us for the 256x256 MuJoCo policy on one observation, against
 ~65 us for the HalfCheetah step itself, and the interleaving slows the env step that follows by
 another ~50 us (torch's large code footprint evicts MuJoCo's from the caches; measured with
-``bench/distributed.py actor``). The same forward in NumPy takes ~11 us and leaves the env's
-speed alone.
+``bench/distributed.py actor``). The same forward in NumPy takes ~11 us (~23 us with the sample
+and its log-probability) and leaves the env's speed alone.
 
 :class:`NumpyGaussianActor` covers the common case exactly: vector sensors concatenated
 (:class:`~algorithm.nn.models.VectorRepresentation`), optional observation normalization, and a
@@ -29,11 +29,10 @@ from collections.abc import Callable
 import numpy as np
 from torch import nn
 
-from algorithm.nn.models import SacModels, TanhGaussianPolicy, VectorRepresentation
+from algorithm.nn.models import _HALF_LOG_2PI, _LOG2, SacModels, TanhGaussianPolicy, VectorRepresentation
 from algorithm.nn.normalization import ObservationNormalizer
 
-_LOG2 = math.log(2.0)
-_HALF_LOG_2PI = 0.5 * math.log(2.0 * math.pi)
+_Trunk = list[tuple[nn.Linear, Callable[[np.ndarray], np.ndarray]]]
 
 
 def _silu(x: np.ndarray) -> np.ndarray:
@@ -72,7 +71,7 @@ class _Linear:
         return self._weight @ x + self._bias
 
 
-def _trunk_layers(trunk: nn.Module) -> list[tuple[nn.Linear, Callable[[np.ndarray], np.ndarray]]] | None:
+def _trunk_layers(trunk: nn.Module) -> _Trunk | None:
     """``(linear, activation)`` per trunk layer, or None if the trunk is not exactly ``Linear ->
     activation`` pairs of known activations."""
     if type(trunk) is not nn.Sequential or len(trunk) % 2:
@@ -92,14 +91,13 @@ def _trunk_layers(trunk: nn.Module) -> list[tuple[nn.Linear, Callable[[np.ndarra
 class NumpyGaussianActor:
     """``tanh``-Gaussian actions and their log-probabilities from a policy's weights, in NumPy.
 
-    Build with :func:`numpy_actor_for`; it mirrors :meth:`TanhGaussianPolicy.sample`,
-    ``SAC._widened_sample`` (extra exploration noise) and the observation normalizer."""
+    Build with :func:`numpy_actor_for` (which checks the models and reads ``trunk`` from the policy);
+    it mirrors :meth:`TanhGaussianPolicy.sample`, ``SAC._widened_sample`` (extra exploration noise)
+    and the observation normalizer."""
 
-    def __init__(self, models: SacModels) -> None:
+    def __init__(self, models: SacModels, trunk: _Trunk) -> None:
         policy = models.policy
         assert isinstance(policy, TanhGaussianPolicy)
-        trunk = _trunk_layers(policy.trunk)
-        assert trunk is not None
         self._trunk = [(_Linear(linear), activation) for linear, activation in trunk]
         assert isinstance(policy.head, nn.Linear)
         self._head = _Linear(policy.head)
@@ -157,7 +155,10 @@ def numpy_actor_for(models: SacModels, device_type: str, rnn: bool, discrete: bo
     policy, rep, norm = models.policy, models.representation, models.normalizer
     if device_type != "cpu" or rnn or discrete or models.rnd is not None:
         return None
-    if type(policy) is not TanhGaussianPolicy or not _plain_linear(policy.head) or _trunk_layers(policy.trunk) is None:
+    if type(policy) is not TanhGaussianPolicy or not _plain_linear(policy.head):
+        return None
+    trunk = _trunk_layers(policy.trunk)
+    if trunk is None:
         return None
     if type(rep) is not VectorRepresentation or rep.policy_state_dim != rep.state_dim:
         return None
@@ -166,4 +167,4 @@ def numpy_actor_for(models: SacModels, device_type: str, rnn: bool, discrete: bo
     params = [*policy.parameters(), *(norm.buffers() if norm is not None else ())]
     if any(p.dtype.is_floating_point and p.dtype.itemsize != 4 for p in params):
         return None  # float32 only: what the arrays are computed in
-    return NumpyGaussianActor(models)
+    return NumpyGaussianActor(models, trunk)

@@ -104,6 +104,22 @@ def test_reset_on_iteration_truncates_the_other_envs() -> None:
     assert [float(o) for o in actor.obs[0][:, 1]] == [0.0, 0.0]  # both start the next iteration together
 
 
+def test_envs_out_of_step_still_record_each_row_where_it_was_acted() -> None:
+    """The chunk builder writes one slice while every env is at the same step and scatters per env
+    otherwise; after env 1 is cut a step early both paths must leave every chunk as acted."""
+    chunks, actor = run_actor(3, 2, 8, {}, max_episode_steps=None)
+    actor.builder.flush(1, [o[1] for o in actor.obs], truncate=False)  # env 1's next chunk starts later
+    assert len(set(actor.builder._t.tolist())) == 2
+    for _ in range(40):
+        actor.step()
+    assert len(chunks) > 10
+    for c in chunks:
+        np.testing.assert_array_equal(np.diff(c.obs[0][:, 1]) % 10, 1.0)  # Chain's t, limit 10: consecutive
+        assert (c.obs[0][:-1, 0] == c.obs[0][0, 0]).all()  # one episode per chunk
+        np.testing.assert_allclose(c.behaviour_logp, c.actions.sum(axis=1), rtol=1e-6)
+        np.testing.assert_array_equal(c.prev_actions[1:], c.actions[:-1])
+
+
 def test_uniform_random_actions_log_density() -> None:
     from algorithm.spaces import ActionSpec
 

@@ -120,7 +120,10 @@ def test_numpy_acting_noise_is_seeded_and_checkpointed() -> None:
     a, _ = pair()
     twin, _ = pair()
     obs = observations(6)
+    torch_rng, numpy_rng = a._act_rng.get_state(), a._act_np_rng.bit_generator.state
     first = [a.act(obs)[0] for _ in range(3)]
+    # act() took the NumPy path: its generator moved, torch's did not
+    assert torch.equal(a._act_rng.get_state(), torch_rng) and a._act_np_rng.bit_generator.state != numpy_rng
     np.testing.assert_array_equal(np.stack(first), np.stack([twin.act(obs)[0] for _ in range(3)]))
     assert not np.array_equal(first[0], first[1])  # fresh noise every call
     saved = a.state_dict()
