@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
+from typing import Any
 
 import torch
 from torch import Tensor, nn
@@ -77,13 +78,18 @@ class EnsembleLinear(nn.Module):
         nn.init.uniform_(self.weight, -bound, bound)
         nn.init.uniform_(self.bias, -bound, bound)
 
-    def forward(self, x: Tensor, heads: Tensor | None = None, detach_params: bool = False) -> Tensor:
+    def parameters_for(self, heads: Tensor | None = None, detach_params: bool = False) -> tuple[Tensor, Tensor]:
+        """``(weight, bias)`` of the selected heads (all when None), detached with ``detach_params``."""
         weight: Tensor = self.weight
         bias: Tensor = self.bias
         if detach_params:
             weight, bias = weight.detach(), bias.detach()
         if heads is not None:
             weight, bias = weight[heads], bias[heads]
+        return weight, bias
+
+    def forward(self, x: Tensor, heads: Tensor | None = None, detach_params: bool = False) -> Tensor:
+        weight, bias = self.parameters_for(heads, detach_params)
         if x.dim() == 2:
             x = x.expand(weight.shape[0], *x.shape)  # shared input: a stride-0 view, no copy
         # [E, out, in] weights used transposed: of the batched layouts measured (matmul broadcast,
@@ -92,3 +98,79 @@ class EnsembleLinear(nn.Module):
 
     def extra_repr(self) -> str:
         return f"ensemble_size={self.ensemble_size}, in_features={self.in_features}, out_features={self.out_features}"
+
+
+def relu_mlp_dtype(x: Tensor, params: Sequence[Tensor]) -> torch.dtype:
+    """The dtype :func:`relu_mlp` runs its hidden layers in: the autocast dtype inside an autocast
+    region of ``x``'s device, else the parameters' dtype."""
+    if torch.is_autocast_enabled(x.device.type):
+        return torch.get_autocast_dtype(x.device.type)
+    return params[0].dtype
+
+
+def relu_mlp(x: Tensor, params: Sequence[Tensor]) -> Tensor:
+    """A stack of batched linear layers with ReLU between them, as one autograd node.
+
+    ``params`` is ``(weight_1, bias_1, ..., weight_L, bias_L)`` with weights ``[E, out, in]`` and
+    biases ``[E, 1, out]`` (an :class:`EnsembleLinear`'s, or ``nn.Linear``'s viewed with ``E = 1``);
+    ``x`` is ``[E, N, in]`` and the result ``[E, N, out_L]``. ``layer_L(relu(... relu(layer_1(x))))``,
+    as the layer-by-layer modules compute it and with the same precision: inside an autocast region
+    the hidden layers run in its dtype (bfloat16 on CPU) and the output layer in the parameters'
+    dtype (:func:`in_float32`); values and gradients are the layer-by-layer ones (tests/algorithm/test_nn.py).
+
+    Why one node: outside its matmuls a SAC update at batch 256 on CPU is dispatch-bound. This saves
+    the per-layer autograd, cast and transpose nodes, casts each weight once per call, applies ReLU in
+    place, and computes each weight's gradient as ``g^T h`` in the weight's own layout (autograd's
+    ``bmm(h^T, g)`` for the scalar Q output is a matrix-vector product that ran 12x slower here, 147
+    vs 12 us). Measured on the Q ensemble: SAC updates/s +5% with bf16 hidden layers, +10% in float32
+    (paired rounds, 256x256, batch 256); on the policy it gained nothing, so the policy stays modular.
+    Parameters that do not require grad (detached, or in a no-grad region) get no gradient work.
+    """
+    return _ReluMLP.apply(x, relu_mlp_dtype(x, params), *params)
+
+
+class _ReluMLP(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx: Any, x: Tensor, hidden_dtype: torch.dtype, *params: Tensor) -> Tensor:
+        output_dtype = params[-2].dtype
+        with torch.autocast(x.device.type, enabled=False):
+            h = x.to(hidden_dtype) if len(params) > 2 else x  # without hidden layers x goes to the output layer
+            inputs, hidden_weights = [h], []
+            for i in range(0, len(params) - 2, 2):
+                weight = params[i].to(hidden_dtype)
+                h = torch.baddbmm(params[i + 1].to(hidden_dtype), h, weight.mT).relu_()
+                inputs.append(h)
+                hidden_weights.append(weight)
+            last_input = h.to(output_dtype)
+            out = torch.baddbmm(params[-1], last_input, params[-2].mT)
+        ctx.save_for_backward(*inputs, last_input, *hidden_weights, params[-2])
+        ctx.x_dtype = x.dtype
+        return out
+
+    @staticmethod
+    def backward(ctx: Any, grad: Tensor) -> tuple[Tensor | None, ...]:
+        saved = ctx.saved_tensors
+        layers = (len(saved) - 1) // 2  # inputs (L) + last_input + hidden weights (L - 1) + last weight
+        inputs, last_input = saved[:layers], saved[layers]
+        hidden_weights, last_weight = saved[layers + 1 : 2 * layers], saved[-1]
+        needs = ctx.needs_input_grad  # (x, hidden_dtype, weight_1, bias_1, ...)
+        grads: list[Tensor | None] = [None] * (2 * layers)
+
+        def param_grads(i: int, g: Tensor, h: Tensor, dtype: torch.dtype) -> None:
+            if needs[2 + 2 * i]:
+                grads[2 * i] = torch.bmm(g.mT, h).to(dtype)  # [E, out, in], the weight's own layout
+            if needs[3 + 2 * i]:
+                grads[2 * i + 1] = g.sum(1, keepdim=True).to(dtype)
+
+        params_dtype = last_weight.dtype
+        param_grads(layers - 1, grad, last_input, params_dtype)
+        # dL/dh for the last hidden output; a one-unit layer's is an outer product, done by broadcasting.
+        g = grad * last_weight if last_weight.shape[1] == 1 else torch.bmm(grad, last_weight)
+        g = g.to(inputs[-1].dtype)
+        for i in range(layers - 2, -1, -1):
+            g = torch.ops.aten.threshold_backward(g, inputs[i + 1], 0)  # through relu: 0 where it output 0
+            param_grads(i, g, inputs[i], params_dtype)
+            if i > 0 or needs[0]:
+                g = torch.bmm(g, hidden_weights[i])
+        grad_x = g.to(ctx.x_dtype) if needs[0] else None
+        return (grad_x, None, *grads)

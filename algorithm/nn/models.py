@@ -10,13 +10,14 @@ from __future__ import annotations
 import itertools
 import math
 from collections.abc import Sequence
+from typing import cast
 
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
 from algorithm.nn.exploration import Curiosity, RandomNetworkDistillation
-from algorithm.nn.layers import EnsembleLinear, activation, in_float32, mlp
+from algorithm.nn.layers import EnsembleLinear, activation, in_float32, mlp, relu_mlp
 from algorithm.nn.noisy import NoisyEnsembleLinear, NoisyLinear
 from algorithm.nn.normalization import ObservationNormalizer
 from algorithm.nn.prediction import PredictionModels
@@ -99,11 +100,20 @@ class QEnsemble(nn.Module):
                 layers.append(NoisyEnsembleLinear(ensemble_size, i, o, noisy_sigma0))
         self.layers = nn.ModuleList(layers)
         self.act = activation(activation_name)
+        # Plain layers with ReLU run as one autograd node (layers.relu_mlp: the same values, faster).
+        self.use_relu_mlp = activation_name == "relu" and noisy_sigma0 is None
 
     def forward(
         self, state: Tensor, action: Tensor | None, heads: Tensor | None = None, detach_params: bool = False
     ) -> Tensor:
         h = state if action is None else torch.cat([state, action], dim=-1)
+        if self.use_relu_mlp:
+            layers = cast(list[EnsembleLinear], list(self.layers))
+            params = [p for layer in layers for p in layer.parameters_for(heads, detach_params)]
+            if h.dim() == 2:
+                h = h.expand(params[0].shape[0], *h.shape)  # shared input: a stride-0 view, no copy
+            out = relu_mlp(h, params)
+            return out if self.discrete_size else out.squeeze(-1)
         for layer in self.layers[:-1]:
             h = self.act(layer(h, heads, detach_params))
         out = in_float32(self.layers[-1], h, heads, detach_params)
