@@ -112,11 +112,11 @@ def relu_mlp(x: Tensor, params: Sequence[Tensor]) -> Tensor:
     """A stack of batched linear layers with ReLU between them, as one autograd node.
 
     ``params`` is ``(weight_1, bias_1, ..., weight_L, bias_L)`` with weights ``[E, out, in]`` and
-    biases ``[E, 1, out]`` (an :class:`EnsembleLinear`'s, or ``nn.Linear``'s viewed with ``E = 1``);
-    ``x`` is ``[E, N, in]`` and the result ``[E, N, out_L]``. ``layer_L(relu(... relu(layer_1(x))))``,
-    as the layer-by-layer modules compute it and with the same precision: inside an autocast region
-    the hidden layers run in its dtype (bfloat16 on CPU) and the output layer in the parameters'
-    dtype (:func:`in_float32`); values and gradients are the layer-by-layer ones (tests/algorithm/test_nn.py).
+    biases ``[E, 1, out]`` (:meth:`EnsembleLinear.parameters_for`); ``x`` is ``[E, N, in]`` and the
+    result ``[E, N, out_L]``: ``layer_L(relu(... relu(layer_1(x))))`` as the layer-by-layer modules
+    compute it, with the same precision (inside an autocast region the hidden layers run in its
+    dtype, bfloat16 on CPU, and the output layer in the parameters' dtype, as :func:`in_float32`).
+    Values and gradients equal the layer-by-layer ones (tests/algorithm/test_nn.py).
 
     Why one node: outside its matmuls a SAC update at batch 256 on CPU is dispatch-bound. This saves
     the per-layer autograd, cast and transpose nodes, casts each weight once per call, applies ReLU in
