@@ -113,10 +113,10 @@ class QEnsemble(nn.Module):
             if h.dim() == 2:
                 h = h.expand(params[0].shape[0], *h.shape)  # shared input: a stride-0 view, no copy
             out = relu_mlp(h, params)
-            return out if self.discrete_size else out.squeeze(-1)
-        for layer in self.layers[:-1]:
-            h = self.act(layer(h, heads, detach_params))
-        out = in_float32(self.layers[-1], h, heads, detach_params)
+        else:
+            for layer in self.layers[:-1]:
+                h = self.act(layer(h, heads, detach_params))
+            out = in_float32(self.layers[-1], h, heads, detach_params)
         return out if self.discrete_size else out.squeeze(-1)
 
 

@@ -151,7 +151,8 @@ def test_relu_mlp_backward_matches_finite_differences() -> None:
     assert torch.autograd.gradcheck(lambda x, *p: relu_mlp(x, p), inputs)
 
 
-def test_relu_mlp_skips_gradients_nobody_asked_for() -> None:
+def test_one_node_q_ensemble_builds_no_graph_under_no_grad_and_leaves_detached_params_alone() -> None:
+    """The target's call (no_grad) and the policy loss's (detached parameters: input grads only)."""
     q = QEnsemble(3, 2, [8], ensemble_size=2)
     with torch.no_grad():
         assert not q(torch.randn(4, 3), torch.randn(4, 2)).requires_grad
