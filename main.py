@@ -38,8 +38,10 @@ from algorithm.checkpoint import CheckpointError, list_checkpoints, load_for_res
 from algorithm.config import ConfigError, apply_overrides, config_from_file, load_config
 from algorithm.config_schema import Config
 from algorithm.evaluation import evaluate
+from algorithm.learner_core import last_evaluation
 from algorithm.nn.user import ModelBuilder, model_builder
 from algorithm.sac import SAC
+from algorithm.signals import stop_on_signals
 from algorithm.trainer import EmbeddedTrainer, RunDir, seed_everything
 from envs.make import VectorEnv, make_env, vector_env_factory
 
@@ -251,6 +253,7 @@ def train(args: argparse.Namespace) -> int:
     config = resolved.config
     check_env(config)
     name_template = args.name or config.base_config.name
+    stop = stop_on_signals()  # Ctrl-C and SIGTERM: finish the step, save, exit 130 / 143
     for repeat in range(args.repeat):
         run_config = config.model_copy(deep=True)
         name = name_template.replace("{time}", time.strftime("%Y%m%d%H%M%S"))
@@ -283,20 +286,38 @@ def train(args: argparse.Namespace) -> int:
             except (ValueError, TypeError, gymnasium.error.Error) as e:  # the config does not fit the task
                 raise ConfigError(f"cannot start {run_dir} with this config: {type(e).__name__}: {e}") from None
         log.info("run %s (seed %s)", run_dir, run_config.sac_config.seed)
+        if trainer.done():
+            report_finished(run_dir, args, trainer.env_steps, trainer.last_eval_mean, already=True)
+            continue
         if trainer.env_steps:
             log.info("resumed at %d env steps, %d updates", trainer.env_steps, trainer.updates)
-        summary = trainer.run()
-        log.info(
-            "%s after %d env steps, %d updates, %.0f s; last eval return %s",
-            "interrupted" if summary.interrupted else "finished",
-            summary.env_steps,
-            summary.updates,
-            summary.wall_seconds,
-            "n/a" if summary.last_eval_mean is None else f"{summary.last_eval_mean:.1f}",
-        )
+        summary = trainer.run(stop=stop)
         if summary.interrupted:
-            return 130
+            log.info("interrupted after %d env steps, %d updates, %.0f s: saved; the same command resumes",
+                     summary.env_steps, summary.updates, summary.wall_seconds)  # fmt: skip
+            return stop.exit_code
+        report_finished(run_dir, args, summary.env_steps, summary.last_eval_mean, already=False)
     return 0
+
+
+def play_command(args: argparse.Namespace, run_dir: Path) -> str:
+    """The command that plays ``run_dir``'s latest checkpoint, as the user would type it here."""
+    name = run_dir.relative_to(Path(args.model_root) / args.env)
+    root = "" if args.model_root == "models" else f" --model_root {args.model_root}"
+    return f"python main.py {args.env} -n {name}{root} --run"
+
+
+def report_finished(
+    run_dir: Path, args: argparse.Namespace, env_steps: int, last_eval: float | None, already: bool
+) -> None:
+    """The end of a finished run (or of re-running one): its last evaluation, its folder, how to play it."""
+    if last_eval is None:  # checkpoints from before the counters kept it
+        row = last_evaluation(RunDir(run_dir).evaluations)
+        last_eval = None if row is None else row[1]
+    result = "n/a (no evaluation)" if last_eval is None else f"{last_eval:.1f}"
+    state = "already finished" if already else "finished"
+    log.info("%s at %d env steps; last eval return %s", state, env_steps, result)
+    log.info("run folder %s; play it with: %s", run_dir, play_command(args, run_dir))
 
 
 def play(args: argparse.Namespace) -> int:

@@ -87,6 +87,11 @@ class ReplayConfig(Section):
     )
     min_size_to_sample: int = Field(1000, ge=1, description="Steps stored before the first update.")
     save_replay: bool = Field(False, description="Save replay contents with checkpoints and restore them.")
+    save_replay_on_stop: bool = Field(
+        True,
+        description="Save replay contents when a run is interrupted (Ctrl-C, SIGTERM), so that the same command "
+        "resumes with the data it had; the periodic checkpoints save it only with save_replay.",
+    )
     save_replay_per_minute: float | None = Field(
         None,
         gt=0,

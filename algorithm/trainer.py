@@ -3,18 +3,24 @@
 Usage (``main.py`` does exactly this)::
 
     trainer = EmbeddedTrainer(config, run_dir, make_env)  # make_env(num_envs, seed) -> vector env
-    summary = trainer.run()        # trains until max_step / max_iter; Ctrl-C saves and returns
+    summary = trainer.run(stop=event)   # until max_step / max_iter, ``stop`` set or Ctrl-C: then saves
 
-The update-to-data ratio is explicit (SPEC.md A): once replay holds ``min_size_to_sample`` steps,
-every env step owes ``samples_per_insert / batch_size`` updates, paid right after the step that
-earned them — independent of how many envs run in parallel.
+The lifecycle (counters, evaluation, summaries, checkpoints, resume, budget) is the learner core's
+(algorithm/learner_core.py); this module adds what is in-process: the actor loop stepping the envs,
+the table it inserts into, and the :class:`~algorithm.learner_core.UpdateBudget` that pays, right
+after each env step, the updates that step earned.
+
+On a stop (``stop`` set, Ctrl-C, or the budget spent) open chunks are flushed into the table, and
+with ``replay_config.save_replay`` (every checkpoint) or ``save_replay_on_stop`` (interrupted runs,
+the default) the table is saved beside the checkpoint, so the same command resumes with the data the
+run had collected.
 """
 
 from __future__ import annotations
 
-import math
+import logging
 import random
-import time
+import threading
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -25,56 +31,16 @@ import numpy as np
 import torch
 
 from algorithm.actor import ActorLoop, VectorEnvLike
-from algorithm.checkpoint import (
-    CheckpointError,
-    capture_rng,
-    list_checkpoints,
-    load_for_resume,
-    restore_rng,
-    restoring,
-    save_checkpoint,
-)
-from algorithm.config import config_to_yaml
+from algorithm.checkpoint import CheckpointError, list_checkpoints
 from algorithm.config_schema import Config
-from algorithm.evaluation import append_evaluation, evaluate
-from algorithm.logging import MetricsWriter, ProgressLine, RateMeter, Timers
+from algorithm.learner_core import LearnerCore, UpdateBudget
 from algorithm.nn.user import model_builder
 from algorithm.replay import PrioritizedTable
+from algorithm.run_dir import EVAL_SEED_OFFSET, RunDir
 from algorithm.sac import SAC
 
-EVAL_SEED_OFFSET = 100_000  # eval envs never share seeds with training envs (env i gets seed + i)
-
-
-@dataclass(frozen=True)
-class RunDir:
-    """``models/<task>/<name>/`` and what lives in it (ARCHITECTURE.md 9)."""
-
-    root: Path
-
-    @property
-    def config(self) -> Path:
-        return self.root / "config.yaml"
-
-    @property
-    def log(self) -> Path:
-        return self.root / "log"
-
-    @property
-    def model(self) -> Path:
-        return self.root / "model"
-
-    @property
-    def replay(self) -> Path:
-        return self.root / "replay" / "replay.npz"
-
-    @property
-    def evaluations(self) -> Path:
-        return self.root / "evaluations.csv"
-
-    @property
-    def model_file(self) -> Path:
-        """The run's copy of the task's model file (nn/user.py), when the task has one."""
-        return self.root / "nn.py"
+__all__ = ["EVAL_SEED_OFFSET", "EmbeddedTrainer", "RunDir", "TrainSummary", "load_replay_snapshot", "seed_everything"]
+log = logging.getLogger("asac")
 
 
 def load_replay_snapshot(table: PrioritizedTable, path: Path) -> None:
@@ -131,8 +97,8 @@ class EmbeddedTrainer:
 
         self.env = make_env(base.n_agents, seed)
         evaluating = evaluate and config.eval_config.eval_per_step > 0
-        self.eval_env = make_env(config.eval_config.eval_envs, seed + EVAL_SEED_OFFSET) if evaluating else None
-        self.eval_seed = seed + EVAL_SEED_OFFSET
+        eval_env = make_env(config.eval_config.eval_envs, seed + EVAL_SEED_OFFSET) if evaluating else None
+        self.eval_env = eval_env
         spec = self.env.spec
         model_file = self.paths.model_file if self.paths.model_file.exists() else None
         build = model_builder(model_file)
@@ -162,188 +128,121 @@ class EmbeddedTrainer:
             reset_on_iteration=base.reset_on_iteration,
             seed=seed,
         )
-        self.updates_per_step = replay_cfg.updates_per_step
-        self.env_steps = 0
-        self.updates = 0
-        self.episodes = 0
-        self.iterations = 0
-        self.owed_updates = 0.0
-        self.wall_seconds = 0.0
-        self.next_eval = config.eval_config.eval_per_step
-        self.next_save = sac_cfg.save_model_per_step
-        self.last_eval_mean: float | None = None
-        self.evaluations = 0
+        self.core = LearnerCore(
+            config, self.paths.root, self.sac, log_dir=self.paths.log, eval_env=eval_env, progress=progress,
+            publish=self._publish, extra_state=self._extra_state,
+        )  # fmt: skip
+        self.budget = UpdateBudget(replay_cfg.updates_per_step, replay_cfg.min_size_to_sample)
         self.recent_returns: deque[float] = deque(maxlen=10)
-        self.timers = Timers()
-        self.progress = progress
+        self._replay_saved_at: int | None = None  # inserted steps of the snapshot this run last wrote
+        self._interrupted = False
 
         # Restored before anything is written: a run whose checkpoint cannot be read keeps its files.
         if list_checkpoints(self.paths.model) or ckpt_step is not None:  # --ckpt on a new run: say so
             self.restore(ckpt_step)
-        self.paths.root.mkdir(parents=True, exist_ok=True)
-        self.paths.config.write_text(config_to_yaml(config))
-        self.writer = MetricsWriter(self.paths.log)
-        self.writer.text("config", config_to_yaml(config), self.env_steps)
+        self.core.open()
+
+    # -- counters (the core's) --------------------------------------------------------------
+    @property
+    def env_steps(self) -> int:
+        return self.core.counters.env_steps
+
+    @property
+    def updates(self) -> int:
+        return self.core.counters.updates
+
+    @property
+    def last_eval_mean(self) -> float | None:
+        return self.core.counters.last_eval_mean
+
+    def done(self) -> bool:
+        return self.core.done()
 
     # -- the loop ---------------------------------------------------------------------------
-    def run(self, until_step: int | None = None) -> TrainSummary:
-        """Train until max_step/max_iter (then flush, save, close) or Ctrl-C (same), or pause at
-        ``until_step`` env steps with everything left open so a later ``run()`` continues."""
-        cfg = self.config
-        base, replay_cfg = cfg.base_config, cfg.replay_config
-        summary_every = cfg.sac_config.write_summary_per_step
-        bar = ProgressLine(base.max_step) if self.progress else None
-        update_rate = RateMeter()
-        priorities_matter = replay_cfg.alpha > 0
-        normalize = cfg.sac_config.use_normalization
-        publish_every = cfg.sac_config.update_policy_variables_per_step
-        sampling = self.table.rate_limiter.size >= replay_cfg.min_size_to_sample
-        started = time.perf_counter() - self.wall_seconds
-        last_save_time = time.perf_counter()
+    def run(self, until_step: int | None = None, stop: threading.Event | None = None) -> TrainSummary:
+        """Train until max_step/max_iter, ``stop`` is set or Ctrl-C (then flush, save, close), or pause
+        at ``until_step`` env steps with everything left open so a later ``run()`` continues."""
+        core, c, table = self.core, self.core.counters, self.table
+        normalize = self.config.sac_config.use_normalization
+        batch_size = self.config.replay_config.batch_size
+        core.start()
         interrupted = False
         try:
-            while not self._done() and (until_step is None or self.env_steps < until_step):
-                with self.timers.phase("env"):
+            while not core.done() and (until_step is None or c.env_steps < until_step):
+                if stop is not None and stop.is_set():
+                    interrupted = True
+                    break
+                with core.timers.phase("env"):
                     stats = self.actor.step()
-                self.env_steps += stats.env_steps
+                c.env_steps += stats.env_steps
                 self._record_episodes(stats.finished)
-                self.iterations += stats.iteration_ended
-                if not sampling:
-                    sampling = self.table.rate_limiter.size >= replay_cfg.min_size_to_sample
-                if sampling:
-                    self.owed_updates += stats.env_steps * self.updates_per_step
+                c.iterations += stats.iteration_ended
+                self.budget.earn(stats.env_steps, table.rate_limiter.size)
                 if normalize and stats.chunks:  # new rows in replay: its exact running stats moved
-                    self.sac.load_normalizer_stats(self.table.normalizer_stats())
-                while self.owed_updates >= 1.0:
-                    with_metrics = self.updates % summary_every == 0
-                    with self.timers.phase("sample"):
-                        batch = self.table.sample(replay_cfg.batch_size)
-                    with self.timers.phase("update"):
-                        result = self.sac.update(batch, with_metrics=with_metrics)
-                    if priorities_matter and not result.skipped:
-                        with self.timers.phase("priorities"):
-                            self.table.update_priorities(batch.keys, result.td_abs)
-                    if result.refreshed_rnn_states is not None:
-                        self.table.update_rnn_states(*result.refreshed_rnn_states)
-                    self.owed_updates -= 1.0
-                    self.updates += 1
-                    if self.acting_policy is not self.sac and self.updates % publish_every == 0:
-                        self.acting_policy.load_acting_state_dict(self.sac.acting_state_dict())
-                    if with_metrics:
-                        self._write_summary(result.metrics, update_rate.mark(self.updates))
-                self.wall_seconds = time.perf_counter() - started
-                if self.eval_env is not None and self.env_steps >= self.next_eval:
-                    with self.timers.phase("eval"):
-                        self._evaluate()
-                    self.next_eval += cfg.eval_config.eval_per_step * math.ceil(
-                        (self.env_steps - self.next_eval + 1) / cfg.eval_config.eval_per_step
-                    )
-                minutes = (time.perf_counter() - last_save_time) / 60
-                if self.env_steps >= self.next_save or minutes >= cfg.sac_config.save_model_per_minute:
-                    self.save()
-                    last_save_time = time.perf_counter()
-                if bar is not None:
-                    recent = float(np.mean(self.recent_returns)) if self.recent_returns else None
-                    bar.update(self.env_steps, self.updates, update_rate.mark(self.updates), recent)
+                    self.sac.load_normalizer_stats(table.normalizer_stats())
+                while self.budget.take(table.rate_limiter.size):
+                    with core.timers.phase("sample"):
+                        batch = table.sample(batch_size, timeout=0)
+                    core.train_on(batch, table, self._metrics)
+                core.tick(float(np.mean(self.recent_returns)) if self.recent_returns else None)
         except KeyboardInterrupt:
             interrupted = True
-        finally:
-            if bar is not None:
-                bar.close()
-        if interrupted or self._done():
+        if interrupted or core.done():
             self.actor.flush()  # open chunks go to replay before the final save: nothing collected is lost
-            self.save()
-            self.writer.close()
-        return TrainSummary(
-            self.env_steps, self.updates, self.episodes, self.wall_seconds, self.last_eval_mean, interrupted
-        )
+            self._interrupted = interrupted
+            core.finish()
+        c = core.counters
+        return TrainSummary(c.env_steps, c.updates, c.episodes, c.wall_seconds, c.last_eval_mean, interrupted)
 
-    def _done(self) -> bool:
-        base = self.config.base_config
-        return (base.max_step >= 0 and self.env_steps >= base.max_step) or (
-            base.max_iter >= 0 and self.iterations >= base.max_iter
-        )
+    def _publish(self) -> None:
+        if self.acting_policy is not self.sac:
+            self.acting_policy.load_acting_state_dict(self.sac.acting_state_dict())
 
     def _record_episodes(self, finished: list[tuple[float, int]]) -> None:
         for ret, length in finished:
-            self.episodes += 1
+            self.core.counters.episodes += 1
             self.recent_returns.append(ret)
-            self.writer.write({"actor/episode_return": ret, "actor/episode_length": length}, self.env_steps)
+            self.core.write({"actor/episode_return": ret, "actor/episode_length": length})
 
-    def _write_summary(self, learner_metrics: dict[str, float], updates_per_s: float) -> None:
+    def _metrics(self) -> dict[str, float]:
         info = self.table.info()
         replay = {f"replay/{k}": float(v) for k, v in info.items() if isinstance(v, int | float)}
-        metrics = {
-            **learner_metrics,
-            **replay,
-            **self.timers.fractions(),
-            "time/updates_per_second": updates_per_s,
-            "time/wall_seconds": self.wall_seconds,
-            "learner/updates": float(self.updates),
-            "actor/nonfinite_steps": float(self.actor.nonfinite_steps),  # dropped, logged by the ActorLoop
-        }
-        self.writer.write(metrics, self.env_steps)
-
-    def _evaluate(self) -> None:
-        assert self.eval_env is not None
-        seed = self.eval_seed if not self.evaluations else None  # one seeded stream per process
-        result = evaluate(self.eval_env, self.sac, self.config.eval_config.eval_episodes, seed)
-        self.evaluations += 1
-        self.last_eval_mean = result.mean
-        append_evaluation(self.paths.evaluations, self.env_steps, self.updates, self.wall_seconds, result)
-        self.writer.write(
-            {
-                "eval/return_mean": result.mean,
-                "eval/return_std": result.std,
-                "eval/episode_length": float(result.lengths.mean()),
-            },
-            self.env_steps,
-        )
+        return {**replay, "actor/nonfinite_steps": float(self.actor.nonfinite_steps)}  # dropped, logged by the loop
 
     # -- checkpoints ------------------------------------------------------------------------
-    def counters(self) -> dict[str, Any]:
-        return {
-            "env_steps": self.env_steps,
-            "updates": self.updates,
-            "episodes": self.episodes,
-            "iterations": self.iterations,
-            "owed_updates": self.owed_updates,
-            "wall_seconds": self.wall_seconds,
-            "next_eval": self.next_eval,
-            "next_save": self.next_save,
-        }
-
     def save(self) -> Path:
         """Checkpoint learner state, counters and RNGs (and replay first, when save_replay is on)."""
-        cfg = self.config.sac_config
-        replay_inserted = None
-        if self.config.replay_config.save_replay:
+        return self.core.save()
+
+    def _extra_state(self) -> dict[str, Any]:
+        """What a checkpoint adds for the in-process mode, the table saved first beside it: with
+        ``save_replay`` every time, with ``save_replay_on_stop`` when the run is interrupted."""
+        cfg = self.config.replay_config
+        if cfg.save_replay or (self._interrupted and cfg.save_replay_on_stop):
             self.table.save(self.paths.replay)
-            replay_inserted = int(self.table.info()["inserted_steps"])
-        while self.next_save <= self.env_steps:
-            self.next_save += cfg.save_model_per_step
-        state = {
-            "sac": self.sac.state_dict(),
-            "counters": self.counters(),
-            "rng": capture_rng(),
+            self._replay_saved_at = int(self.table.rate_limiter.inserted)
+        self.core.counters.owed_updates = self.budget.owed
+        return {
             "actor_rng": self.actor.rng.bit_generator.state,
-            "replay_inserted_steps": replay_inserted,
+            "replay_inserted_steps": self._replay_saved_at,
         }
-        return save_checkpoint(self.paths.model, self.env_steps, state, keep=cfg.keep_checkpoints)
 
     def restore(self, step: int | None = None) -> None:
-        """Resume from checkpoint ``step`` (default: the latest) and, with save_replay, the saved
-        replay. A damaged or foreign file is a :class:`CheckpointError` naming it, never a silent
-        fallback to an older checkpoint: the caller stops and the user decides (``--ckpt``)."""
-        path, state = load_for_resume(self.paths.model, step)
-        with restoring(path):
-            self.sac.load_state_dict(state["sac"])
-            for key, value in state["counters"].items():
-                if key not in self.counters():
-                    raise KeyError(f"unknown counter {key!r}")
-                setattr(self, key, value)
-            restore_rng(state["rng"])
-            self.actor.rng.bit_generator.state = state["actor_rng"]
+        """Resume from checkpoint ``step`` (default: the latest) and the saved replay when it is the
+        one written with that checkpoint. A damaged or foreign file is a :class:`CheckpointError`
+        naming it, never a silent fallback to an older checkpoint: the caller stops and the user
+        decides (``--ckpt``)."""
+        path, state = self.core.restore(step)
+        self.actor.rng.bit_generator.state = state["actor_rng"]
         self.actor.total_steps = self.env_steps  # random_steps counts from the run's start, not the resume
-        if self.config.replay_config.save_replay and self.paths.replay.exists():
+        saved_at = state.get("replay_inserted_steps")
+        if saved_at is not None and self.paths.replay.exists():
             load_replay_snapshot(self.table, self.paths.replay)
+            inserted = int(self.table.info()["inserted_steps"])
+            if inserted != saved_at:  # written at another moment (killed between the two saves): still data
+                log.warning("replay snapshot %s holds %d inserted steps, checkpoint %s was saved with %d; using it",
+                            self.paths.replay, inserted, path, saved_at)  # fmt: skip
+        elif self.paths.replay.exists():
+            log.info("not loading %s: checkpoint %s was saved without it", self.paths.replay, path)
+        self.budget.owed = self.core.counters.owed_updates
+        self.budget.forgive(self.table.rate_limiter.size)

@@ -14,10 +14,13 @@ Inside, three threads keep the update loop busy without ever dropping data (ds/r
 - :class:`PriorityUpdater` sends the new priorities back to the replay in merged batches, from a
   bounded queue (a full queue blocks the learner, counted).
 
-The learner counts env steps by the replay's ``inserted_steps`` (actors may come and go), evaluates
-its own policy every ``eval_per_step`` of them on its own envs (``evaluations.csv``, ``eval/*``),
-checkpoints like the single-process trainer (``model/<env_steps>.pt``) and resumes from the latest
-checkpoint when started again on the same run directory.
+The learner counts env steps by the replay's ``inserted_steps`` (actors may come and go). Its
+lifecycle is the single-process trainer's, written once in algorithm/learner_core.py: it evaluates
+every ``eval_per_step`` env steps on its own envs (``evaluations.csv``, ``eval/*``), checkpoints in
+the same format (``model/<env_steps>.pt``), resumes from the latest checkpoint when started again on
+the same run directory, and at ``max_step`` first trains on what the replay still owes it (its rate
+limiter's surplus: the data inserted before the stop is trained on as the ratio says), then makes
+its final evaluation and checkpoint.
 
 In an evolver's population (``member``, ds/evolver_link.py) it also posts every evaluation's return,
 copies its full weights for the evolver's GetWeights between updates, loads the CEM samples the
@@ -31,28 +34,19 @@ import logging
 import math
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
 from algorithm.actor import VectorEnvLike
-from algorithm.checkpoint import (
-    capture_rng,
-    list_checkpoints,
-    load_for_resume,
-    restore_rng,
-    restoring,
-    save_checkpoint,
-)
-from algorithm.config import config_to_yaml
+from algorithm.checkpoint import list_checkpoints
 from algorithm.config_schema import Config
-from algorithm.evaluation import append_evaluation, evaluate
-from algorithm.logging import MetricsWriter, ProgressLine, RateMeter, Timers
+from algorithm.learner_core import LearnerCore
 from algorithm.replay import ReplayTable
 from algorithm.sac import SAC
-from algorithm.trainer import EVAL_SEED_OFFSET, RunDir
+from algorithm.types import Batch
 from ds.evolver_link import Membership
 from ds.learner_service import ActingPolicy, ActorRegistry, ParamsStore
 from ds.params import ParamsPublisher
@@ -89,6 +83,26 @@ class LearnerSummary:
     retired: bool = False
 
 
+class _ReplaySink:
+    """Where an update's results go over the network: priorities through the :class:`PriorityUpdater`
+    (merged, in the background), refreshed recurrent states straight to the replay (skipped and
+    counted while it cannot be reached: a refresh only freshens stored states)."""
+
+    def __init__(self, learner: Learner) -> None:
+        self.learner = learner
+
+    def update_priorities(self, keys: np.ndarray, priorities: np.ndarray) -> None:
+        self.learner.priorities.put(keys, priorities)
+
+    def update_rnn_states(self, keys: np.ndarray, states: np.ndarray) -> None:
+        try:
+            self.learner.replay.update_rnn_states(keys, states)
+        except ReplayRpcError as e:
+            if not unavailable(e):
+                raise
+            self.learner.rnn_refreshes_skipped += 1
+
+
 class Learner:
     """The learner loop; see the module docstring. ``stop`` ends it (then it checkpoints and closes)."""
 
@@ -113,125 +127,105 @@ class Learner:
         republish_every_s: float = 2.0,
     ) -> None:
         self.config = config
-        self.paths = RunDir(Path(run_dir))
         self.sac, self.replay, self.publisher, self.store = sac, replay, publisher, store
-        self.acting, self.registry, self.eval_env = acting, registry, eval_env
+        self.acting, self.registry = acting, registry
         self.member = member
         self.replay_address = "" if member is None else member.link.replay_address
         self.prefetch_depth = prefetch_depth
         self.stop = stop or threading.Event()
-        self.progress = progress
         self.info_every_s = info_every_s
         self.republish_every_s = republish_every_s
         self.prefetcher = BatchPrefetcher(replay, config.replay_config.batch_size, prefetch_depth)
         self.priorities = PriorityUpdater(replay)
-        self.updates = 0
         self.rnn_refreshes_skipped = 0
+        self.replay_surplus = 0.0  # windows the replay's rate limiter still lets this learner draw
+        self.sink = _ReplaySink(self)
+        on_evaluation: Callable[[float, int], None] = (
+            (lambda mean, steps: None) if member is None else member.link.post
+        )
+        self.core = LearnerCore(
+            config, Path(run_dir), sac, log_dir=Path(run_dir) / "log" / "learner", eval_env=eval_env,
+            progress=progress, publish=self.publish, on_evaluation=on_evaluation,
+        )  # fmt: skip
+        self.paths = self.core.paths
         self.env_steps = EnvSteps()
-        self.wall_seconds = 0.0
-        self.next_eval = config.eval_config.eval_per_step
-        self.next_save = config.sac_config.save_model_per_step
-        self.evaluations = 0
-        self.last_eval_mean: float | None = None
-        self.weights_round = 0  # the CEM round whose sample these weights descend from (0: none)
-        self.timers = Timers()
-        self.eval_seed = int(config.sac_config.seed or 0) + EVAL_SEED_OFFSET
         self._log_replay = Throttle(30.0)
         self._log_skipped = Throttle(30.0)
         if list_checkpoints(self.paths.model) or ckpt_step is not None:  # --ckpt on a new run: say so
             self.restore(ckpt_step)
-        if member is not None and self.weights_round:
-            member.link.loaded(self.weights_round)
-        self.writer = MetricsWriter(self.paths.log / "learner")
-        self.writer.text("config", config_to_yaml(config), self.env_steps.total)
+        if member is not None and self.core.counters.weights_round:
+            member.link.loaded(self.core.counters.weights_round)
+        self.core.open()
+
+    @property
+    def updates(self) -> int:
+        return self.core.counters.updates
+
+    @property
+    def evaluations(self) -> int:
+        return self.core.counters.evaluations
 
     # -- the loop ---------------------------------------------------------------------------
     def run(self) -> LearnerSummary:
-        cfg = self.config
-        summary_every = cfg.sac_config.write_summary_per_step
-        publish_every = cfg.sac_config.update_policy_variables_per_step
-        priorities_matter = cfg.replay_config.alpha > 0
-        bar = ProgressLine(cfg.base_config.max_step) if self.progress else None
-        rate = RateMeter()
-        started = time.perf_counter() - self.wall_seconds
-        last_save = last_info = last_publish = time.perf_counter()
+        core, c = self.core, self.core.counters
+        last_info = last_publish = time.perf_counter()
+        core.start()
         self.publish()
         self.prefetcher.start()
         self.priorities.start()
         self._poll_replay()
         try:
-            while not self.stop.is_set() and not self._done() and not self._leaving():
+            while not self.stop.is_set() and not core.done() and not self._leaving():
                 now = time.perf_counter()
-                self.wall_seconds = now - started
                 if self.member is not None:  # between two updates: a consistent copy for the evolver
-                    self.member.snapshot.offer(self.updates, self.sac.models.state_dict)
+                    self.member.snapshot.offer(c.updates, self.sac.models.state_dict)
                 if now - last_info >= self.info_every_s:
                     self._poll_replay()
                     last_info = now
                     if self.member is not None:
                         self._follow_evolver(self.member)
-                    self._maybe_evaluate()
-                    if (now - last_save) / 60 >= cfg.sac_config.save_model_per_minute or (
-                        self.env_steps.total >= self.next_save
-                    ):
-                        self.save()
-                        last_save = time.perf_counter()
-                    if bar is not None:
-                        bar.update(self.env_steps.total, self.updates, rate.mark(self.updates), self.last_eval_mean)
-                with self.timers.phase("wait"):
+                    core.tick()
+                with core.timers.phase("wait"):
                     batch = self.prefetcher.get(timeout=0.5)
                 if batch is None:
                     if now - last_publish >= self.republish_every_s:
                         self.publisher.republish()  # reaches subscribers that joined while we wait
                         last_publish = now
                     continue
-                with_metrics = self.updates % summary_every == 0
-                with self.timers.phase("update"):
-                    result = self.sac.update(batch, with_metrics=with_metrics)
-                if result.skipped and self._log_skipped():
-                    skipped, limit = self.sac.nonfinite_skipped, self.config.sac_config.max_nonfinite_steps
-                    log.warning("update skipped: non-finite loss or gradient (%d skipped so far; %d in a row stop "
-                                "the learner)", skipped, limit)  # fmt: skip
-                if priorities_matter and not result.skipped:
-                    with self.timers.phase("priorities"):
-                        self.priorities.put(batch.keys, result.td_abs)
-                if result.refreshed_rnn_states is not None:
-                    with self.timers.phase("rnn_refresh"):
-                        self._refresh_rnn_states(*result.refreshed_rnn_states)
-                self.updates += 1
-                if self.updates % publish_every == 0:
-                    with self.timers.phase("publish"):
-                        self.publish()
-                    last_publish = time.perf_counter()
-                if with_metrics:
-                    self._write_summary(result.metrics, rate.mark(self.updates))
+                self._train_on(batch)
+            if core.done() and not self.stop.is_set():
+                self._train_on_what_is_owed()
         finally:
             self.prefetcher.stop()
             self.priorities.close()
-            if bar is not None:
-                bar.close()
         retired = self.member is not None and self.member.link.retired
-        interrupted = not self._done() and not retired
-        if self._done():
-            self._maybe_evaluate(final=True)
-        self.save()
-        self.writer.close()
-        summary = (self.env_steps.total, self.updates, self.wall_seconds, self.last_eval_mean, interrupted, retired)
-        return LearnerSummary(*summary)
+        interrupted = not core.done() and not retired
+        path = core.finish()
+        log.info("checkpoint %s (%d updates)", path, c.updates)
+        return LearnerSummary(c.env_steps, c.updates, c.wall_seconds, c.last_eval_mean, interrupted, retired)
 
-    def _refresh_rnn_states(self, keys: np.ndarray, states: np.ndarray) -> None:
-        """sac_config.refresh_rnn_states: write the recomputed states back. A refresh only freshens
-        stored states, so one the replay cannot take now (unreachable) is skipped and counted."""
-        try:
-            self.replay.update_rnn_states(keys, states)
-        except ReplayRpcError as e:
-            if not unavailable(e):
-                raise
-            self.rnn_refreshes_skipped += 1
+    def _train_on(self, batch: Batch) -> None:
+        result = self.core.train_on(batch, self.sink, self._metrics)
+        if result.skipped and self._log_skipped():
+            skipped, limit = self.sac.nonfinite_skipped, self.config.sac_config.max_nonfinite_steps
+            log.warning("update skipped: non-finite loss or gradient (%d skipped so far; %d in a row stop "
+                        "the learner)", skipped, limit)  # fmt: skip
 
-    def _done(self) -> bool:
-        max_step = self.config.base_config.max_step
-        return max_step >= 0 and self.env_steps.total >= max_step
+    def _train_on_what_is_owed(self) -> None:
+        """At ``max_step``: the updates the data inserted so far still asks for (the replay's rate
+        limiter surplus, in batches) plus the batches already fetched, so the last data is trained on."""
+        batch_size = self.config.replay_config.batch_size
+        self._poll_replay()
+        owed = math.floor(max(self.replay_surplus, 0.0) / batch_size) + self.prefetch_depth
+        trained = 0
+        while trained < owed and not self.stop.is_set():
+            batch = self.prefetcher.get(timeout=1.0)
+            if batch is None:
+                break  # nothing more to draw: the ratio is met
+            self._train_on(batch)
+            trained += 1
+        if trained:
+            log.info("trained %d more updates on the data inserted before max_step", trained)
 
     def _leaving(self) -> bool:
         return self.member is not None and (self.member.link.retired or self.member.link.lost is not None)
@@ -257,7 +251,7 @@ class Learner:
         sample = member.link.take_sample()
         if sample is not None:
             self.sac.load_model_weights(sample.weights)
-            self.weights_round = sample.round
+            self.core.counters.weights_round = sample.round
             member.link.loaded(sample.round)
             self.publish(force=True)  # actors act with the new weights from their next step
             log.info("loaded the CEM sample of round %d (targets hard-copied, optimizer moments reset); "
@@ -286,95 +280,41 @@ class Learner:
             if self._log_replay():
                 log.warning("replay unreachable, waiting for it: %s", e)
             return
-        self.env_steps.observe(int(info["inserted_steps"]))
+        self.core.counters.env_steps = self.env_steps.observe(int(info["inserted_steps"]))
+        self.core.counters.replay_inserted_seen = self.env_steps.seen
+        self.replay_surplus = float(info.get("rate_limiter_surplus", 0.0))
         if self.config.sac_config.use_normalization and info.get("normalizer"):
             self.sac.load_normalizer_stats(info["normalizer"])
 
-    def _maybe_evaluate(self, final: bool = False) -> None:
-        every = self.config.eval_config.eval_per_step
-        if self.eval_env is None or every <= 0:
-            return
-        steps = self.env_steps.total
-        if steps < self.next_eval and not (final and self.evaluations == 0):
-            return
-        with self.timers.phase("eval"):
-            seed = self.eval_seed if not self.evaluations else None  # one seeded stream per process
-            result = evaluate(self.eval_env, self.sac, self.config.eval_config.eval_episodes, seed)
-        self.evaluations += 1
-        self.last_eval_mean = result.mean
-        append_evaluation(self.paths.evaluations, steps, self.updates, self.wall_seconds, result)
-        if self.member is not None:
-            self.member.link.post(result.mean, steps)
-        self.writer.write(
-            {
-                "eval/return_mean": result.mean,
-                "eval/return_std": result.std,
-                "eval/episode_length": result.lengths.mean(),
-            },
-            steps,
-        )
-        log.info("eval at %d env steps, %d updates: return %.1f +- %.1f", steps, self.updates, result.mean, result.std)
-        self.next_eval += every * max(1, math.ceil((steps - self.next_eval + 1) / every))
-
-    def _write_summary(self, learner_metrics: dict[str, float], updates_per_s: float) -> None:
+    def _metrics(self) -> dict[str, float]:
         metrics: dict[str, float] = {
-            **learner_metrics,
             **self.prefetcher.metrics(),
             **self.priorities.metrics(),
             **{f"learner/{k}": float(v) for k, v in self.publisher.metrics().items()},
-            **self.timers.fractions(),
-            "learner/updates": float(self.updates),
             "learner/rnn_refreshes_skipped": float(self.rnn_refreshes_skipped),
-            "time/updates_per_second": updates_per_s,
-            "time/wall_seconds": self.wall_seconds,
         }
         if self.registry is not None:
             metrics["learner/actors"] = float(len(self.registry.alive()))
             metrics["learner/actors_registered"] = float(self.registry.registered)
             metrics["learner/actors_expired"] = float(self.registry.expired)
-        self.writer.write(metrics, self.env_steps.total)
+        return metrics
 
     # -- checkpoints ------------------------------------------------------------------------
-    def counters(self) -> dict[str, Any]:
-        return {
-            "env_steps": self.env_steps.total,
-            "replay_inserted_seen": self.env_steps.seen,
-            "updates": self.updates,
-            "wall_seconds": self.wall_seconds,
-            "next_eval": self.next_eval,
-            "next_save": self.next_save,
-            "evaluations": self.evaluations,
-            "weights_round": self.weights_round,
-        }
-
     def save(self) -> Path:
-        """Checkpoint the SAC state, counters and RNGs as ``model/<env_steps>.pt`` (the format of
-        ``main.py``, so ``main.py --run`` plays it)."""
-        while self.next_save <= self.env_steps.total:
-            self.next_save += self.config.sac_config.save_model_per_step
-        state = {"sac": self.sac.state_dict(), "counters": self.counters(), "rng": capture_rng()}
-        keep = self.config.sac_config.keep_checkpoints
-        path = save_checkpoint(self.paths.model, self.env_steps.total, state, keep=keep)
+        """Checkpoint as ``model/<env_steps>.pt`` (the format of ``main.py``, so ``main.py --run`` plays it)."""
+        path = self.core.save()
         log.info("checkpoint %s (%d updates)", path, self.updates)
         return path
 
     def restore(self, step: int | None = None) -> None:
         """Resume from checkpoint ``step`` (default: the latest); a damaged or foreign file is a
         :class:`~algorithm.checkpoint.CheckpointError` naming it, never a fallback to an older one."""
-        path, state = load_for_resume(self.paths.model, step)
-        with restoring(path):
-            self.sac.load_state_dict(state["sac"])
-            counters = state["counters"]
-            self.env_steps = EnvSteps(int(counters["env_steps"]), int(counters["replay_inserted_seen"]))
-            self.updates = int(counters["updates"])
-            self.wall_seconds = float(counters["wall_seconds"])
-            self.next_eval, self.next_save = int(counters["next_eval"]), int(counters["next_save"])
-            self.evaluations = int(counters["evaluations"])
-            self.weights_round = int(counters.get("weights_round", 0))  # checkpoints from before the evolver lack it
-            restore_rng(state["rng"])
+        path, _ = self.core.restore(step)
+        c = self.core.counters
+        self.env_steps = EnvSteps(c.env_steps, c.replay_inserted_seen)
         # What was restored, read back from the live objects (the fault tests compare it with the file).
         log.info("resumed from %s at %d env steps, %d updates (log_alpha %r, optimizer steps %s)", path,
-                 self.env_steps.total, self.updates, self.sac.log_alpha.item(), optimizer_steps(self.sac))  # fmt: skip
+                 c.env_steps, c.updates, self.sac.log_alpha.item(), optimizer_steps(self.sac))  # fmt: skip
 
 
 def optimizer_steps(sac: SAC) -> dict[str, int]:

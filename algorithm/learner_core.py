@@ -1,0 +1,323 @@
+"""The learner's lifecycle, written once for both modes: counters, the update step, evaluation
+cadence, summaries, checkpoints, resume, the update-to-data budget and the stop at ``max_step``.
+
+Usage (``algorithm/trainer.py`` and ``ds/learner.py`` are the two drivers)::
+
+    core = LearnerCore(config, run_dir, sac, eval_env=env, log_dir=run_dir / "log")
+    state = core.restore()                      # None on a new run; else the checkpoint (extras inside)
+    while not core.done() and not stop.is_set():
+        ...                                     # the mode's data: actor steps in-process, or batches over gRPC
+        result = core.train_on(batch, sink)     # update, priorities/recurrent states to the sink, summaries
+        core.tick()                             # evaluation and checkpoint when due, the progress line
+    core.finish()                               # final evaluation when done, checkpoint, close
+
+The two modes differ only in where batches come from and where priorities and weights go (as
+Acme's learner takes a data iterator): :class:`~algorithm.trainer.EmbeddedTrainer` steps its actor
+loop and trains on its in-process table as :class:`UpdateBudget` says; the distributed
+:class:`~ds.learner.Learner` trains on what a prefetcher brings from the replay server, whose rate
+limiter applies the same ratio to actors it cannot otherwise slow down.
+
+Checkpoints have one format for both (``model/<env_steps>.pt``: ``sac``, ``counters``, ``rng`` and
+the mode's extras), so ``main.py --run`` plays either and a finished run knows its last evaluation.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, fields
+from pathlib import Path
+from typing import Any, Protocol
+
+import numpy as np
+
+from algorithm.actor import VectorEnvLike
+from algorithm.checkpoint import capture_rng, load_for_resume, restore_rng, restoring, save_checkpoint
+from algorithm.config import config_to_yaml
+from algorithm.config_schema import Config
+from algorithm.evaluation import EvalResult, append_evaluation, evaluate, read_evaluations
+from algorithm.logging import MetricsWriter, ProgressLine, RateMeter, Timers
+from algorithm.run_dir import EVAL_SEED_OFFSET, RunDir
+from algorithm.sac import SAC, UpdateResult
+from algorithm.types import Batch
+
+log = logging.getLogger("asac.learner")
+
+
+@dataclass
+class RunCounters:
+    """What a checkpoint records about the run's progress (``counters``). ``owed_updates`` is the
+    in-process :class:`UpdateBudget`'s balance; ``replay_inserted_seen`` the replay server's own
+    count the distributed learner last saw (:class:`~ds.learner.EnvSteps`); ``weights_round`` the
+    CEM round whose sample the weights descend from (0: none)."""
+
+    env_steps: int = 0
+    updates: int = 0
+    episodes: int = 0
+    iterations: int = 0
+    wall_seconds: float = 0.0
+    next_eval: int = 0
+    next_save: int = 0
+    evaluations: int = 0
+    last_eval_mean: float | None = None
+    last_eval_step: int = -1
+    owed_updates: float = 0.0
+    replay_inserted_seen: int = 0
+    weights_round: int = 0
+
+    @classmethod
+    def from_checkpoint(cls, saved: dict[str, Any], defaults: RunCounters) -> RunCounters:
+        """Counters written by any earlier version: keys it lacks keep ``defaults``; an unknown key
+        (a checkpoint of a newer version, or damaged) is a KeyError, which ``restoring`` names."""
+        known = {f.name for f in fields(cls)}
+        unknown = set(saved) - known
+        if unknown:
+            raise KeyError(f"unknown counters {sorted(unknown)}")
+        return cls(**{**asdict(defaults), **saved})
+
+
+class UpdateBudget:
+    """The update-to-data ratio of the in-process loop: once the replay holds ``min_size_to_sample``
+    steps, every env step earns ``updates_per_step`` updates (``samples_per_insert / batch_size``),
+    paid right after the step that earned them, however many envs run in parallel.
+
+    Only data that is there earns updates: a replay below ``min_size_to_sample`` (a fresh run, or a
+    resumed one whose replay was not saved) earns none, and a balance carried over from a checkpoint
+    is dropped when its replay did not come back (:meth:`forgive`), so a resumed run never waits for
+    updates that no data can pay (the hang of a resume with an empty replay)."""
+
+    def __init__(self, updates_per_step: float, min_size_to_sample: int, owed: float = 0.0) -> None:
+        self.updates_per_step = float(updates_per_step)
+        self.min_size_to_sample = int(min_size_to_sample)
+        self.owed = float(owed)
+
+    def can_sample(self, replay_size: int) -> bool:
+        return replay_size >= self.min_size_to_sample
+
+    def earn(self, env_steps: int, replay_size: int) -> None:
+        if self.can_sample(replay_size):
+            self.owed += env_steps * self.updates_per_step
+
+    def take(self, replay_size: int) -> bool:
+        """Whether one update is owed and can be drawn now (then it is counted as paid)."""
+        if self.owed >= 1.0 and self.can_sample(replay_size):
+            self.owed -= 1.0
+            return True
+        return False
+
+    def forgive(self, replay_size: int) -> None:
+        """A replay smaller than ``min_size_to_sample`` cannot pay what is owed: start from zero."""
+        if not self.can_sample(replay_size):
+            self.owed = 0.0
+
+
+class TrainingSink(Protocol):
+    """Where the results of an update go: the table's priorities and refreshed recurrent states."""
+
+    def update_priorities(self, keys: np.ndarray, priorities: np.ndarray) -> None: ...
+
+    def update_rnn_states(self, keys: np.ndarray, states: np.ndarray) -> None: ...
+
+
+class LearnerCore:
+    """See the module docstring. ``on_evaluation(mean, env_steps)`` is called after every evaluation
+    (the evolver link posts it); ``publish`` after every ``update_policy_variables_per_step``
+    updates (where weights go: an acting copy in-process, ZeroMQ subscribers distributed);
+    ``extra_state()`` is what the mode adds to each checkpoint (and reads back from :meth:`restore`'s
+    state)."""
+
+    def __init__(
+        self,
+        config: Config,
+        run_dir: Path,
+        sac: SAC,
+        *,
+        log_dir: Path,
+        eval_env: VectorEnvLike | None = None,
+        progress: bool = False,
+        publish: Callable[[], None] = lambda: None,
+        on_evaluation: Callable[[float, int], None] = lambda mean, steps: None,
+        extra_state: Callable[[], dict[str, Any]] = dict,
+    ) -> None:
+        self.config = config
+        self.paths = RunDir(Path(run_dir))
+        self.sac = sac
+        self.log_dir = log_dir
+        evaluating = eval_env is not None and config.eval_config.eval_per_step > 0
+        self.eval_env = eval_env if evaluating else None
+        self.eval_seed = int(config.sac_config.seed or 0) + EVAL_SEED_OFFSET
+        self.progress = progress
+        self.publish = publish
+        self.on_evaluation = on_evaluation
+        self.extra_state = extra_state
+        self.counters = RunCounters(
+            next_eval=config.eval_config.eval_per_step, next_save=config.sac_config.save_model_per_step
+        )
+        self.timers = Timers()
+        self.update_rate = RateMeter()
+        self.writer: MetricsWriter | None = None
+        self.bar: ProgressLine | None = None
+        self._started = time.perf_counter()
+        self._last_save = time.perf_counter()
+
+    # -- lifecycle --------------------------------------------------------------------------
+    def open(self) -> None:
+        """Write the run's config and open its TensorBoard folder (after a restore that worked:
+        a run whose checkpoint cannot be read keeps its files)."""
+        self.paths.root.mkdir(parents=True, exist_ok=True)
+        self.paths.config.write_text(config_to_yaml(self.config))
+        self.writer = MetricsWriter(self.log_dir)
+        self.writer.text("config", config_to_yaml(self.config), self.counters.env_steps)
+
+    def start(self) -> None:
+        """Start the clocks (wall seconds go on from the checkpoint's) and the progress line."""
+        self._started = time.perf_counter() - self.counters.wall_seconds
+        self._last_save = time.perf_counter()
+        if self.progress and self.bar is None:
+            self.bar = ProgressLine(self.config.base_config.max_step)
+
+    def done(self) -> bool:
+        base, c = self.config.base_config, self.counters
+        return (base.max_step >= 0 and c.env_steps >= base.max_step) or (
+            base.max_iter >= 0 and c.iterations >= base.max_iter
+        )
+
+    def tick(self, recent_return: float | None = None) -> None:
+        """Between updates: wall clock, evaluation and checkpoint when due, the progress line."""
+        c = self.counters
+        c.wall_seconds = time.perf_counter() - self._started
+        self.evaluate_if_due()
+        minutes = (time.perf_counter() - self._last_save) / 60
+        if c.env_steps >= c.next_save or minutes >= self.config.sac_config.save_model_per_minute:
+            self.save()
+        if self.bar is not None:
+            shown = recent_return if recent_return is not None else c.last_eval_mean
+            self.bar.update(c.env_steps, c.updates, self.update_rate.mark(c.updates), shown)
+
+    def finish(self) -> Path:
+        """End of a run (budget spent, stop asked or interrupted): the final evaluation when the budget
+        is spent and none was made at this step, a checkpoint, the writers closed."""
+        c = self.counters
+        c.wall_seconds = time.perf_counter() - self._started
+        if self.bar is not None:
+            self.bar.close()
+            self.bar = None
+        if self.done() and self.eval_env is not None and c.last_eval_step != c.env_steps:
+            self.evaluate()
+        path = self.save()
+        if self.writer is not None:
+            self.writer.close()
+        return path
+
+    # -- the update -------------------------------------------------------------------------
+    def train_on(
+        self, batch: Batch, sink: TrainingSink, extra_metrics: Callable[[], dict[str, float]] = dict
+    ) -> UpdateResult:
+        """One SAC update on ``batch``; its priorities (when they matter and the step was not skipped)
+        and refreshed recurrent states go to ``sink``; weights are published every
+        ``update_policy_variables_per_step`` updates; every ``write_summary_per_step`` the metrics
+        (the update's, ``extra_metrics()``, phase times, rates) are written."""
+        cfg = self.config
+        c = self.counters
+        with_metrics = c.updates % cfg.sac_config.write_summary_per_step == 0
+        with self.timers.phase("update"):
+            result = self.sac.update(batch, with_metrics=with_metrics)
+        if cfg.replay_config.alpha > 0 and not result.skipped:
+            with self.timers.phase("priorities"):
+                sink.update_priorities(batch.keys, result.td_abs)
+        if result.refreshed_rnn_states is not None:
+            with self.timers.phase("rnn_refresh"):
+                sink.update_rnn_states(*result.refreshed_rnn_states)
+        c.updates += 1
+        if c.updates % cfg.sac_config.update_policy_variables_per_step == 0:
+            with self.timers.phase("publish"):
+                self.publish()
+        if with_metrics:
+            self.write_summary({**result.metrics, **extra_metrics()})
+        return result
+
+    def write_summary(self, metrics: dict[str, float]) -> None:
+        c = self.counters
+        if self.writer is None:
+            return
+        self.writer.write(
+            {
+                **metrics,
+                **self.timers.fractions(),
+                "learner/updates": float(c.updates),
+                "time/updates_per_second": self.update_rate.mark(c.updates),
+                "time/wall_seconds": c.wall_seconds,
+            },
+            c.env_steps,
+        )
+
+    def write(self, metrics: dict[str, float]) -> None:
+        """Scalars at the current env step (episode returns, staleness)."""
+        if self.writer is not None:
+            self.writer.write(metrics, self.counters.env_steps)
+
+    # -- evaluation -------------------------------------------------------------------------
+    def evaluate_if_due(self) -> None:
+        if self.eval_env is not None and self.counters.env_steps >= self.counters.next_eval:
+            self.evaluate()
+
+    def evaluate(self) -> EvalResult:
+        """Evaluate the policy on the eval envs; the next one is due at the next multiple of
+        ``eval_per_step`` past the current env step (a jump over several multiples evaluates once)."""
+        assert self.eval_env is not None
+        c, every = self.counters, self.config.eval_config.eval_per_step
+        with self.timers.phase("eval"):
+            seed = self.eval_seed if not c.evaluations else None  # one seeded stream per process
+            result = evaluate(self.eval_env, self.sac, self.config.eval_config.eval_episodes, seed)
+        c.evaluations += 1
+        c.last_eval_mean, c.last_eval_step = result.mean, c.env_steps
+        append_evaluation(self.paths.evaluations, c.env_steps, c.updates, c.wall_seconds, result)
+        self.write(
+            {
+                "eval/return_mean": result.mean,
+                "eval/return_std": result.std,
+                "eval/episode_length": float(result.lengths.mean()),
+            }
+        )
+        log.info("eval at %d env steps, %d updates: return %.1f +- %.1f", c.env_steps, c.updates, result.mean,
+                 result.std)  # fmt: skip
+        self.on_evaluation(result.mean, c.env_steps)
+        if c.env_steps >= c.next_eval:
+            c.next_eval += every * math.ceil((c.env_steps - c.next_eval + 1) / every)
+        return result
+
+    # -- checkpoints ------------------------------------------------------------------------
+    def save(self) -> Path:
+        """Checkpoint the SAC state, counters, global RNGs and the mode's ``extra_state()`` as
+        ``model/<env_steps>.pt``."""
+        c, cfg = self.counters, self.config.sac_config
+        while c.next_save <= c.env_steps:
+            c.next_save += cfg.save_model_per_step
+        state = {"sac": self.sac.state_dict(), "counters": asdict(c), "rng": capture_rng(), **self.extra_state()}
+        path = save_checkpoint(self.paths.model, c.env_steps, state, keep=cfg.keep_checkpoints)
+        self._last_save = time.perf_counter()
+        log.debug("checkpoint %s (%d updates)", path, c.updates)
+        return path
+
+    def restore(self, step: int | None = None) -> tuple[Path, dict[str, Any]]:
+        """Resume from checkpoint ``step`` (default: the latest): SAC state, counters, global RNGs.
+        Returns the path and the whole state for the mode's extras. A damaged or foreign file is a
+        :class:`~algorithm.checkpoint.CheckpointError` naming it, never a fallback to an older one."""
+        path, state = load_for_resume(self.paths.model, step)
+        with restoring(path):
+            self.sac.load_state_dict(state["sac"])
+            self.counters = RunCounters.from_checkpoint(state["counters"], self.counters)
+            restore_rng(state["rng"])
+        return path, state
+
+
+def last_evaluation(path: Path) -> tuple[int, float] | None:
+    """The last row of an ``evaluations.csv`` as ``(env_steps, return_mean)``; None without one
+    (or when it cannot be read: this is for messages, never for decisions)."""
+    try:
+        rows = read_evaluations(path)
+    except (OSError, ValueError, TypeError):
+        return None
+    return (int(rows[-1]["env_steps"]), rows[-1]["return_mean"]) if rows else None
