@@ -2,7 +2,7 @@
 
 Thin by design, like main.py (whose flags it shares): parse, resolve the config and the run
 directory, call ds/roles.py (ARCHITECTURE.md 1). Exit codes: 0 done, 2 bad usage or config,
-130 stopped by Ctrl-C / SIGTERM, 1 a role failed.
+130 stopped by Ctrl-C / SIGTERM (``local``: 130 SIGINT, 143 SIGTERM; ds/local.py), 1 a role failed.
 """
 
 from __future__ import annotations
@@ -29,6 +29,7 @@ from algorithm.trainer import RunDir
 from ds import k8s, roles, security
 from ds.evolver_state import EvolverStateError
 from ds.local import run_local
+from ds.local_summary import PlayableRun
 from main import (
     ArgumentParser,
     UsageError,
@@ -72,6 +73,13 @@ def noise_level(text: str) -> float:
     return value
 
 
+def actor_index(text: str) -> int:
+    value = int(text) if text.isascii() and text.isdigit() else -1
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"{text!r} is not an actor index (an integer >= 0)")
+    return value
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = ArgumentParser(
         prog="main_ds.py",
@@ -94,6 +102,12 @@ def build_parser() -> argparse.ArgumentParser:
     for name, what in tls.items():
         p.add_argument(f"--tls_{name}", metavar="FILE", help=f"{what} (net_config.tls_{name}; README Security)")
     p.add_argument("--noise", type=noise_level, help="this actor's exploration noise (default: from its index)")
+    p.add_argument(
+        "--index",
+        type=actor_index,
+        help="the index this actor asks its learner for (its seeds, noise and log/actor_<index>); default: the "
+        "lowest free one; local gives actor k index k",
+    )
     p.add_argument(
         "--in_k8s",
         action="store_true",
@@ -200,6 +214,8 @@ def run(args: argparse.Namespace) -> int:
     for flag, given in (("--actors", args.actors != 1), ("--learners", args.learners is not None)):
         if given and role != "local":
             raise UsageError(f"{flag} is for the local role")
+    if args.index is not None and role != "actor":
+        raise UsageError("--index is for the actor role (local gives each actor its own)")
     if args.ckpt is not None and role not in ("learner", "local"):
         raise UsageError("--ckpt is for the learner (it resumes from that checkpoint)")
     if role == "local" and args.evolver_host is not None:
@@ -232,7 +248,7 @@ def run(args: argparse.Namespace) -> int:
         return roles.run_replay(context)
     if role == "learner":
         return roles.run_learner(context, args.ckpt, progress=not args.no_progress)
-    return roles.run_actor(context, args.noise)
+    return roles.run_actor(context, args.noise, args.index)
 
 
 def local(args: argparse.Namespace, config: Config, run_dir: Path, creds: security.Credentials) -> int:
@@ -249,8 +265,11 @@ def local(args: argparse.Namespace, config: Config, run_dir: Path, creds: securi
         "learner": [] if args.ckpt is None else ["--ckpt", str(args.ckpt)],
         "actor": [] if args.noise is None else ["--noise", str(args.noise)],
     }
-    command = [sys.executable, str(Path(__file__).resolve()), args.env]
-    return run_local(command, child_args(args, config), args.actors, extra, learners=learners, credentials=creds)
+    here = Path(__file__).resolve()
+    command = [sys.executable, str(here), args.env]
+    playable = PlayableRun(args.env, config.base_config.name, run_dir, args.model_root, here.with_name("main.py"))
+    return run_local(command, child_args(args, config), args.actors, extra, learners=learners, credentials=creds,
+                     run=playable)  # fmt: skip
 
 
 def main(argv: list[str] | None = None) -> int:

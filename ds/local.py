@@ -1,11 +1,11 @@
 """``main_ds.py TASK local``: every role as a subprocess of one launcher on loopback, with free ports,
-prefixed logs, and one Ctrl-C for all; and the signal handling every role process shares.
+prefixed logs, an orderly stop and a summary; and the signal handling every role process shares.
 
 Usage (``main_ds.py`` builds the command and the flags each child gets)::
 
-    code = run_local([python, "main_ds.py", "gym/pendulum"], child_args, actors=2)              # one learner
-    code = run_local([python, "main_ds.py", "gym/pendulum"], child_args, actors=6, learners=3,  # a population
-                     credentials=creds)   # what the launcher itself needs to ask the evolver (ds/security.py)
+    code = run_local([python, "main_ds.py", "gym/pendulum"], child_args, actors=2, run=playable)   # one learner
+    code = run_local([python, "main_ds.py", "gym/pendulum"], child_args, actors=6, learners=3,     # a population
+                     credentials=creds, run=playable)  # creds: the launcher's own, to ask the evolver (ds/security.py)
 
 One learner: a replay, the learner and the actors, told each other's ports. A population: an evolver,
 ``learners`` replays and learners, told only the evolver's port (the evolver pairs replays with
@@ -14,23 +14,44 @@ that the evolver spreads them over all learners (it gives each actor the least-l
 is when it asks). Every child gets the same flags, so with TLS they share one certificate, which must
 name every role (README Security); none opens a plaintext health port (``net_config.health_port`` is
 for Kubernetes probes, and the children's would collide).
+
+Names agree: actor k is started with ``--index k`` and asks its learner for index k (its seeds,
+noise and ``log/actor_k``), so ``[actor-k]`` is the learner's index k. The evolver hands learner ids
+out in the order learners register, so the launcher does not guess: it holds back a population
+learner's lines until the evolver lists its pid, then prefixes them ``[learner-<id>]``, the folder
+``learner_<id>/`` it writes; a replay becomes ``[replay-<id>]`` once it serves learner ``<id>``.
+
+Stopping is ordered (:data:`STOP_ORDER`), at a normal finish (every learner exited 0: budget spent,
+or retired) and on the launcher's first SIGINT/SIGTERM alike: the learners are told first (SIGINT:
+they checkpoint), then the actors (they flush what they hold into the replays, still running), then
+the replays (``save_replay``: they save) and the evolver last; each stage is waited for, and only a
+child still running after ``grace_s`` gets SIGTERM, then SIGKILL. A second Ctrl-C forces: SIGKILL to
+every child now. Last, the launcher prints a summary (ds/local_summary.py): how the run ended, the
+final evaluation return, the run folder and the ``main.py --run`` command that plays it.
+
+Exit codes: 0 a normal finish, 130 stopped by SIGINT, 143 stopped by SIGTERM, 1 a child failed (or a
+replay or the evolver exited on its own).
 """
 
 from __future__ import annotations
 
+import contextlib
 import logging
-import os
+import re
 import signal
 import socket
 import subprocess
 import threading
 import time
 from collections.abc import Callable
+from dataclasses import dataclass
 from types import FrameType
 
 import grpc
 
 from ds.evolver_service import EvolverClient
+from ds.evolver_state import LearnerInfo
+from ds.local_summary import PlayableRun, summary
 from ds.replay_feeds import Throttle
 from ds.rpc import RetryPolicy
 from ds.security import NO_CREDENTIALS, Credentials
@@ -38,6 +59,10 @@ from ds.security import NO_CREDENTIALS, Credentials
 log = logging.getLogger("asac.local")
 LOCAL_HOST = "127.0.0.1"
 NO_HEALTH_PORT = ("--override", "net.health_port=null")
+STOP_ORDER = ("learner", "actor", "replay", "evolver")
+"""Who is told to stop first: a replay outlives the learner and actors it serves, the evolver all."""
+HOLD_LINES_S = 20.0  # a population learner's or replay's lines wait this long for its id, then show unnumbered
+_PID = re.compile(r"\(pid (\d+)\)")  # how a learner names itself to the evolver (ds/role_context.py)
 
 
 def stop_on_signals() -> threading.Event:
@@ -56,6 +81,28 @@ def stop_on_signals() -> threading.Event:
     return stop
 
 
+class LauncherSignals:
+    """The launcher's SIGINT/SIGTERM: the first sets :attr:`stop` and is remembered (the exit code
+    says which it was); a second raises KeyboardInterrupt: kill every child now."""
+
+    def __init__(self) -> None:
+        self.stop = threading.Event()
+        self.signum: int | None = None
+        signal.signal(signal.SIGINT, self._handle)
+        signal.signal(signal.SIGTERM, self._handle)
+
+    def _handle(self, signum: int, frame: FrameType | None) -> None:
+        if self.stop.is_set():
+            raise KeyboardInterrupt
+        self.signum = signum
+        log.info("%s: stopping every role in order (again to force)", signal.Signals(signum).name)
+        self.stop.set()
+
+    @property
+    def exit_code(self) -> int:
+        return 128 + (self.signum or signal.SIGINT)
+
+
 def free_port() -> int:
     """A TCP port that was free on loopback a moment ago."""
     with socket.socket() as s:
@@ -64,62 +111,112 @@ def free_port() -> int:
 
 
 class LocalProcesses:
-    """Children of one ``local`` run in one process group, their output streamed with role prefixes."""
+    """Children of one ``local`` run in one process group (apart from the launcher's: a terminal's
+    Ctrl-C reaches the launcher alone, which then stops them in order), their output streamed with
+    a ``[label]`` prefix. A child started without a label has its lines held until :meth:`relabel`
+    names it (or :meth:`release` shows them unnumbered)."""
 
     def __init__(self, stream: Callable[[str], None] = lambda line: print(line, end="", flush=True)) -> None:
         self.children: dict[str, subprocess.Popen[str]] = {}
+        self.labels: dict[str, str] = {}
         self.pgid = 0
         self._stream = stream
+        self._held: dict[str, list[str]] = {}
+        self._lock = threading.Lock()
         self._readers: list[threading.Thread] = []
 
-    def start(self, name: str, command: list[str], env: dict[str, str] | None = None) -> None:
+    def start(self, name: str, command: list[str], labelled: bool = True) -> None:
+        """Start ``command`` as ``name``; ``labelled``: its lines show as ``[name]`` at once."""
         proc = subprocess.Popen(
             command,
             stdout=subprocess.PIPE,
             stderr=subprocess.STDOUT,
             stdin=subprocess.DEVNULL,
             text=True,
-            env={**os.environ, **(env or {})},
             process_group=self.pgid,  # the first child leads a new group; the others join it
         )
         if not self.pgid:
             self.pgid = proc.pid
         self.children[name] = proc
+        if labelled:
+            self.labels[name] = name
+            log.info("started %s (pid %d)", name, proc.pid)
+        else:
+            self._held[name] = []
+            log.info("started %s (pid %d); its lines show once the evolver gives it an id", _role(name), proc.pid)
         reader = threading.Thread(target=self._pump, args=(name, proc), daemon=True)
         reader.start()
         self._readers.append(reader)
-        log.info("started %s (pid %d)", name, proc.pid)
 
     def _pump(self, name: str, proc: subprocess.Popen[str]) -> None:
         assert proc.stdout is not None
         for line in proc.stdout:
-            self._stream(f"[{name}] {line}")
+            with self._lock:
+                if name in self._held:
+                    self._held[name].append(line)
+                    continue
+                label = self.labels[name]
+            self._stream(f"[{label}] {line}")
+
+    def relabel(self, name: str, label: str) -> None:
+        """Show ``name``'s lines as ``[label]`` from now on, the ones held back first."""
+        with self._lock:
+            if self.labels.get(name) == label:
+                return
+            self.labels[name] = label
+            for line in self._held.pop(name, []):
+                self._stream(f"[{label}] {line}")
+        log.info("%s (pid %d) is %s", _role(name), self.children[name].pid, label)
+
+    def release(self) -> None:
+        """Show the held lines of children still without an id, as ``[<role> pid <pid>]``."""
+        for name in list(self._held):
+            if name in self._held:
+                self.relabel(name, f"{_role(name)} pid {self.children[name].pid}")
+
+    def unlabelled(self) -> list[str]:
+        with self._lock:
+            return list(self._held)
 
     def names(self, role: str) -> list[str]:
         """The children of one role: ``learner`` names ``learner`` and ``learner-0``, ``learner-1``..."""
-        return [n for n in self.children if n.split("-")[0] == role]
+        return [n for n in self.children if _role(n) == role]
+
+    def running(self, names: list[str]) -> list[str]:
+        return [n for n in names if self.children[n].poll() is None]
 
     def signal(self, names: list[str], signum: int) -> None:
-        for name in names:
-            proc = self.children[name]
-            if proc.poll() is None:
-                proc.send_signal(signum)
+        for name in self.running(names):
+            with contextlib.suppress(ProcessLookupError):
+                self.children[name].send_signal(signum)
 
-    def stop_all(self, grace_s: float) -> None:
-        """SIGINT to the group, wait ``grace_s``; then SIGTERM, wait 5 s; then SIGKILL."""
-        for signum, wait_s in ((signal.SIGINT, grace_s), (signal.SIGTERM, 5.0), (signal.SIGKILL, 5.0)):
-            if self.wait_all(0):
-                break
-            if signum != signal.SIGINT:
-                running = [n for n, p in self.children.items() if p.poll() is None]
-                log.warning("still running: %s; sending %s", ", ".join(running), signal.Signals(signum).name)
-            try:
-                os.killpg(self.pgid, signum)
-            except ProcessLookupError:
-                break
-            self.wait_all(wait_s)
-        for reader in self._readers:
-            reader.join(2.0)
+    def stop_in_order(self, grace_s: float) -> None:
+        """SIGINT to each stage of :data:`STOP_ORDER` in turn, waiting up to ``grace_s`` for the stage
+        to exit before the next one is told; a child still running then gets SIGTERM, then SIGKILL."""
+        for role in STOP_ORDER:
+            names = self.running(self.names(role))
+            if not names:
+                continue
+            log.info("stopping %s", ", ".join(self.labels.get(n, n) for n in names))
+            self.signal(names, signal.SIGINT)
+            if self.wait_all(grace_s, names):
+                continue
+            for signum in (signal.SIGTERM, signal.SIGKILL):
+                late = self.running(names)
+                if not late:
+                    break
+                log.warning("%s still running after %.0f s: sending %s", ", ".join(late), grace_s,
+                            signal.Signals(signum).name)  # fmt: skip
+                self.signal(late, signum)
+                self.wait_all(5.0, late)
+
+    def kill_all(self) -> None:
+        """SIGKILL to every child still running (a forced stop)."""
+        running = self.running(list(self.children))
+        if running:
+            log.warning("forced stop: sending SIGKILL to %s", ", ".join(running))
+            self.signal(running, signal.SIGKILL)
+        self.wait_all(5.0)
 
     def wait_all(self, timeout_s: float, names: list[str] | None = None) -> bool:
         deadline = time.monotonic() + timeout_s
@@ -129,6 +226,16 @@ class LocalProcesses:
                 return False
             time.sleep(0.1)
         return True
+
+    def drain(self) -> None:
+        """Wait (briefly) for the last lines of every child, showing any still held."""
+        for reader in self._readers:
+            reader.join(2.0)
+        self.release()
+
+
+def _role(name: str) -> str:
+    return name.split("-")[0]
 
 
 def plan(
@@ -148,7 +255,7 @@ def plan(
         ports = ["--replay_host", LOCAL_HOST, "--replay_port", str(free_port()), "--learner_host", LOCAL_HOST,
                  "--learner_port", str(free_port()), "--override", "net.params_port=0", *NO_HEALTH_PORT]  # fmt: skip
         return [("replay", child("replay", *ports)), ("learner", child("learner", *ports))] + [
-            (f"actor-{i}", child("actor", *ports)) for i in range(actors)
+            (f"actor-{i}", child("actor", *ports, "--index", str(i))) for i in range(actors)
         ]
     evolver = ["--evolver_host", LOCAL_HOST, "--evolver_port", str(free_port())]
     children = [("evolver", child("evolver", *evolver, *NO_HEALTH_PORT))]
@@ -159,7 +266,15 @@ def plan(
         learner = ["--learner_host", LOCAL_HOST, "--learner_port", str(free_port()), "--override", "net.params_port=0",
                    *NO_HEALTH_PORT]  # fmt: skip
         children.append((f"learner-{k}", child("learner", *evolver, *learner)))
-    return children + [(f"actor-{i}", child("actor", *evolver)) for i in range(actors)]
+    return children + [(f"actor-{i}", child("actor", *evolver, "--index", str(i))) for i in range(actors)]
+
+
+@dataclass
+class Outcome:
+    """How a ``local`` run ended: its exit code and the words the summary starts with."""
+
+    code: int
+    words: str
 
 
 def run_local(
@@ -170,88 +285,135 @@ def run_local(
     grace_s: float = 30.0,
     learners: int | None = None,
     credentials: Credentials = NO_CREDENTIALS,
+    run: PlayableRun | None = None,
 ) -> int:
     """Run :func:`plan`'s children (``command + [role] + child_args`` plus their ports and
-    ``role_args[role]``). Returns 0 when every learner has exited 0 (finished its budget, or retired
-    by the evolver; then the actors and then the replays and the evolver are stopped; replays save),
-    130 on SIGINT/SIGTERM (every child gets SIGINT, then SIGTERM and SIGKILL after ``grace_s``), 1
-    when a child fails or a replay or the evolver exits (the others are stopped). ``credentials``
-    are the launcher's own, for asking the evolver whether the learners have registered."""
+    ``role_args[role]``) until every learner has exited 0, a child fails, or a signal; stop them in
+    order; print ``run``'s summary. Returns the exit code (the module docstring). ``credentials``
+    are the launcher's own, for asking the evolver who registered."""
     children = LocalProcesses()
-    stop = stop_on_signals()
+    signals = LauncherSignals()
+    population = learners is not None
+    learner_ids: dict[str, int] = {}
     try:
-        planned = plan(command, child_args, actors, role_args, learners)
-        for name, argv in planned:
-            if not name.startswith("actor"):
-                children.start(name, argv)
-        code = None
-        if learners is not None:
-            evolver = planned[0][1]
-            address = f"{LOCAL_HOST}:{evolver[evolver.index('--evolver_port') + 1]}"
-            code = _wait_for_learners(children, stop, address, credentials)
-        if code is None:
-            for name, argv in planned:
-                if name.startswith("actor"):
-                    children.start(name, argv)
-            code = _supervise(children, stop)
-    except KeyboardInterrupt:
-        code = 130
-    if code == 0:  # the budget is spent: actors first (nothing left to learn from), then replays and evolver
-        actor_names = children.names("actor")
-        children.signal(actor_names, signal.SIGINT)
-        children.wait_all(grace_s, actor_names)
-        rest = children.names("replay") + children.names("evolver")
-        children.signal(rest, signal.SIGINT)
-        children.wait_all(grace_s, rest)  # a second SIGINT (stop_all's) would cut their shutdown short
-    try:
-        children.stop_all(grace_s)
-    except KeyboardInterrupt:  # a second Ctrl-C: no more waiting
-        os.killpg(children.pgid, signal.SIGKILL)
-        children.wait_all(5.0)
-        code = 130
-    return code
+        try:
+            outcome = _run(children, signals, plan(command, child_args, actors, role_args, learners), credentials,
+                           learner_ids, population)  # fmt: skip
+            children.stop_in_order(grace_s)
+        except KeyboardInterrupt:  # a second signal: no more waiting
+            children.kill_all()
+            outcome = Outcome(signals.exit_code, f"stopped by force ({_signal_name(signals.signum)} twice)")
+    except KeyboardInterrupt:  # a third, while killing: the children are SIGKILLed already or soon gone
+        children.kill_all()
+        outcome = Outcome(signals.exit_code, "stopped by force")
+    children.drain()
+    if run is not None:
+        ids = sorted(learner_ids.values()) if population else None
+        print("\n".join(summary(run, outcome.words, ids)), flush=True)
+    return outcome.code
 
 
-def _supervise(children: LocalProcesses, stop: threading.Event) -> int:
+def _signal_name(signum: int | None) -> str:
+    return signal.Signals(signum or signal.SIGINT).name
+
+
+def _run(
+    children: LocalProcesses,
+    signals: LauncherSignals,
+    planned: list[tuple[str, list[str]]],
+    credentials: Credentials,
+    learner_ids: dict[str, int],
+    population: bool,
+) -> Outcome:
+    """Start the children and supervise them: the outcome that ends the run (nothing stopped yet)."""
+    for name, argv in planned:
+        if _role(name) != "actor":
+            children.start(name, argv, labelled=not population or name == "evolver")
+    if population:
+        evolver = planned[0][1]
+        address = f"{LOCAL_HOST}:{evolver[evolver.index('--evolver_port') + 1]}"
+        ports = {n: argv[argv.index("--replay_port") + 1] for n, argv in planned if _role(n) == "replay"}
+        failed = _wait_for_learners(children, signals.stop, address, credentials, learner_ids, ports)
+        if failed is not None:
+            return failed
+    for name, argv in planned:
+        if _role(name) == "actor" and not signals.stop.is_set():
+            children.start(name, argv)
+    return _supervise(children, signals)
+
+
+def _supervise(children: LocalProcesses, signals: LauncherSignals) -> Outcome:
     learners = children.names("learner")
-    while not stop.wait(0.2):
-        if _failed(children):
-            return 1
+    while not signals.stop.wait(0.2):
+        if (failed := _failed(children)) is not None:
+            return failed
         if all(children.children[n].poll() == 0 for n in learners):
             log.info("%s finished", "learner" if len(learners) == 1 else f"all {len(learners)} learners")
-            return 0
-    return 130
+            return Outcome(0, "finished")
+    return _interrupted(signals)
 
 
-def _failed(children: LocalProcesses) -> bool:
-    """Whether a child failed, or a replay or the evolver exited (logged); learners and actors exit 0 when done."""
+def _interrupted(signals: LauncherSignals) -> Outcome:
+    return Outcome(signals.exit_code, f"interrupted ({_signal_name(signals.signum)})")
+
+
+def _failed(children: LocalProcesses) -> Outcome | None:
+    """Exit code 1 when a child failed, or a replay or the evolver exited (logged); learners and
+    actors exit 0 when done."""
     for name, proc in children.children.items():
         code = proc.poll()
-        if code is not None and (code != 0 or name.split("-")[0] in ("replay", "evolver")):
-            log.error("%s exited with code %d: stopping the others", name, code)
-            return True
-    return False
+        if code is not None and (code != 0 or _role(name) in ("replay", "evolver")):
+            label = children.labels.get(name, f"{_role(name)} pid {proc.pid}")
+            log.error("%s exited with code %d: stopping the others", label, code)
+            return Outcome(1, f"failed ({label} exited with code {code})")
+    return None
 
 
 def _wait_for_learners(
-    children: LocalProcesses, stop: threading.Event, evolver: str, credentials: Credentials
-) -> int | None:
-    """Wait until every learner child is registered with the evolver at ``evolver`` and has a replay:
-    None; or the exit code when a child failed (1) or a signal came (130) first."""
-    count, waiting = len(children.names("learner")), Throttle(30.0)
+    children: LocalProcesses,
+    stop: threading.Event,
+    evolver: str,
+    credentials: Credentials,
+    learner_ids: dict[str, int],
+    replay_ports: dict[str, str],
+) -> Outcome | None:
+    """Wait until every learner child is registered with the evolver at ``evolver`` and has a replay,
+    labelling each learner (and replay) with the id the evolver gave it (``learner_ids``: child name
+    -> id): None; or the outcome when a child failed or a signal came first."""
+    count, waiting, started = len(children.names("learner")), Throttle(30.0), time.monotonic()
     with EvolverClient(evolver, rpc_timeout_s=2.0, retry=RetryPolicy(attempts=1), credentials=credentials) as client:
         while not stop.wait(1.0):
-            if _failed(children):
-                return 1
+            if (failed := _failed(children)) is not None:
+                return failed
             try:
-                ready = sum(1 for x in client.info().learners if x.live and x.replay_address)
+                live = [x for x in client.info().learners if x.live]
             except grpc.RpcError:
-                ready = 0
-            if ready >= count:
+                live = []
+            _label_members(children, live, learner_ids, replay_ports)
+            if sum(1 for x in live if x.replay_address) >= count and not children.unlabelled():
                 return None
+            if time.monotonic() - started > HOLD_LINES_S:
+                children.release()
             if waiting():
-                log.info("actors start once %d learners have registered with a replay each (%d so far)", count, ready)
-    return 130
+                log.info("actors start once %d learners have registered with a replay each (%d so far)", count,
+                         sum(1 for x in live if x.replay_address))  # fmt: skip
+    return None
 
 
-__all__ = ["LOCAL_HOST", "LocalProcesses", "free_port", "plan", "run_local", "stop_on_signals"]
+def _label_members(
+    children: LocalProcesses, live: list[LearnerInfo], learner_ids: dict[str, int], replay_ports: dict[str, str]
+) -> None:
+    """Name each learner child after the id the evolver lists for its pid, each replay child after the
+    learner it serves (the evolver lists that learner's replay at ``127.0.0.1:<port>``)."""
+    pids = {children.children[n].pid: n for n in children.names("learner")}
+    replays = {f"{LOCAL_HOST}:{port}": name for name, port in replay_ports.items()}
+    for x in live:
+        if (m := _PID.search(x.name)) is not None and (name := pids.get(int(m.group(1)))) is not None:
+            learner_ids[name] = x.learner_id
+            children.relabel(name, f"learner-{x.learner_id}")
+        if (name := replays.get(x.replay_address)) is not None:
+            children.relabel(name, f"replay-{x.learner_id}")
+
+
+__all__ = ["LOCAL_HOST", "STOP_ORDER", "LauncherSignals", "LocalProcesses", "free_port", "plan", "run_local",
+           "stop_on_signals"]  # fmt: skip

@@ -24,29 +24,22 @@ learner k works in ``<run>/learner_<k>/`` (ds/population.py).
 from __future__ import annotations
 
 import logging
-import os
 import shutil
 import socket
 import threading
 import time
-from collections.abc import Callable
-from dataclasses import dataclass, field, replace
-from pathlib import Path
-from typing import TypeVar
+from dataclasses import replace
+from typing import Any
 
-import zmq
 from grpc_health.v1 import health
 
-from algorithm.actor import VectorEnvLike
-from algorithm.config import ConfigError, config_to_yaml
+from algorithm.config import config_to_yaml
 from algorithm.config_schema import Config
 from algorithm.logging import MetricsWriter
-from algorithm.nn.user import ModelBuilder
 from algorithm.replay import PrioritizedTable
 from algorithm.sac import SAC
-from algorithm.spaces import EnvSpec
 from algorithm.trainer import EVAL_SEED_OFFSET, RunDir, load_replay_snapshot, seed_everything
-from ds import evolver_service, learner_service, replay_service
+from ds import learner_service, replay_service
 from ds.actor import DistributedActor
 from ds.evolver import Evolver
 from ds.evolver_link import EvolverLink, Membership, WeightsSnapshot, exit_code, wait_for_replay
@@ -59,6 +52,7 @@ from ds.learner_service import (
     LearnerClient,
     LearnerServicer,
     ParamsStore,
+    Registration,
     learner_message_limit,
     serve_learner,
 )
@@ -74,118 +68,12 @@ from ds.population import (
     member_config,
     wait_for_assignment,
 )
-from ds.replay_codec import message_limit_bytes
 from ds.replay_service import ReplayClient, serve_replay
+from ds.role_context import RoleContext, RoleError, fixed_port, listen, process_name
 from ds.rpc import set_serving, wait_until_serving
-from ds.security import NO_CREDENTIALS, Credentials, warn_if_exposed
+from ds.security import warn_if_exposed
 
 log = logging.getLogger("asac.roles")
-_T = TypeVar("_T")
-
-
-class RoleError(RuntimeError):
-    """A role cannot start (e.g. its port is taken); the message says what to change."""
-
-
-def _listen(what: str, address: str, flag: str, start: Callable[[], _T]) -> _T:
-    try:
-        return start()
-    except (RuntimeError, zmq.ZMQError) as e:
-        raise RoleError(
-            f"{what} cannot listen on {address} ({e}); is the port in use? pick another with {flag}"
-        ) from None
-
-
-@dataclass
-class RoleContext:
-    """What every role needs: the resolved config, its run directory, an env factory
-    ``make_env(num_envs, seed)``, the model builder of the run, the torch device, a stop event, the
-    role's credentials (ds/security.py: the run's shared secret of ``net_config.token_file``, which
-    signs parameters and authenticates rpcs, and its TLS certificates; none: plaintext, unsigned) and
-    this process's ``--override`` flags (applied again on top of the config an evolver gives)."""
-
-    config: Config
-    run_dir: Path
-    make_env: Callable[[int, int], VectorEnvLike]
-    build: ModelBuilder
-    device: str = "cpu"
-    stop: threading.Event = field(default_factory=threading.Event)
-    credentials: Credentials = NO_CREDENTIALS
-    overrides: tuple[str, ...] = ()
-
-    @property
-    def token(self) -> bytes | None:
-        return self.credentials.token
-
-    @property
-    def seed(self) -> int:
-        return int(self.config.sac_config.seed or 0)
-
-    @property
-    def uses_evolver(self) -> bool:
-        return self.config.base_config.evolver_enabled or self.config.net_config.evolver_host is not None
-
-    def spec(self) -> EnvSpec:
-        env = self.make_env(1, self.seed)
-        try:
-            return env.spec
-        finally:
-            env.close()
-
-    def sac(self, spec: EnvSpec, device: str = "cpu") -> SAC:
-        cfg = self.config
-        return SAC(spec, cfg.sac_config, cfg.nn_config, cfg.replay_config, device=device, build=self.build)
-
-    def address(self, role: str) -> str:
-        net = self.config.net_config
-        host, port = {
-            "replay": (net.replay_host, net.replay_port),
-            "learner": (net.learner_host, net.learner_port),
-            "evolver": (net.evolver_host, net.evolver_port),
-        }[role]
-        return f"{host or LOCAL_HOST}:{port}"
-
-    def replay_limit(self, spec: EnvSpec, rnn_state_size: int) -> int:
-        cfg = self.config
-        window = cfg.sac_config.burn_in_step + cfg.sac_config.n_step
-        return message_limit_bytes(
-            spec.sensors,
-            spec.action.size,
-            cfg.replay_config.batch_size,
-            window,
-            rnn_state_size,
-            max_chunk_steps=cfg.actor_config.chunk_length,
-        )
-
-    def replay_client(self, spec: EnvSpec, rnn_state_size: int, address: str | None = None) -> ReplayClient:
-        limit = self.replay_limit(spec, rnn_state_size)
-        return ReplayClient(
-            address or self.address("replay"),
-            spec.sensors,
-            spec.action.size,
-            rnn_state_size,
-            max_message_bytes=limit,
-            credentials=self.credentials,
-            rpc_timeout_s=self.config.net_config.rpc_timeout_s,
-        )
-
-    def evolver_client(self) -> EvolverClient | None:
-        """A client of the evolver once it serves; None if stopped while waiting for it."""
-        client = EvolverClient(self.address("evolver"), token=self.token, credentials=self.credentials)
-        service = evolver_service.SERVICE_NAME
-        if wait_until_serving(client.channel, service, "evolver", client.address, self.stop):
-            return client
-        client.close()
-        return None
-
-
-def _fixed_port(name: str, port: int) -> None:
-    if port == 0:
-        raise ConfigError(f"net_config.{name}: 0 (any free port) cannot be announced to the evolver; name a port")
-
-
-def _name(role: str) -> str:
-    return f"{role} on {socket.gethostname()} (pid {os.getpid()})"
 
 
 # ---------------------------------------------------------------------- evolver
@@ -203,7 +91,7 @@ def run_evolver(role: RoleContext) -> int:
         metrics.close()
         raise
     address = f"{net.bind_host}:{net.evolver_port}"
-    server, port, _ = _listen("evolver", address, "--evolver_port", lambda: serve_evolver(
+    server, port, _ = listen("evolver", address, "--evolver_port", lambda: serve_evolver(
         evolver, address, credentials=role.credentials, health_port=net.health_port))  # fmt: skip
     evolver.start()
     info = evolver.info()
@@ -246,9 +134,9 @@ def run_replay(role: RoleContext, metrics_every_s: float = 10.0) -> int:
 
 def _replay_assignment(role: RoleContext) -> tuple[EvolverClient, AssignmentKeeper, RoleContext] | None:
     net = role.config.net_config
-    _fixed_port("replay_port", net.replay_port)
+    fixed_port("replay_port", net.replay_port)
     host = net.replay_host or (net.bind_host if net.bind_host not in ("0.0.0.0", "::", "") else socket.getfqdn())
-    address, name = f"{host}:{net.replay_port}", _name("replay")
+    address, name = f"{host}:{net.replay_port}", process_name("replay")
     client = role.evolver_client()
     if client is None:
         return None
@@ -296,7 +184,7 @@ def _serve_replay(role: RoleContext, keeper: AssignmentKeeper | None, metrics_ev
         log.info("replay restored from %s: %d steps, the chunk ids of %d actors", path, info["size"], info["producers"])
     checker = health.HealthServicer()
     address = f"{cfg.net_config.bind_host}:{cfg.net_config.replay_port}"
-    server, port = _listen("replay", address, "--replay_port", lambda: serve_replay(
+    server, port = listen("replay", address, "--replay_port", lambda: serve_replay(
         table, address, max_message_bytes=role.replay_limit(spec, rnn), health_servicer=checker, max_workers=64,
         credentials=role.credentials, health_port=cfg.net_config.health_port,
     ))  # fmt: skip
@@ -346,7 +234,7 @@ def run_learner(role: RoleContext, ckpt_step: int | None = None, progress: bool 
     ``<run>/learner_<id>/``, and exits 0, checkpointed, when the evolver retires it."""
     net = role.config.net_config
     params_address = f"tcp://{net.bind_host}:{net.params_port or '*'}"
-    publisher = _listen("learner's parameter broadcast", params_address, "--override net.params_port=PORT",
+    publisher = listen("learner's parameter broadcast", params_address, "--override net.params_port=PORT",
                         lambda: ParamsPublisher(params_address, token=role.token))  # fmt: skip
     # The stream is signed with the token (not encrypted: ZeroMQ carries no TLS here); without one, say so.
     warn_if_exposed(net.bind_host, f"learner's parameter broadcast on {publisher.address}", role.token is not None,
@@ -355,7 +243,7 @@ def run_learner(role: RoleContext, ckpt_step: int | None = None, progress: bool 
     joined: Joined | None = None
     try:
         if role.uses_evolver:
-            _fixed_port("learner_port", net.learner_port)
+            fixed_port("learner_port", net.learner_port)
             if (client := role.evolver_client()) is None:
                 return 130
             if (joined := _join(role, client, int(publisher.address.rsplit(":", 1)[1]))) is None:
@@ -373,7 +261,8 @@ def run_learner(role: RoleContext, ckpt_step: int | None = None, progress: bool 
 def _join(role: RoleContext, client: EvolverClient, params_port: int) -> Joined | None:
     net = role.config.net_config
     static_replay = f"{net.replay_host}:{net.replay_port}" if net.replay_host is not None else ""
-    address = LearnerAddress(_name("learner"), net.learner_host or "", net.learner_port, params_port, static_replay)
+    name, host = process_name("learner"), net.learner_host or ""
+    address = LearnerAddress(name, host, net.learner_port, params_port, static_replay)
     try:
         return join_population(client, role.run_dir, address, role.stop)
     except SlotTaken as e:
@@ -435,7 +324,7 @@ def _train(
         servicer = LearnerServicer(spec, registry, store, publisher_port(publisher), acting, sac.rnn_state_size,
                                    weights=weights)  # fmt: skip
         address = f"{net.bind_host}:{net.learner_port}"
-        server, port, health_ = _listen("learner", address, "--learner_port", lambda: serve_learner(
+        server, port, health_ = listen("learner", address, "--learner_port", lambda: serve_learner(
             servicer, address, max_message_bytes=learner_message_limit(sac), credentials=role.credentials,
             health_port=net.health_port))  # fmt: skip
         eval_env = None
@@ -479,18 +368,20 @@ def publisher_port(publisher: ParamsPublisher) -> int:
 # ---------------------------------------------------------------------- actor
 
 
-def run_actor(role: RoleContext, noise: float | None = None) -> int:
+def run_actor(role: RoleContext, noise: float | None = None, index: int | None = None) -> int:
     """Act (ds/actor.py) until the replay has seen ``max_step`` env steps, ``max_iter`` iterations
     of this actor's env 0 end, or a signal. With an evolver and no ``--learner_host`` it asks the
     evolver for a learner (and its replay and config), and moves to another one when its learner
-    retires or stays away longer than its lease."""
+    retires or stays away longer than its lease. ``index`` (``--index``): the index it asks each
+    learner for (:class:`AsksForIndex`); None: the lowest free one."""
     import torch
 
     torch.set_num_threads(role.config.base_config.torch_threads or 1)  # acting is small: leave cores to the learner
     net = role.config.net_config
     if not role.uses_evolver or net.learner_host is not None:
-        return _act(role, role.address("learner"), net.learner_host or LOCAL_HOST, role.address("replay"), noise)
-    name = _name("actor")
+        host = net.learner_host or LOCAL_HOST
+        return _act(role, role.address("learner"), host, role.address("replay"), noise, index=index)
+    name = process_name("actor")
     client = role.evolver_client()
     if client is None:
         return 130
@@ -512,7 +403,7 @@ def run_actor(role: RoleContext, noise: float | None = None) -> int:
                 log.info("actor works for learner %d at %s:%d (replay %s)", job.learner_id, job.learner_host,
                          job.learner_port, job.replay_address)  # fmt: skip
                 learner = f"{job.learner_host}:{job.learner_port}"
-                code = _act(member, learner, job.learner_host, job.replay_address, noise, name)
+                code = _act(member, learner, job.learner_host, job.replay_address, noise, name, index)
                 if role.stop.is_set():
                     return 130
                 if not halt.is_set():
@@ -523,6 +414,20 @@ def run_actor(role: RoleContext, noise: float | None = None) -> int:
         client.close()
 
 
+class AsksForIndex(LearnerClient):
+    """A learner client whose registrations ask for ``index`` when the actor names none of its own
+    (its first one: an actor registering again asks for the index it had), so that ``local``'s
+    ``[actor-k]`` is the learner's index k (ds/local.py). Taken by another live actor: the learner
+    gives the lowest free one, as without."""
+
+    def __init__(self, *args: Any, index: int | None = None, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self.index = index
+
+    def register(self, name: str, preferred_index: int | None = None) -> Registration:
+        return super().register(name, self.index if preferred_index is None else preferred_index)
+
+
 def _act(
     role: RoleContext,
     learner_address: str,
@@ -530,14 +435,15 @@ def _act(
     replay_address: str,
     noise: float | None,
     name: str | None = None,
+    index: int | None = None,
 ) -> int:
     seed_everything(role.seed)
     spec = role.spec()
     sac = role.sac(spec)
     replay = role.replay_client(spec, sac.rnn_state_size, replay_address)
-    learner = LearnerClient(learner_address, spec, sac.rnn_state_size, max_message_bytes=learner_message_limit(sac),
-                            credentials=role.credentials,
-                            rpc_timeout_s=role.config.net_config.rpc_timeout_s)  # fmt: skip
+    learner = AsksForIndex(learner_address, spec, sac.rnn_state_size, max_message_bytes=learner_message_limit(sac),
+                           credentials=role.credentials, rpc_timeout_s=role.config.net_config.rpc_timeout_s,
+                           index=index)  # fmt: skip
     try:
         actor = DistributedActor(role.config, role.run_dir, role.make_env, sac, replay, learner, learner_host,
                                  noise=noise, stop=role.stop, token=role.token, name=name)  # fmt: skip

@@ -1,0 +1,88 @@
+"""The few lines ``main_ds.py TASK local`` prints last: how the run ended, its final evaluation
+return, where it lies and the command that plays it (``main.py --run``, which finds a run as
+``<model_root>/<task>/<name>/``, a population's learner k as ``-n <name>/learner_<k>``).
+
+Usage (ds/local.py, once every child has stopped)::
+
+    run = PlayableRun("gym/pendulum", "base", Path("models/gym/pendulum/base"), "models", main_py)
+    print("\\n".join(summary(run, "finished", learner_ids=None)))   # learner_ids=[0, 1]: a population
+
+Read from what the learners wrote (``evaluations.csv``: its last row's ``return_mean``; ``model/``:
+a checkpoint to play), so it says the same whether the run finished or was interrupted.
+"""
+
+from __future__ import annotations
+
+import os
+import shlex
+import shutil
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+
+from algorithm.checkpoint import list_checkpoints
+from algorithm.evaluation import read_evaluations
+from algorithm.trainer import RunDir
+
+DEFAULT_MODEL_ROOT = "models"  # main.py's --model_root default: the play command leaves it out
+
+
+@dataclass(frozen=True)
+class PlayableRun:
+    """A run as ``main.py --run`` finds it: ``task``, ``name`` (``-n``), its ``folder``
+    (``<model_root>/<task>/<name>``), ``model_root`` and the path of ``main.py``."""
+
+    task: str
+    name: str
+    folder: Path
+    model_root: str
+    main_py: Path
+
+
+def summary(run: PlayableRun, outcome: str, learner_ids: list[int] | None) -> list[str]:
+    """The lines to print: ``outcome`` (e.g. "finished", "interrupted (SIGINT)"), then the run folder
+    and, for the run or each of ``learner_ids`` (a population), its final return and play command."""
+    lines = [f"== local run {outcome} ==", f"run folder: {run.folder}"]
+    if learner_ids is None:
+        return lines + _member_lines(run, run.folder, run.name, "")
+    if not learner_ids:
+        return lines + ["no learner registered with the evolver: nothing to play"]
+    for k in sorted(learner_ids):
+        lines += _member_lines(run, run.folder / f"learner_{k}", f"{run.name}/learner_{k}", f"learner {k}: ")
+    return lines
+
+
+def _member_lines(run: PlayableRun, folder: Path, name: str, who: str) -> list[str]:
+    paths = RunDir(folder)
+    rows = read_evaluations(paths.evaluations) if paths.evaluations.is_file() else []
+    if rows:
+        last = rows[-1]
+        result = f"final evaluation return {last['return_mean']:.1f} (at {int(last['env_steps'])} env steps)"
+    else:
+        result = f"no evaluation yet ({paths.evaluations} is missing or empty)"
+    if not list_checkpoints(paths.model):
+        return [f"{who}{result}", f"{who}nothing to play yet: no checkpoint in {paths.model}"]
+    command = [python_command(), _shown(run.main_py), run.task, "-n", name, "--run"]
+    if run.model_root != DEFAULT_MODEL_ROOT:
+        command += ["--model_root", run.model_root]
+    return [f"{who}{result}", f"{who}play it: {shlex.join(command)}"]
+
+
+def python_command() -> str:
+    """``python`` when that is this interpreter on PATH, else this interpreter's path (a venv's, say)."""
+    found = shutil.which("python")
+    if found is not None and Path(found).absolute() == Path(sys.executable).absolute():
+        return "python"
+    return _shown(Path(sys.executable))
+
+
+def _shown(path: Path) -> str:
+    """``path`` relative to the working directory when it lies inside it, else absolute."""
+    absolute = Path(os.path.abspath(path))
+    try:
+        return str(absolute.relative_to(Path.cwd()))
+    except ValueError:
+        return str(absolute)
+
+
+__all__ = ["PlayableRun", "python_command", "summary"]

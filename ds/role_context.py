@@ -1,0 +1,143 @@
+"""What every role process is given (:class:`RoleContext`) and the small helpers the role loops of
+ds/roles.py share: how a server that cannot listen fails (:class:`RoleError`), and how a role names
+itself to its peers.
+
+Split out of ds/roles.py so that the role loops can live in modules of their own; like ds/roles.py
+it touches no envs itself (they arrive as the ``make_env`` factory).
+"""
+
+from __future__ import annotations
+
+import os
+import socket
+import threading
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TypeVar
+
+import zmq
+
+from algorithm.actor import VectorEnvLike
+from algorithm.config import ConfigError
+from algorithm.config_schema import Config
+from algorithm.nn.user import ModelBuilder
+from algorithm.sac import SAC
+from algorithm.spaces import EnvSpec
+from ds import evolver_service
+from ds.evolver_service import EvolverClient
+from ds.local import LOCAL_HOST
+from ds.replay_codec import message_limit_bytes
+from ds.replay_service import ReplayClient
+from ds.rpc import wait_until_serving
+from ds.security import NO_CREDENTIALS, Credentials
+
+_T = TypeVar("_T")
+
+
+class RoleError(RuntimeError):
+    """A role cannot start (e.g. its port is taken); the message says what to change."""
+
+
+def listen(what: str, address: str, flag: str, start: Callable[[], _T]) -> _T:
+    try:
+        return start()
+    except (RuntimeError, zmq.ZMQError) as e:
+        raise RoleError(
+            f"{what} cannot listen on {address} ({e}); is the port in use? pick another with {flag}"
+        ) from None
+
+
+@dataclass
+class RoleContext:
+    """What every role needs: the resolved config, its run directory, an env factory
+    ``make_env(num_envs, seed)``, the model builder of the run, the torch device, a stop event, the
+    role's credentials (ds/security.py: the run's shared secret of ``net_config.token_file``, which
+    signs parameters and authenticates rpcs, and its TLS certificates; none: plaintext, unsigned) and
+    this process's ``--override`` flags (applied again on top of the config an evolver gives)."""
+
+    config: Config
+    run_dir: Path
+    make_env: Callable[[int, int], VectorEnvLike]
+    build: ModelBuilder
+    device: str = "cpu"
+    stop: threading.Event = field(default_factory=threading.Event)
+    credentials: Credentials = NO_CREDENTIALS
+    overrides: tuple[str, ...] = ()
+
+    @property
+    def token(self) -> bytes | None:
+        return self.credentials.token
+
+    @property
+    def seed(self) -> int:
+        return int(self.config.sac_config.seed or 0)
+
+    @property
+    def uses_evolver(self) -> bool:
+        return self.config.base_config.evolver_enabled or self.config.net_config.evolver_host is not None
+
+    def spec(self) -> EnvSpec:
+        env = self.make_env(1, self.seed)
+        try:
+            return env.spec
+        finally:
+            env.close()
+
+    def sac(self, spec: EnvSpec, device: str = "cpu") -> SAC:
+        cfg = self.config
+        return SAC(spec, cfg.sac_config, cfg.nn_config, cfg.replay_config, device=device, build=self.build)
+
+    def address(self, role: str) -> str:
+        net = self.config.net_config
+        host, port = {
+            "replay": (net.replay_host, net.replay_port),
+            "learner": (net.learner_host, net.learner_port),
+            "evolver": (net.evolver_host, net.evolver_port),
+        }[role]
+        return f"{host or LOCAL_HOST}:{port}"
+
+    def replay_limit(self, spec: EnvSpec, rnn_state_size: int) -> int:
+        cfg = self.config
+        window = cfg.sac_config.burn_in_step + cfg.sac_config.n_step
+        return message_limit_bytes(
+            spec.sensors,
+            spec.action.size,
+            cfg.replay_config.batch_size,
+            window,
+            rnn_state_size,
+            max_chunk_steps=cfg.actor_config.chunk_length,
+        )
+
+    def replay_client(self, spec: EnvSpec, rnn_state_size: int, address: str | None = None) -> ReplayClient:
+        limit = self.replay_limit(spec, rnn_state_size)
+        return ReplayClient(
+            address or self.address("replay"),
+            spec.sensors,
+            spec.action.size,
+            rnn_state_size,
+            max_message_bytes=limit,
+            credentials=self.credentials,
+            rpc_timeout_s=self.config.net_config.rpc_timeout_s,
+        )
+
+    def evolver_client(self) -> EvolverClient | None:
+        """A client of the evolver once it serves; None if stopped while waiting for it."""
+        client = EvolverClient(self.address("evolver"), token=self.token, credentials=self.credentials)
+        service = evolver_service.SERVICE_NAME
+        if wait_until_serving(client.channel, service, "evolver", client.address, self.stop):
+            return client
+        client.close()
+        return None
+
+
+def fixed_port(name: str, port: int) -> None:
+    if port == 0:
+        raise ConfigError(f"net_config.{name}: 0 (any free port) cannot be announced to the evolver; name a port")
+
+
+def process_name(role: str) -> str:
+    return f"{role} on {socket.gethostname()} (pid {os.getpid()})"
+
+
+__all__ = ["RoleContext", "RoleError", "fixed_port", "listen", "process_name"]

@@ -1,0 +1,270 @@
+"""``main_ds.py TASK local`` from start to end as a user lives it: how it stops (learners first, then
+actors, then replays, the evolver last; no kill in a normal finish), the summary it ends with (and
+that its play command works), and labels that agree with the ids the roles use (ds/local.py).
+
+The first tests run the launcher over stand-in roles (a few lines of Python each, that say when they
+get a signal and when they are done), so the stop order is checked in seconds and exactly; the
+journeys run the real roles on gym/pendulum with tiny budgets.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import shlex
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+from pathlib import Path
+
+import pytest
+
+from ds.local import plan
+from ds.local_summary import python_command
+
+ROOT = Path(__file__).resolve().parents[1]
+ENV = {**os.environ, "OMP_WAIT_POLICY": "PASSIVE", "OMP_NUM_THREADS": "1", "MUJOCO_GL": "egl"}
+TINY_OVERRIDES = [
+    "nn.hidden_units=[16,16]",
+    "replay.batch_size=32",
+    "replay.samples_per_insert=null",
+    "replay.min_size_to_sample=200",
+    "eval.eval_per_step=300",
+    "eval.eval_episodes=2",
+    "eval.eval_envs=2",
+    "sac.write_summary_per_step=50",
+]
+TINY = [arg for override in TINY_OVERRIDES for arg in ("--override", override)] + ["--no_progress"]
+SUMMARY_HEAD = re.compile(r"^== local run (.+) ==$", re.M)
+
+# ---------------------------------------------------------------------- the launcher over stand-in roles
+
+STAND_IN = textwrap.dedent(
+    """
+    import signal, sys, time
+    role = sys.argv[1]
+    def stop(signum, frame):
+        print(f"{role} got {signal.Signals(signum).name}", flush=True)
+        time.sleep(0.5)  # saving
+        print(f"{role} stopped", flush=True)
+        sys.exit(130)
+    signal.signal(signal.SIGINT, stop)
+    signal.signal(signal.SIGTERM, stop)
+    print(f"{role} up", flush=True)
+    if "--finish" in sys.argv:
+        time.sleep(1.5)
+        print(f"{role} finished", flush=True)
+        sys.exit(0)
+    while True:
+        time.sleep(0.05)
+    """
+)
+LAUNCHER = textwrap.dedent(
+    """
+    import sys
+    from pathlib import Path
+    from ds.local import run_local
+    from ds.local_summary import PlayableRun
+    folder = Path(sys.argv[2])
+    run = PlayableRun("gym/pendulum", "standin", folder, "models", Path("main.py"))
+    finish = {"learner": ["--finish"]} if sys.argv[3] == "finish" else {}
+    sys.exit(run_local([sys.executable, sys.argv[1]], [], 2, finish, grace_s=10.0, run=run))
+    """
+)
+
+
+def launch_stand_ins(tmp_path: Path, how: str) -> subprocess.Popen[str]:
+    """``run_local`` (replay, learner, 2 actors) in a process of its own, over :data:`STAND_IN` roles;
+    ``how``: "finish" (the learner exits 0 by itself after 1.5 s) or "wait" (until a signal)."""
+    (tmp_path / "role.py").write_text(STAND_IN)
+    folder = tmp_path / "run"
+    (folder / "model").mkdir(parents=True)
+    (folder / "model" / "1000.pt").write_bytes(b"")
+    (folder / "evaluations.csv").write_text(
+        "env_steps,updates,wall_seconds,return_mean,return_std\n500,1,1.0,-900.0,1.0\n1000,2,2.0,-321.5,1.0\n"
+    )
+    env = {**ENV, "PYTHONPATH": str(ROOT)}
+    command = [sys.executable, "-c", LAUNCHER, str(tmp_path / "role.py"), str(folder), how]
+    return subprocess.Popen(command, cwd=tmp_path, env=env, text=True, stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
+
+
+def at(lines: list[str], text: str) -> int:
+    """The index of the first line containing ``text`` (fails naming it)."""
+    found = [i for i, line in enumerate(lines) if text in line]
+    assert found, f"no line with {text!r} in:\n" + "\n".join(lines)
+    return found[0]
+
+
+def test_a_normal_finish_stops_actors_then_the_replay_and_ends_with_the_summary(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The learner exits 0 by itself: the actors are told to stop (SIGINT) and have stopped before
+    the replay is told; nobody gets SIGTERM; exit 0; the summary, last, reads the run's files."""
+    launcher = launch_stand_ins(tmp_path, "finish")
+    out, _ = launcher.communicate(timeout=60)
+    lines = out.splitlines()
+    assert launcher.returncode == 0, out
+    assert at(lines, "learner finished") < at(lines, "actor-0] actor got SIGINT")
+    for k in (0, 1):
+        assert at(lines, f"[actor-{k}] actor stopped") < at(lines, "[replay] replay got SIGINT"), out
+    assert "SIGTERM" not in out and "SIGKILL" not in out, out
+    monkeypatch.chdir(tmp_path)  # the launcher's working directory: how it shows the interpreter's path
+    assert lines[-4:] == [
+        "== local run finished ==",
+        f"run folder: {tmp_path / 'run'}",
+        "final evaluation return -321.5 (at 1000 env steps)",
+        f"play it: {shlex.join([python_command(), 'main.py', 'gym/pendulum', '-n', 'standin', '--run'])}",
+    ], out
+
+
+def test_sigterm_to_the_launcher_stops_learner_then_actors_then_replay_and_exits_143(tmp_path: Path) -> None:
+    """SIGTERM to the launcher: the learner is told first and has stopped (saved) before the actors
+    are told, and they have before the replay is; exit 143; the summary says interrupted."""
+    launcher = launch_stand_ins(tmp_path, "wait")
+    assert launcher.stdout is not None
+    seen: list[str] = []
+    for line in launcher.stdout:  # every child up: then stop the launcher
+        seen.append(line.rstrip("\n"))
+        if sum(" up" in x for x in seen) == 4:
+            break
+    launcher.send_signal(signal.SIGTERM)
+    out, _ = launcher.communicate(timeout=60)
+    lines = seen + out.splitlines()
+    assert launcher.returncode == 143, "\n".join(lines)
+    assert at(lines, "[learner] learner stopped") < at(lines, "[actor-0] actor got SIGINT")
+    assert at(lines, "[learner] learner stopped") < at(lines, "[actor-1] actor got SIGINT")
+    for k in (0, 1):
+        assert at(lines, f"[actor-{k}] actor stopped") < at(lines, "[replay] replay got SIGINT")
+    assert "got SIGTERM" not in out, "a child got SIGTERM: " + out
+    assert lines[-4] == "== local run interrupted (SIGTERM) ==", out
+
+
+def test_actor_k_is_started_asking_for_index_k() -> None:
+    """Both a one-learner run and a population give actor k ``--index k``, the index it asks for."""
+    for learners in (None, 2):
+        for name, argv in plan(["main_ds.py", "gym/pendulum"], [], 3, learners=learners):
+            if name.startswith("actor-"):
+                assert argv[argv.index("--index") + 1] == name.removeprefix("actor-")
+
+
+# ---------------------------------------------------------------------- journeys on real processes
+
+
+def command(*args: str) -> list[str]:
+    return [sys.executable, str(ROOT / "main_ds.py"), *args]
+
+
+def summary_of(output: str) -> tuple[str, list[str]]:
+    """The summary's outcome words and its lines, checked to be the last lines of ``output``."""
+    heads = list(SUMMARY_HEAD.finditer(output))
+    assert len(heads) == 1, f"one summary expected:\n{output[-4000:]}"
+    lines = output[heads[0].start() :].strip().splitlines()
+    assert all(not line.startswith("[") and " INFO " not in line for line in lines), lines  # nothing after it
+    return heads[0].group(1), lines
+
+
+def play_command(lines: list[str]) -> list[str]:
+    plays = [line.split("play it: ", 1)[1] for line in lines if "play it: " in line]
+    assert plays, lines
+    return shlex.split(plays[0])
+
+
+def first(pattern: str, output: str) -> int:
+    """Where the first match of ``pattern`` starts in ``output`` (fails naming it)."""
+    match = re.search(pattern, output, re.M)
+    assert match, f"no {pattern!r} in:\n{output[-4000:]}"
+    return match.start()
+
+
+def check_actor_labels(output: str) -> None:
+    """Every line where an actor says its index is prefixed by the launcher with that index."""
+    said = re.findall(r"^\[actor-(\d+)\] .*(?:: index (\d+),| actor (\d+) (?:finished|stopped) after)", output, re.M)
+    assert said, output[-4000:]
+    for label, *index in said:
+        assert label == next(i for i in index if i), f"[actor-{label}] says index {index}:\n{output[-4000:]}"
+
+
+@pytest.mark.slow
+@pytest.mark.grpc
+def test_a_local_run_finishes_in_order_and_its_summary_plays_it(tmp_path: Path) -> None:
+    """``local --actors 2`` to its budget: exit 0 in well under the old 30 s grace; the learner's
+    checkpoint before the replay is told to stop; no traceback, no unsent chunks, no kill; the last
+    lines are the summary, whose play command works; ``[actor-k]`` is index k."""
+    started = time.monotonic()
+    done = subprocess.run(command("gym/pendulum", "local", "--actors", "2", "-n", "journey", *TINY,
+                                  "--override", "base.max_step=1000"),
+                          cwd=tmp_path, env=ENV, text=True, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                          timeout=120)  # fmt: skip
+    out = done.stdout
+    assert done.returncode == 0, out[-4000:]
+    assert time.monotonic() - started < 60, out[-4000:]
+    assert first(r"^\[learner\] .*checkpoint ", out) < first(r"^\[replay\] .*SIGINT: stopping", out)
+    for bad in ("Traceback", "could not be inserted", "SIGTERM", "SIGKILL"):
+        assert bad not in out, f"{bad!r} in:\n{out[-4000:]}"
+    check_actor_labels(out)
+    outcome, lines = summary_of(out)
+    assert outcome == "finished"
+    assert "run folder: models/gym/pendulum/journey" in lines
+    assert any(line.startswith("final evaluation return ") for line in lines), lines
+    play = play_command(lines)
+    assert play[-4:] == ["gym/pendulum", "-n", "journey", "--run"] and play[1].endswith("main.py"), play
+    played = subprocess.run(play, cwd=tmp_path, env=ENV, text=True, capture_output=True, timeout=120)
+    assert played.returncode == 0, played.stdout + played.stderr
+    assert "models/gym/pendulum/journey checkpoint" in played.stdout
+
+
+@pytest.mark.slow
+@pytest.mark.grpc
+@pytest.mark.fault
+def test_ctrl_c_mid_run_stops_the_learner_before_the_replay_and_says_interrupted(tmp_path: Path) -> None:
+    """SIGINT to the launcher mid-run: exit 130; the learner checkpointed and said it stopped before
+    the replay was told to stop; the replay saved; the summary says interrupted and plays the run."""
+    log = tmp_path / "local.log"
+    with log.open("w") as sink:
+        proc = subprocess.Popen(command("gym/pendulum", "local", "--actors", "2", "-n", "ctrl_c", *TINY,
+                                        "--override", "base.max_step=-1", "--override", "replay.save_replay=true"),
+                                cwd=tmp_path, env=ENV, stdout=sink, stderr=subprocess.STDOUT)  # fmt: skip
+    deadline = time.monotonic() + 60
+    while "eval at" not in log.read_text():
+        assert proc.poll() is None, log.read_text()[-4000:]
+        assert time.monotonic() < deadline, "the run did not get going: " + log.read_text()[-4000:]
+        time.sleep(0.3)
+    proc.send_signal(signal.SIGINT)  # what Ctrl-C in a terminal sends the launcher
+    assert proc.wait(timeout=60) == 130, log.read_text()[-4000:]
+    out = log.read_text()
+    run = tmp_path / "models/gym/pendulum/ctrl_c"
+    assert list(run.glob("model/*.pt")), "no checkpoint"
+    assert (run / "replay/replay.npz").is_file(), "the replay did not save"
+    assert first(r"^\[learner\] .*learner stopped after", out) < first(r"^\[replay\] .*SIGINT: stopping", out)
+    assert first(r"^\[learner\] .*learner stopped after", out) < first(r"^\[actor-\d\] .*SIGINT: stopping", out)
+    assert "Traceback" not in out and "SIGKILL" not in out, out[-4000:]
+    check_actor_labels(out)
+    outcome, lines = summary_of(out)
+    assert outcome == "interrupted (SIGINT)", lines
+    assert play_command(lines)[-4:] == ["gym/pendulum", "-n", "ctrl_c", "--run"], lines
+
+
+@pytest.mark.slow
+@pytest.mark.grpc
+def test_a_population_labels_each_learner_and_replay_with_the_evolver_id(tmp_path: Path) -> None:
+    """``local --learners 2``: ``[learner-k]`` is the evolver's learner k, writing ``learner_k/``;
+    ``[replay-k]`` serves learner k; the summary plays each learner's folder."""
+    done = subprocess.run(command("gym/pendulum", "local", "--learners", "2", "--actors", "2", "-n", "pop", *TINY,
+                                  "--override", "base.max_step=600"),
+                          cwd=tmp_path, env=ENV, text=True, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                          timeout=150)  # fmt: skip
+    out = done.stdout
+    assert done.returncode == 0, out[-4000:]
+    said = re.findall(r"^\[learner-(\d+)\] .*learner (\d+) of 'pop' in \S+/learner_(\d+)", out, re.M)
+    assert sorted(label for label, _, _ in said) == ["0", "1"], out[-4000:]
+    assert all(label == learner == folder for label, learner, folder in said), said
+    served = re.findall(r"^\[replay-(\d+)\] .*serves learner (\d+)", out, re.M)
+    assert sorted(served) == [("0", "0"), ("1", "1")], out[-4000:]
+    for label in re.findall(r"^\[learner-(\d+)\] .*checkpoint (\S+)", out, re.M):
+        assert f"/learner_{label[0]}/" in label[1], label
+    check_actor_labels(out)
+    _, lines = summary_of(out)
+    for k in (0, 1):
+        assert any(f"-n pop/learner_{k} --run" in line for line in lines), lines
