@@ -295,7 +295,8 @@ class LearnerCore:
         c, cfg = self.counters, self.config.sac_config
         while c.next_save <= c.env_steps:
             c.next_save += cfg.save_model_per_step
-        state = {"sac": self.sac.state_dict(), "counters": asdict(c), "rng": capture_rng(), **self.extra_state()}
+        extra = self.extra_state()  # first: it may bring counters up to date (the budget's balance)
+        state = {"sac": self.sac.state_dict(), "counters": asdict(c), "rng": capture_rng(), **extra}
         path = save_checkpoint(self.paths.model, c.env_steps, state, keep=cfg.keep_checkpoints)
         self._last_save = time.perf_counter()
         log.debug("checkpoint %s (%d updates)", path, c.updates)

@@ -96,11 +96,12 @@ class ProgressLine:
             return
         self._last = now
         ret = "   n/a" if recent_return is None else f"{recent_return:8.1f}"
-        if self.total > 0:
+        if self.total > 0:  # never past 100% or a negative ETA (a distributed run may end a chunk over)
             frac = min(env_steps / self.total, 1.0)
-            eta = (self.total - env_steps) / steps_per_s if steps_per_s > 0 else float("inf")
+            left = max(self.total - env_steps, 0)
+            eta = left / steps_per_s if steps_per_s > 0 else (0.0 if not left else float("inf"))
             bar = "#" * int(20 * frac) + "-" * (20 - int(20 * frac))
-            head = f"[{bar}] {env_steps:>9,d}/{self.total:,d} steps"
+            head = f"[{bar}] {min(env_steps, self.total):>9,d}/{self.total:,d} steps"
             tail = f" | ETA {_fmt_seconds(eta)}"
         else:
             head, tail = f"{env_steps:>9,d} steps", ""

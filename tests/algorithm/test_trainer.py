@@ -3,6 +3,7 @@ TensorBoard and evaluations.csv read back."""
 
 from __future__ import annotations
 
+import threading
 from pathlib import Path
 
 import numpy as np
@@ -214,3 +215,25 @@ def test_actors_act_with_weights_published_every_n_updates(tmp_path: Path) -> No
         assert same(acting, published)  # exactly the last publication
         seen_stale |= not same(acting, trainer.sac.acting_state_dict())
     assert seen_stale
+
+
+def test_updates_owed_at_a_checkpoint_are_dropped_when_its_replay_did_not_come_back(tmp_path: Path) -> None:
+    # Issue 14: a run stopped while paying updates saved owed_updates > 0; resumed without its
+    # replay, it waited forever for a batch from an empty table. Now the balance is dropped and the
+    # resumed run refills the replay, then pays 1 update per step as before.
+    config = small_config("base.max_step=300", "eval.eval_per_step=0", "replay.save_replay_on_stop=false")
+    first = make_trainer(config, tmp_path / "run", with_eval=False)
+    first.run(until_step=200)
+    updates_before = first.updates
+    first.budget.owed = 5.0
+    first.save()
+    assert not (tmp_path / "run/replay").exists()
+
+    resumed = make_trainer(small_config("base.max_step=300", "eval.eval_per_step=0"), tmp_path / "run", False)
+    assert resumed.budget.owed == 0.0 and resumed.table.rate_limiter.size == 0
+    done = threading.Thread(target=resumed.run, daemon=True)
+    done.start()
+    done.join(60)
+    assert not done.is_alive(), "the resumed run waits for updates no data can pay"
+    # 100 new steps refill the replay to min_size_to_sample=100: the last of them earns one update.
+    assert resumed.env_steps == 300 and resumed.updates - updates_before in (0, 1)
