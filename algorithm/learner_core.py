@@ -113,6 +113,16 @@ class UpdateBudget:
             self.owed = 0.0
 
 
+def sample_age(keys: np.ndarray, newest_key: int, chunk_length: int) -> dict[str, float]:
+    """How old sampled data is, in env steps since it was stored (median and 95th percentile of a
+    batch's windows): keys count stored rows, one of every ``chunk_length + 1`` a chunk's bootstrap
+    row, so ``rows * T / (T + 1)`` steps. Distributed, ``newest_key`` is as of the learner's last
+    replay poll (at most ``info_every_s`` old), so ages there read low by that much."""
+    rows = np.maximum(newest_key - keys.astype(np.int64), 0) * (chunk_length / (chunk_length + 1))
+    median, p95 = np.percentile(rows, [50, 95])
+    return {"replay/sample_age_steps_median": float(median), "replay/sample_age_steps_p95": float(p95)}
+
+
 class TrainingSink(Protocol):
     """Where the results of an update go: the table's priorities and refreshed recurrent states."""
 
@@ -126,7 +136,7 @@ class LearnerCore:
     (the evolver link posts it); ``publish`` after every ``update_policy_variables_per_step``
     updates (where weights go: an acting copy in-process, ZeroMQ subscribers distributed);
     ``extra_state()`` is what the mode adds to each checkpoint (and reads back from :meth:`restore`'s
-    state)."""
+    state); ``newest_key()`` the replay's next key, for the age of sampled data (:func:`sample_age`)."""
 
     def __init__(
         self,
@@ -140,6 +150,7 @@ class LearnerCore:
         publish: Callable[[], None] = lambda: None,
         on_evaluation: Callable[[float, int], None] = lambda mean, steps: None,
         extra_state: Callable[[], dict[str, Any]] = dict,
+        newest_key: Callable[[], int] | None = None,
     ) -> None:
         self.config = config
         self.paths = RunDir(Path(run_dir))
@@ -152,9 +163,11 @@ class LearnerCore:
         self.publish = publish
         self.on_evaluation = on_evaluation
         self.extra_state = extra_state
+        self.newest_key = newest_key
         self.counters = RunCounters(
             next_eval=config.eval_config.eval_per_step, next_save=config.sac_config.save_model_per_step
         )
+        self._chunk_length = config.actor_config.chunk_length
         self.timers = Timers()
         self.update_rate = RateMeter()
         self.writer: MetricsWriter | None = None
@@ -235,7 +248,8 @@ class LearnerCore:
             with self.timers.phase("publish"):
                 self.publish()
         if with_metrics:
-            self.write_summary({**result.metrics, **extra_metrics()})
+            age = {} if self.newest_key is None else sample_age(batch.keys, self.newest_key(), self._chunk_length)
+            self.write_summary({**result.metrics, **age, **extra_metrics()})
         return result
 
     def write_summary(self, metrics: dict[str, float]) -> None:

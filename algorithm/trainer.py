@@ -131,6 +131,7 @@ class EmbeddedTrainer:
         self.core = LearnerCore(
             config, self.paths.root, self.sac, log_dir=self.paths.log, eval_env=eval_env, progress=progress,
             publish=self._publish, extra_state=self._extra_state,
+            newest_key=lambda: int(self.table.info()["next_key"]),
         )  # fmt: skip
         self.budget = UpdateBudget(replay_cfg.updates_per_step, replay_cfg.min_size_to_sample)
         self.recent_returns: deque[float] = deque(maxlen=10)

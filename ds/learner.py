@@ -139,6 +139,7 @@ class Learner:
         self.priorities = PriorityUpdater(replay)
         self.rnn_refreshes_skipped = 0
         self.replay_surplus = 0.0  # windows the replay's rate limiter still lets this learner draw
+        self.replay_next_key = 0  # the replay's next key at the last poll: how old sampled data is
         self.sink = _ReplaySink(self)
         on_evaluation: Callable[[float, int], None] = (
             (lambda mean, steps: None) if member is None else member.link.post
@@ -146,6 +147,7 @@ class Learner:
         self.core = LearnerCore(
             config, Path(run_dir), sac, log_dir=Path(run_dir) / "log" / "learner", eval_env=eval_env,
             progress=progress, publish=self.publish, on_evaluation=on_evaluation,
+            newest_key=lambda: self.replay_next_key,
         )  # fmt: skip
         self.paths = self.core.paths
         self.env_steps = EnvSteps()
@@ -283,6 +285,7 @@ class Learner:
         self.core.counters.env_steps = self.env_steps.observe(int(info["inserted_steps"]))
         self.core.counters.replay_inserted_seen = self.env_steps.seen
         self.replay_surplus = float(info.get("rate_limiter_surplus", 0.0))
+        self.replay_next_key = int(info.get("next_key", 0))
         if self.config.sac_config.use_normalization and info.get("normalizer"):
             self.sac.load_normalizer_stats(info["normalizer"])
 

@@ -7,6 +7,7 @@ import threading
 from pathlib import Path
 
 import numpy as np
+import pytest
 import torch
 
 from algorithm.config import load_config
@@ -169,6 +170,8 @@ def test_run_directory_contents(tmp_path: Path) -> None:
         "actor/episode_return",
         "actor/episode_length",
         "replay/size",
+        "replay/sample_age_steps_median",
+        "replay/sample_age_steps_p95",
         "eval/return_mean",
         "time/update_fraction",
         "time/env_fraction",
@@ -237,3 +240,12 @@ def test_updates_owed_at_a_checkpoint_are_dropped_when_its_replay_did_not_come_b
     assert not done.is_alive(), "the resumed run waits for updates no data can pay"
     # 100 new steps refill the replay to min_size_to_sample=100: the last of them earns one update.
     assert resumed.env_steps == 300 and resumed.updates - updates_before in (0, 1)
+
+
+def test_sample_age_counts_env_steps_since_storage_without_bootstrap_rows() -> None:
+    from algorithm.learner_core import sample_age
+
+    # Chunks of 4 steps take 5 rows; keys 0..99 sampled uniformly when the next key is 100.
+    age = sample_age(np.arange(100, dtype=np.uint64), 100, chunk_length=4)
+    assert age["replay/sample_age_steps_median"] == pytest.approx(50.5 * 4 / 5)
+    assert age["replay/sample_age_steps_p95"] == pytest.approx(np.percentile(np.arange(1, 101), 95) * 4 / 5)
