@@ -77,6 +77,7 @@ from ds.evolver_state import (
 )
 from ds.learner_service import LearnerClient
 from ds.params import ParamsError, decode_params
+from ds.replay_feeds import Throttle
 from ds.rpc import RetryPolicy
 from ds.security import NO_CREDENTIALS, Credentials
 
@@ -127,6 +128,7 @@ class Evolver:
         self.check_every_s = float(check_every_s)
         self.save_every_s = float(save_every_s)
         self.retry_round_s = float(retry_round_s)
+        self._log_round_waits = Throttle(60.0)
         self._clock, self._wall = clock, wall_clock
         self._save_lock, self._pop_lock = threading.Lock(), threading.Lock()
         self._events: queue.SimpleQueue[_Event] = queue.SimpleQueue()
@@ -238,9 +240,9 @@ class Evolver:
                 skip = self.registry.gone() | failed
                 taking_part = [i for i in self.population.mean_returns() if i not in skip]
                 if len(taking_part) < 2:
-                    log.warning(
-                        "CEM round waits %.0f s: only %d learners can take part", self.retry_round_s, len(taking_part)
-                    )
+                    if self._log_round_waits():  # every retry_round_s while it lasts: said once a minute
+                        log.warning("CEM round waits: only %d learners can take part (retrying every %.0f s)",
+                                    len(taking_part), self.retry_round_s)  # fmt: skip
                     self._round_retry_at = self._clock() + self.retry_round_s
                     return None
                 with self._set_aside(skip):

@@ -7,8 +7,9 @@
   address or last served by it (a replay back after its lease ran out gets its learner back); else
   to the first one that was started without a replay and has no live replay assignment. The
   learner then finds the replay's address in its heartbeat replies.
-- Assignments are named ``assignment-<n>``, n counting every assignment made (the actor's index
-  is its learner's business, ds/learner_service.py). Every assignment has a lease renewed by ``AssignmentHeartbeat``; an expired one frees its place.
+- Assignments are named ``assignment-<n>``, n counting every assignment made (an actor's index is
+  its learner's business, ds/learner_service.py). Every assignment has a lease renewed by
+  ``AssignmentHeartbeat``; an expired one frees its place.
   Re-calling Assign with a live ``previous`` assignment (or, for a replay, from the same address)
   returns that assignment renewed, so a retry after a lost reply never takes two places. An
   assignment ends when its learner retires; it survives its learner's lease running out (the

@@ -5,12 +5,13 @@ Usage (``main_ds.py`` resolves the config and run directory, then calls exactly 
     role = RoleContext(config, run_dir, make_env, build, stop=stop_on_signals())
     code = run_replay(role)                 # serves the replay table until stopped
     code = run_learner(role, ckpt_step=None) # trains until replay has seen max_step env steps
-    code = run_actor(role, noise=None)      # acts until the budget is spent
+    code = run_actor(role, noise=None, index=None)  # acts until the budget is spent
     code = run_evolver(role)                # keeps the population until stopped
 
-(``ds/local.py`` runs them all as subprocesses.) Each returns the process exit code: 0 done (or, a
-learner, retired by the evolver), 130 stopped by a signal (SIGINT/SIGTERM: the role saves what it
-must first), 1 the evolver forgot a learner. Addresses come from ``net_config`` (``main_ds.py``
+(``ds/local.py`` runs them all as subprocesses; :class:`RoleContext` and the helpers the loops
+share live in ds/role_context.py.) Each returns the process exit code: 0 done (or, a learner,
+retired by the evolver), 130 stopped by a signal (SIGINT/SIGTERM: the role saves what it must
+first), 1 the evolver forgot a learner. Addresses come from ``net_config`` (``main_ds.py``
 flags override it): clients connect to ``<role>_host`` (null: this host), servers listen on
 ``bind_host``, every server and client with the role's credentials (ds/security.py: the token on
 every rpc, TLS / mutual TLS; a server beyond loopback without them logs a warning).

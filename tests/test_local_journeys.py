@@ -21,8 +21,10 @@ from pathlib import Path
 
 import pytest
 
+from ds.learner_service import LearnerClient
 from ds.local import plan
 from ds.local_summary import python_command
+from ds.roles import AsksForIndex
 
 ROOT = Path(__file__).resolve().parents[1]
 ENV = {**os.environ, "OMP_WAIT_POLICY": "PASSIVE", "OMP_NUM_THREADS": "1", "MUJOCO_GL": "egl"}
@@ -149,6 +151,22 @@ def test_actor_k_is_started_asking_for_index_k() -> None:
                 assert argv[argv.index("--index") + 1] == name.removeprefix("actor-")
 
 
+def test_an_actor_asks_its_learner_for_its_index_first_and_its_own_index_after(monkeypatch: pytest.MonkeyPatch) -> None:
+    """``--index k``: the first registration asks for k; one that names an index (the actor's own,
+    registering again) asks for that one; without ``--index`` it asks for none, as before."""
+    asked: list[int | None] = []
+    monkeypatch.setattr(
+        LearnerClient, "register", lambda self, name, preferred_index=None: asked.append(preferred_index)
+    )
+    for index, own in ((1, None), (1, 3), (None, None)):
+        client = AsksForIndex("127.0.0.1:1", index=index)
+        try:
+            client.register("actor", own)
+        finally:
+            client.close()
+    assert asked == [1, 3, None]
+
+
 # ---------------------------------------------------------------------- journeys on real processes
 
 
@@ -203,6 +221,9 @@ def test_a_local_run_finishes_in_order_and_its_summary_plays_it(tmp_path: Path) 
     assert first(r"^\[learner\] .*checkpoint ", out) < first(r"^\[replay\] .*SIGINT: stopping", out)
     for bad in ("Traceback", "could not be inserted", "SIGTERM", "SIGKILL"):
         assert bad not in out, f"{bad!r} in:\n{out[-4000:]}"
+    replay_told = first(r"^\[replay\] .*SIGINT: stopping", out)
+    for k in (0, 1):  # done by themselves (the budget is spent), or told to stop before the replay is
+        assert first(rf"^\[actor-{k}\] .*actor {k} (?:finished|stopped) after", out) < replay_told, out[-4000:]
     check_actor_labels(out)
     outcome, lines = summary_of(out)
     assert outcome == "finished"
