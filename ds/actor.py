@@ -10,13 +10,17 @@ with the learner, which gives it an id, an index and a lease; derives its env se
 exploration noise ``min(noise_increasing_rate * index, noise_max)`` (or ``--noise``) from the index;
 takes the latest weights with ``GetParams`` and then keeps the newest broadcast version between
 steps (``update_policy_mode: true``), or asks the learner for every action (``false``); and runs
-:class:`~algorithm.actor.ActorLoop` with a :class:`ReplaySink`, which never drops a chunk: the
-replay's rate limiter holding inserts back (the learner is behind) and an unreachable replay are
-waited out, counted and logged. A heartbeat thread renews its lease every few seconds (at most a
-third of the lease), whatever the acting thread waits for; a learner that restarted (new id) or
-forgot it (lease expired: this process was stopped or cut off for longer) is registered with again,
-keeping the index. A replay that does not answer (down, or stalled) is waited for; chunks stay in
-the sink until the replay acknowledges them.
+:class:`~algorithm.actor.ActorLoop` with a :class:`~ds.replay_sink.ReplaySink`, which never drops a
+chunk while the run goes on: the replay's rate limiter holding inserts back (the learner is behind)
+and an unreachable replay hold the actor back (it stops stepping; its backlog stays within
+``ReplaySink.max_backlog`` chunks), counted and logged. A heartbeat thread renews its lease every
+few seconds (at most a third of the lease), whatever the acting thread waits for; a learner that
+restarted (new id) or forgot it (lease expired: this process was stopped or cut off for longer) is
+registered with again, keeping the index. A replay that does not answer (down, or stalled) is waited
+for; chunks stay in the sink until the replay acknowledges them. At the end (budget spent, ``max_iter``
+or a signal) the open chunks and the sink's backlog get one last try each, without waiting in the
+rate limiter or retrying a replay that is gone; what was not stored is counted
+(``actor/unsent_steps``) and logged in one line.
 
 Nothing non-finite goes out or comes in: chunks with NaN/inf are dropped by the loop (counted:
 ``actor/nonfinite_steps``) and broadcast weights that fail :func:`~ds.params.decode_params` (NaN/inf
@@ -30,7 +34,6 @@ import os
 import socket
 import threading
 import time
-from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -42,15 +45,13 @@ import torch
 from algorithm.actor import ActorLoop, VectorEnvLike
 from algorithm.config_schema import Config
 from algorithm.logging import MetricsWriter, RateMeter
-from algorithm.replay import ChunkIds, InsertTimeout
 from algorithm.sac import SAC
-from algorithm.types import Chunk
 from ds import learner_service, replay_service
 from ds.learner_service import LearnerClient, LeaseExpired, Registration, RemotePolicy
 from ds.params import ParamsError, ParamsSubscriber, decode_params, params_spec
-from ds.replay_codec import chunk_payload_bytes
 from ds.replay_feeds import Throttle, unavailable
-from ds.replay_service import PendingInsert, ReplayClient, ReplayRpcError
+from ds.replay_service import ReplayClient, ReplayRpcError
+from ds.replay_sink import ReplaySink
 from ds.rpc import peer_unresponsive, wait_until_serving
 
 log = logging.getLogger("asac.actor")
@@ -63,144 +64,6 @@ def actor_noise(config: Config, index: int, override: float | None = None) -> fl
         return float(override)
     actor = config.actor_config
     return float(min(actor.noise_increasing_rate * index, actor.noise_max))
-
-
-class ReplaySink:
-    """The actor loop's sink: inserts chunks into the replay, never drops one, and keeps up to
-    ``in_flight`` inserts on their way while the actor steps on (a round trip costs about a
-    millisecond on loopback, as long as stepping HalfCheetah 20 times). Chunks that arrive while
-    all ``in_flight`` inserts are out wait here and go together in the next request (at most
-    ``max_chunks_per_insert``, and half the replay's message limit): under load the sink sends
-    fewer, larger requests, which is what bounds a replay server's rate (bench/grpc_replay.py).
-
-    A chunk stays here until the replay has answered that it is stored. An insert held back by the
-    rate limiter for ``timeout_s`` (``InsertTimeout``) or failing because the replay is gone
-    (UNAVAILABLE, backing off up to ``max_backoff_s``) is sent again; meanwhile ``between()`` runs
-    (heartbeats, done checks). Once ``stopping()`` is true each chunk still here gets one more
-    immediate try and is then counted in ``unsent_steps`` (and logged). Chunks may be stored out of
-    order after a retry; each is self-contained (no window spans two chunks), so order does not
-    matter. :meth:`flush` waits for everything on its way.
-
-    Delivery is at least once and storage at most once: every chunk gets a sequence number under
-    this sink's random ``producer`` id when handed in and keeps it on every resend, so a chunk that
-    was stored although its reply was lost is answered as a duplicate (counted in ``duplicates``)
-    rather than stored twice; each request also tells the replay the lowest number still held here
-    (``acked_below``), so it can forget the rest (algorithm/replay/dedup.py).
-    """
-
-    def __init__(
-        self,
-        replay: ReplayClient,
-        stopping: Callable[[], bool],
-        between: Callable[[], None] = lambda: None,
-        timeout_s: float = 2.0,
-        in_flight: int = 4,
-        max_chunks_per_insert: int = 16,
-        max_backoff_s: float = 2.0,
-    ) -> None:
-        if in_flight < 1:
-            raise ValueError(f"in_flight must be >= 1, got {in_flight}")
-        self.replay = replay
-        self.stopping = stopping
-        self.between = between
-        self.timeout_s = timeout_s
-        self.in_flight = in_flight
-        self.max_chunks_per_insert = max_chunks_per_insert
-        self.max_backoff_s = max_backoff_s
-        self.inserted_steps = 0
-        self.requests = 0
-        self.insert_waits = 0
-        self.wait_seconds = 0.0
-        self.unavailable = 0
-        self.unsent_steps = 0
-        self.duplicates = 0
-        self.producer = int.from_bytes(os.urandom(8), "little") or 1
-        self._next_seq = 0
-        self._pending: deque[PendingInsert] = deque()
-        self._queued: list[tuple[int, Chunk]] = []
-        self._backoff = 0.0
-        self._log = Throttle(30.0)
-
-    def __call__(self, chunk: Chunk) -> None:
-        self._queued.append((self._next_seq, chunk))
-        self._next_seq += 1
-        if len(self._pending) >= self.in_flight and len(self._queued) >= self.max_chunks_per_insert:
-            self._settle_oldest()  # the actor is ahead of the replay: wait for it
-        if len(self._pending) < self.in_flight:
-            self._send_queued()
-
-    def backlog(self) -> int:
-        """Chunks handed in and not yet stored: inserts on their way plus chunks waiting to be sent.
-        Bounded: at most ``in_flight`` inserts of ``max_chunks_per_insert`` chunks, and as many waiting."""
-        return sum(len(p.chunks) for p in self._pending) + len(self._queued)
-
-    def flush(self) -> None:
-        """Wait until every chunk handed in is stored (or, once stopping, counted as unsent)."""
-        while self._pending or self._queued:
-            if self._queued and len(self._pending) < self.in_flight:
-                self._send_queued()
-            else:
-                self._settle_oldest()
-
-    def _send_queued(self) -> None:
-        """Send the waiting chunks, as many per request as the limits allow."""
-        replay = self.replay
-        budget = replay.max_message_bytes // 2
-        count, size = 0, 0
-        for _, chunk in self._queued[: self.max_chunks_per_insert]:
-            size += chunk_payload_bytes(replay.sensors, replay.action_size, len(chunk), replay.rnn_state_size)
-            if count and size > budget:
-                break
-            count += 1
-        batch = self._queued[:count]
-        del self._queued[:count]
-        self._send(tuple(seq for seq, _ in batch), [chunk for _, chunk in batch])
-
-    def _send(self, seqs: tuple[int, ...], chunks: list[Chunk]) -> None:
-        """Send ``chunks`` numbered ``seqs``; once stopping, as their last try (no waiting in the
-        rate limiter)."""
-        held = [*seqs, *(seq for seq, _ in self._queued)]
-        held += [seq for p in self._pending if p.ids is not None for seq in p.ids.seqs]
-        ids = ChunkIds(self.producer, seqs, min(held, default=self._next_seq))
-        final = self.stopping()
-        pending = self.replay.insert_async(chunks, timeout=0.0 if final else self.timeout_s, ids=ids)
-        pending.final = final
-        self._pending.append(pending)
-        self.requests += 1
-
-    def _settle_oldest(self) -> None:
-        """Wait for the oldest insert; on a refusal to wait or an unreachable replay, send it again."""
-        start = time.monotonic()
-        pending = self._pending[0]
-        try:
-            self.duplicates += sum(pending.result().duplicate)
-            self.inserted_steps += pending.steps()
-            self._pending.popleft()
-            self._backoff = 0.0
-            return
-        except InsertTimeout as e:
-            self.insert_waits += 1
-            if self._log():
-                log.info("replay holds inserts back (the learner is behind) or does not answer; waiting: %s", e)
-        except ReplayRpcError as e:
-            if e.code != grpc.StatusCode.UNAVAILABLE:
-                raise
-            self.unavailable += 1
-            if self._log():
-                log.warning("replay unreachable; keeping the chunks and retrying: %s", e)
-            self._backoff = min(max(2 * self._backoff, 0.05), self.max_backoff_s)
-            time.sleep(self._backoff)
-        finally:
-            self.wait_seconds += time.monotonic() - start
-        self._pending.popleft()
-        if pending.final:
-            self.unsent_steps += pending.steps()
-            log.info("stopping: %d chunks (%d steps) could not be inserted", len(pending.chunks), pending.steps())
-            return
-        self.between()
-        assert pending.ids is not None
-        self._send(pending.ids.seqs, pending.chunks)
-        self._pending.rotate(1)  # the retry goes first again: settle it before newer inserts
 
 
 @dataclass
@@ -262,7 +125,7 @@ class DistributedActor:
         self._last_rejoin = -float("inf")
         self._rejoin = threading.Event()  # set by the heartbeat thread: the learner forgot us, or restarted
         self._beats_done = threading.Event()
-        self._beat_error: grpc.RpcError | None = None
+        self._beat_error: Exception | None = None
         self._log_learner = Throttle(30.0)
         self._log_params = Throttle(30.0)
 
@@ -315,9 +178,8 @@ class DistributedActor:
                 if time.monotonic() - last_metrics >= self.metrics_every_s:
                     writer.write(self._metrics(rate.mark(self.env_steps)), self.env_steps)
                     last_metrics = time.monotonic()
-            if not self.done:  # max_iter or a signal: open chunks go out (once stopping: one try each, counted)
-                loop.flush()
-            self.sink.flush()
+            loop.flush()  # the open chunks too: once stopping, one try each, stored or counted as unsent
+            self.sink.flush()  # logs what was not stored, once
         finally:
             self._beats_done.set()
             beats.join(timeout=1.0)  # a heartbeat still on its way ends with the channel (daemon thread)
@@ -326,8 +188,6 @@ class DistributedActor:
             env.close()
             if self.subscriber is not None:
                 self.subscriber.close()
-        if self.sink.unsent_steps:
-            log.warning("%d collected steps were not inserted (stopped while replay was busy)", self.sink.unsent_steps)
         return ActorSummary(index, self.env_steps, self.episodes, self.stop.is_set() and not self.done)
 
     def _metrics(self, steps_per_s: float) -> dict[str, float]:
@@ -425,10 +285,10 @@ class DistributedActor:
                 known = learner_id == reg.learner_id
             except LeaseExpired:
                 known = False
-            except grpc.RpcError as e:
-                if self._beats_done.is_set():
+            except (grpc.RpcError, ValueError) as e:
+                if self._beats_done.is_set():  # the run ended: its channel closes under the heartbeat on its way
                     return
-                if not peer_unresponsive(e.code()):
+                if not isinstance(e, grpc.RpcError) or not peer_unresponsive(e.code()):
                     self._beat_error = e  # raised in the acting thread: errors surface
                     return
                 self._learner_unreachable(e)

@@ -1,14 +1,25 @@
 """The actor's sink on a real loopback replay: every chunk handed in is stored exactly once, in
-fewer requests when the replay is the bottleneck; a replay that holds inserts back is waited for;
-once stopping, what could not be stored is counted to the step."""
+fewer requests when the replay is the bottleneck; a replay that holds inserts back holds the actor
+back (its backlog, and the age of what it stores, within ``max_backlog``) and is waited for; once
+stopping, calls return at once, nothing waits or is retried, and what could not be stored is counted
+to the step and logged once."""
 
 from __future__ import annotations
+
+import contextlib
+import logging
+import threading
+import time
+from collections.abc import Sequence
+from typing import Any
 
 import numpy as np
 import pytest
 
-from algorithm.replay import PrioritizedTable, RateLimiter
+from algorithm.replay import ChunkIds, Inserted, PrioritizedTable, RateLimiter, SampleTimeout
+from algorithm.types import Chunk
 from ds.actor import ReplaySink
+from ds.replay_service import ReplayClient, serve_replay
 from tests.algorithm.replay.chunks import VECTOR, make_chunk
 
 from .conftest import ServeOverGrpc
@@ -67,3 +78,128 @@ def test_held_back_inserts_are_retried_and_once_stopping_counted(over_grpc: Serv
     assert sink.insert_waits >= 2 and waits
     assert stored + sink.unsent_steps == handed  # nothing vanished: stored or counted
     assert sink.unsent_steps > 0 and sink.inserted_steps == stored
+
+
+class AgeRecordingTable(PrioritizedTable):
+    """A table that records, for every chunk it stores, how many chunks the actor handed to its sink
+    after that one before it was stored (``make_chunk(5, 5 * i)`` is chunk ``i``)."""
+
+    def __init__(self, handed: list[int], *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self.handed = handed  # handed[0]: chunks handed to the sink so far, set by the test's actor
+        self.ages: list[int] = []
+
+    def insert_once(self, chunks: Sequence[Chunk], ids: ChunkIds, *args: Any, **kwargs: Any) -> Inserted:
+        inserted = super().insert_once(chunks, ids, *args, **kwargs)
+        handed = self.handed[0]
+        for chunk, duplicate in zip(chunks, inserted.duplicate, strict=True):
+            if not duplicate:
+                self.ages.append(handed - 1 - int(chunk.obs[0][0, 0]) // 5)
+        return inserted
+
+
+def test_a_slow_learner_holds_fast_actors_back_within_the_stated_backlog(over_grpc: ServeOverGrpc) -> None:
+    # The learner draws 64 windows every 0.2 s, one per inserted step: about 64 five-step chunks/s,
+    # in bursts, while the actor hands chunks in as fast as it can. The rate limiter holds inserts
+    # back, for longer than the sink's timeout_s between bursts, so the sink must hold the actor
+    # back: its backlog, and the age of what is stored, stay within the stated bound.
+    handed = [0]
+    limiter = RateLimiter(samples_per_insert=1.0, min_size_to_sample=20, tolerance=40.0)
+    table = AgeRecordingTable(handed, 10_000, (VECTOR,), 2, 1, alpha=0.0, rate_limiter=limiter, seed=0)
+    client = over_grpc(table)
+    learning = threading.Event()
+
+    def learner() -> None:
+        while not learning.wait(0.2):
+            with contextlib.suppress(SampleTimeout):
+                table.sample(64, timeout=0)
+
+    sampler = threading.Thread(target=learner, daemon=True)
+    sampler.start()
+    checks = []
+    sink = ReplaySink(
+        client, lambda: False, lambda: checks.append(1), timeout_s=0.01, in_flight=2, max_chunks_per_insert=4
+    )
+    assert sink.max_backlog == (2 + 1) * 4
+    backlog = []
+    try:
+        for i in range(100):
+            handed[0] = i + 1
+            sink(make_chunk(5, 5 * i))
+            backlog.append(sink.backlog())
+        sink.flush()
+    finally:
+        learning.set()
+        sampler.join()
+    assert sink.insert_waits > 0 and len(checks) >= sink.insert_waits  # held back; between() ran meanwhile
+    assert max(backlog) <= sink.max_backlog - 1  # after a call returns: one chunk less than the bound
+    assert max(table.ages) <= sink.max_backlog
+    info = table.info()
+    assert (info["inserted_chunks"], info["inserted_steps"], sink.inserted_steps) == (100, 500, 500)
+    assert sink.unsent_steps == 0 and len(table.ages) == 100  # every chunk stored, once
+
+
+def test_a_held_back_actor_waits_checks_in_between_and_returns_once_stopping(
+    over_grpc: ServeOverGrpc, caplog: pytest.LogCaptureFixture
+) -> None:
+    # Nobody samples: after 16 steps the rate limiter holds every insert back for good.
+    limiter = RateLimiter(samples_per_insert=1.0, min_size_to_sample=8, tolerance=0.0)
+    client = over_grpc(PrioritizedTable(1000, (VECTOR,), 2, 1, rate_limiter=limiter, seed=0))
+    stopping = False
+    checks = 0
+
+    def between() -> None:  # the actor's heartbeat and done checks; the 5th sees the budget spent
+        nonlocal checks, stopping
+        assert not stopping, "between() runs only while the run goes on"
+        checks += 1
+        stopping = checks >= 3
+
+    sink = ReplaySink(client, lambda: stopping, between=between, timeout_s=0.2, in_flight=2, max_chunks_per_insert=2)
+    backlog, seconds = [], []
+    for i in range(20):
+        start = time.monotonic()
+        sink(make_chunk(4, 4 * i))
+        seconds.append(time.monotonic() - start)
+        backlog.append(sink.backlog())
+    waited = next(i for i, s in enumerate(seconds) if s >= 3 * 0.2)  # the call that waited for the replay
+    assert checks == 3 and stopping
+    assert max(backlog[:waited]) <= sink.max_backlog - 1 == 5  # (the calls after it do not wait: stopping)
+    assert backlog[waited] <= sink.max_backlog
+    assert max(seconds[waited + 1 :]) < 0.05  # once stopping, calls return at once
+    with caplog.at_level(logging.INFO, logger="asac.actor"):
+        start = time.monotonic()
+        sink.flush()
+    assert time.monotonic() - start < 0.6  # last tries are answered at once: no waiting in the rate limiter
+    stored = client.info()["inserted_steps"]
+    assert stored == sink.inserted_steps == 16  # sizes 0, 4, 8: the rate limiter's surplus was not positive yet
+    assert stored + sink.unsent_steps == 20 * 4  # the rest counted
+    unsent = [r.getMessage() for r in caplog.records if "inserted" in r.getMessage()]
+    assert unsent == [
+        f"64 collected steps ({sink.unsent_chunks} chunks) were not inserted (stopped while replay was busy)"
+    ]
+
+
+def test_once_stopping_a_replay_that_is_gone_is_not_retried() -> None:
+    # Nobody samples: inserts wait in the rate limiter (for 5 s each) until the replay goes away.
+    limiter = RateLimiter(samples_per_insert=1.0, min_size_to_sample=1, tolerance=0.0)
+    table = PrioritizedTable(1000, (VECTOR,), 2, 1, rate_limiter=limiter, seed=0)
+    table.insert(make_chunk(4))  # the one step that lets nothing else in until someone samples
+    server, port = serve_replay(table, "127.0.0.1:0")
+    stopping = False
+    with ReplayClient(f"127.0.0.1:{port}", (VECTOR,), 2) as client:
+        sink = ReplaySink(client, lambda: stopping, timeout_s=5.0, in_flight=2, max_chunks_per_insert=4)
+        for i in range(5):  # two inserts wait in the rate limiter, three chunks wait here
+            sink(make_chunk(4, 4 * i))
+        until = time.monotonic() + 5.0
+        while limiter.insert_waits < 2:
+            assert time.monotonic() < until, "the inserts never reached the rate limiter"
+            time.sleep(0.01)
+        server.stop(None).wait()  # the replay is gone (its process stopped at the end of the run)
+        stopping, requests = True, sink.requests
+        start = time.monotonic()
+        sink.flush()
+        elapsed = time.monotonic() - start
+    assert sink.requests == requests  # nothing sent again, the waiting chunks not sent at all
+    assert elapsed < 0.5  # no backoff
+    assert (sink.inserted_steps, sink.unsent_steps, sink.unsent_chunks, sink.backlog()) == (0, 20, 5, 0)
+    assert sink.unavailable >= 1

@@ -1,0 +1,217 @@
+"""The actor's sink (:class:`ReplaySink`): hands the actor loop's chunks to the replay, and holds the
+actor back while the replay holds inserts back.
+
+Usage (``ds/actor.py`` wires it into :class:`~algorithm.actor.ActorLoop`)::
+
+    sink = ReplaySink(replay_client, stopping=lambda: stop.is_set(), between=check_heartbeats)
+    loop = ActorLoop(env, policy, sink, chunk_length=64)
+    ...                 # loop.step() calls sink(chunk); it returns once the replay has room
+    sink.flush()        # at the end: everything stored, or (once stopping) counted in unsent_steps
+
+Back-pressure, not backlog: an actor that went on stepping while the replay's rate limiter held
+its inserts back (the learner is behind) built a queue without bound, threw most of it away at the
+end, and what it did insert was minutes old. The sink instead keeps the actor waiting, so what it
+holds, and so how old what it inserts is, stays within :attr:`ReplaySink.max_backlog` chunks.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import time
+from collections import deque
+from collections.abc import Callable
+
+import grpc
+
+from algorithm.replay import ChunkIds, InsertTimeout
+from algorithm.types import Chunk
+from ds.replay_codec import chunk_payload_bytes
+from ds.replay_feeds import Throttle
+from ds.replay_service import PendingInsert, ReplayClient, ReplayRpcError
+
+log = logging.getLogger("asac.actor")
+
+
+class ReplaySink:
+    """The actor loop's sink: inserts chunks into the replay, never drops one while it runs, and
+    keeps up to ``in_flight`` inserts on their way while the actor steps on (a round trip costs
+    about a millisecond on loopback, as long as stepping HalfCheetah 20 times). Chunks that arrive
+    while all ``in_flight`` inserts are out wait here and go together in the next request (at most
+    ``max_chunks_per_insert``, and half the replay's message limit): under load the sink sends
+    fewer, larger requests, which is what bounds a replay server's rate (bench/grpc_replay.py).
+
+    Back-pressure: a call returns only while the chunks waiting here are fewer than one request's
+    worth. With every insert out and a full request waiting, it waits for the oldest insert (the
+    actor does not step meanwhile): the replay's rate limiter holding inserts back (the learner is
+    behind) or an unreachable replay holds the actor back too, instead of a queue growing by a chunk
+    per call. So, while not stopping, this sink never holds more than :attr:`max_backlog`
+    ``= (in_flight + 1) * max_chunks_per_insert`` chunks (``in_flight`` requests of at most
+    ``max_chunks_per_insert`` chunks on their way, and one request's worth waiting; after a call
+    returns, one chunk less), and a chunk is stored at the latest ``max_backlog`` chunks after it
+    was handed in. An insert held back by the rate limiter for ``timeout_s`` (``InsertTimeout``) or
+    failing because the replay is gone (UNAVAILABLE, backing off up to ``max_backoff_s``) is sent
+    again; meanwhile ``between()`` runs (heartbeats, done checks).
+
+    Once ``stopping()`` is true (the run's budget is spent, or a signal came) calls return at once,
+    nothing waits in the rate limiter any more and nothing is retried: each chunk still here gets
+    one last try that the replay answers at once (an insert already waiting in the rate limiter
+    finishes its wait), and after the first sign that the replay is gone no more are sent. What
+    was not stored is counted in ``unsent_steps`` / ``unsent_chunks`` and logged once, by
+    :meth:`flush`, which waits for everything on its way. Chunks may be stored out of order after a
+    retry; each is self-contained (no window spans two chunks), so order does not matter.
+
+    Delivery is at least once and storage at most once: every chunk gets a sequence number under
+    this sink's random ``producer`` id when handed in and keeps it on every resend, so a chunk that
+    was stored although its reply was lost is answered as a duplicate (counted in ``duplicates``)
+    rather than stored twice; each request also tells the replay the lowest number still held here
+    (``acked_below``), so it can forget the rest (algorithm/replay/dedup.py).
+    """
+
+    def __init__(
+        self,
+        replay: ReplayClient,
+        stopping: Callable[[], bool],
+        between: Callable[[], None] = lambda: None,
+        timeout_s: float = 2.0,
+        in_flight: int = 4,
+        max_chunks_per_insert: int = 16,
+        max_backoff_s: float = 2.0,
+    ) -> None:
+        if in_flight < 1:
+            raise ValueError(f"in_flight must be >= 1, got {in_flight}")
+        if max_chunks_per_insert < 1:
+            raise ValueError(f"max_chunks_per_insert must be >= 1, got {max_chunks_per_insert}")
+        self.replay = replay
+        self.stopping = stopping
+        self.between = between
+        self.timeout_s = timeout_s
+        self.in_flight = in_flight
+        self.max_chunks_per_insert = max_chunks_per_insert
+        self.max_backoff_s = max_backoff_s
+        self.inserted_steps = 0
+        self.requests = 0
+        self.insert_waits = 0
+        self.wait_seconds = 0.0
+        self.unavailable = 0
+        self.unsent_steps = 0
+        self.unsent_chunks = 0
+        self.duplicates = 0
+        self.producer = int.from_bytes(os.urandom(8), "little") or 1
+        self._next_seq = 0
+        self._pending: deque[PendingInsert] = deque()
+        self._queued: list[tuple[int, Chunk]] = []
+        self._backoff = 0.0
+        self._replay_gone = False  # seen gone while stopping: nothing more is sent
+        self._reported_unsent = 0
+        self._log = Throttle(30.0)
+
+    @property
+    def max_backlog(self) -> int:
+        """The most chunks this sink holds while not stopping (see the class docstring)."""
+        return (self.in_flight + 1) * self.max_chunks_per_insert
+
+    def __call__(self, chunk: Chunk) -> None:
+        self._queued.append((self._next_seq, chunk))
+        self._next_seq += 1
+        while True:
+            while self._queued and len(self._pending) < self.in_flight and not self._replay_gone:
+                self._send_queued()
+            if len(self._queued) < self.max_chunks_per_insert or self.stopping():
+                return
+            self._settle_oldest()  # every insert is out and a request's worth waits: the actor waits too
+
+    def backlog(self) -> int:
+        """Chunks handed in and not yet stored: inserts on their way plus chunks waiting to be sent
+        (at most :attr:`max_backlog` while not stopping)."""
+        return sum(len(p.chunks) for p in self._pending) + len(self._queued)
+
+    def flush(self) -> None:
+        """Wait until every chunk handed in is stored or, once stopping, counted as unsent; log
+        what was not stored (one line)."""
+        while self._pending or self._queued:
+            if self._queued and self._replay_gone:
+                self._give_up([chunk for _, chunk in self._queued])
+                self._queued.clear()
+            elif self._queued and len(self._pending) < self.in_flight:
+                self._send_queued()
+            else:
+                self._settle_oldest()
+        if self.unsent_steps > self._reported_unsent:
+            unsent, chunks = self.unsent_steps, self.unsent_chunks
+            log.warning(
+                "%d collected steps (%d chunks) were not inserted (stopped while replay was busy)", unsent, chunks
+            )
+            self._reported_unsent = self.unsent_steps
+
+    def _send_queued(self) -> None:
+        """Send the waiting chunks, as many per request as the limits allow."""
+        replay = self.replay
+        budget = replay.max_message_bytes // 2
+        count, size = 0, 0
+        for _, chunk in self._queued[: self.max_chunks_per_insert]:
+            size += chunk_payload_bytes(replay.sensors, replay.action_size, len(chunk), replay.rnn_state_size)
+            if count and size > budget:
+                break
+            count += 1
+        batch = self._queued[:count]
+        del self._queued[:count]
+        self._send(tuple(seq for seq, _ in batch), [chunk for _, chunk in batch])
+
+    def _send(self, seqs: tuple[int, ...], chunks: list[Chunk]) -> None:
+        """Send ``chunks`` numbered ``seqs``; once stopping, as their last try (no waiting in the
+        rate limiter)."""
+        held = [*seqs, *(seq for seq, _ in self._queued)]
+        held += [seq for p in self._pending if p.ids is not None for seq in p.ids.seqs]
+        ids = ChunkIds(self.producer, seqs, min(held, default=self._next_seq))
+        final = self.stopping()
+        pending = self.replay.insert_async(chunks, timeout=0.0 if final else self.timeout_s, ids=ids)
+        pending.final = final
+        self._pending.append(pending)
+        self.requests += 1
+
+    def _settle_oldest(self) -> None:
+        """Wait for the oldest insert; on a refusal to wait or an unreachable replay, send it again
+        (first again: it is settled before newer inserts), unless that was its last try or the
+        replay is gone while stopping: then its chunks are counted as unsent."""
+        start = time.monotonic()
+        pending = self._pending.popleft()
+        try:
+            inserted = pending.result()
+        except InsertTimeout as e:
+            self.insert_waits += 1
+            if self._log():
+                log.info("replay holds inserts back (the learner is behind) or does not answer; waiting: %s", e)
+        except ReplayRpcError as e:
+            if e.code != grpc.StatusCode.UNAVAILABLE:
+                raise
+            self.unavailable += 1
+            if self.stopping():
+                self._replay_gone = True  # no retries against a replay that is gone: the run is ending
+            else:
+                if self._log():
+                    log.warning("replay unreachable; keeping the chunks and retrying: %s", e)
+                self._backoff = min(max(2 * self._backoff, 0.05), self.max_backoff_s)
+                time.sleep(self._backoff)
+        else:
+            self.duplicates += sum(inserted.duplicate)
+            self.inserted_steps += pending.steps()
+            self._backoff = 0.0
+            return
+        finally:
+            self.wait_seconds += time.monotonic() - start
+        if pending.final or self._replay_gone:
+            self._give_up(pending.chunks)
+            return
+        if not self.stopping():
+            self.between()
+        assert pending.ids is not None
+        self._send(pending.ids.seqs, pending.chunks)
+        self._pending.rotate(1)
+
+    def _give_up(self, chunks: list[Chunk]) -> None:
+        self.unsent_chunks += len(chunks)
+        self.unsent_steps += sum(len(chunk) for chunk in chunks)
+
+
+__all__ = ["ReplaySink"]

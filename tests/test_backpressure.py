@@ -1,0 +1,110 @@
+"""An actor held back by the replay's rate limiter, end to end (ds/actor.py with its sink,
+ds/replay_sink.py): when the run's budget is spent while the learner is behind, the actor stops
+promptly; every step it collected is stored or counted (``unsent_steps``), at most its sink's
+bound plus one open chunk per env, and logged in one line; its heartbeat thread ends quietly
+when the channel closes under a heartbeat on its way."""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from algorithm.replay import PrioritizedTable, RateLimiter, SampleTimeout
+from algorithm.sac import SAC
+from ds.actor import DistributedActor
+from ds.learner_service import LearnerClient, Registration
+from ds.replay_service import ReplayClient, serve_replay
+from envs.make import vector_env_factory
+from tests.ds.test_reconnect import CONFIG, FAST_RETRY, SPEC, Learner, free_port
+
+pytestmark = pytest.mark.grpc
+MAX_STEP = 600
+N_ENVS = 2
+
+
+def test_an_actor_held_back_at_the_end_of_the_budget_stops_at_once_and_counts_what_it_holds(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    # The learner draws 8 windows per inserted step, slower than the actor steps: the rate limiter
+    # holds the actor's inserts back. Once the replay has MAX_STEP steps, it stops (finished), and
+    # nothing it holds can be inserted any more.
+    limiter = RateLimiter(samples_per_insert=8.0, min_size_to_sample=64, tolerance=64.0)
+    table = PrioritizedTable(100_000, SPEC.sensors, SPEC.action.size, 3, rate_limiter=limiter, seed=0)
+    server, replay_port = serve_replay(table, "127.0.0.1:0")
+    learner_port = free_port()
+    learner = Learner(learner_port, version=1, seed=1)
+    learning = threading.Event()
+
+    def learn() -> None:
+        while not learning.wait(0.01) and table.info()["inserted_steps"] < MAX_STEP:
+            with contextlib.suppress(SampleTimeout):
+                table.sample(64, timeout=0)
+
+    sampler = threading.Thread(target=learn, daemon=True)
+    sampler.start()
+    config = CONFIG.model_copy(deep=True)
+    config.base_config.max_step, config.base_config.n_agents = MAX_STEP, N_ENVS
+    replay = ReplayClient(f"127.0.0.1:{replay_port}", SPEC.sensors, SPEC.action.size, retry=FAST_RETRY)
+    learner_client = LearnerClient(f"127.0.0.1:{learner_port}", SPEC, retry=FAST_RETRY, rpc_timeout_s=2.0)
+    sac = SAC(SPEC, config.sac_config, config.nn_config, config.replay_config)
+    make_env = vector_env_factory("Pendulum-v1")
+    actor = DistributedActor(config, tmp_path, make_env, sac, replay, learner_client, "127.0.0.1", heartbeat_s=0.2)
+    thread = threading.Thread(target=actor.run, daemon=True)
+    try:
+        with caplog.at_level(logging.INFO, logger="asac.actor"):
+            thread.start()
+            deadline = time.monotonic() + 60
+            while not actor.done:
+                assert time.monotonic() < deadline and thread.is_alive(), "the actor never saw the budget spent"
+                time.sleep(0.02)
+            done_at = time.monotonic()
+            thread.join(30)
+            stopped_s = time.monotonic() - done_at
+    finally:
+        learning.set()
+        sampler.join()
+        replay.close()
+        learner_client.close()
+        learner.stop()
+        server.stop(None)
+    assert not thread.is_alive()
+    sink = actor.sink
+    assert sink.insert_waits > 0  # the rate limiter held the actor back
+    assert stopped_s < 3 * sink.timeout_s  # an insert already waiting finishes its wait; nothing else waits
+    # Nothing vanished: every collected step stored or counted, the open chunks included.
+    assert actor.env_steps == sink.inserted_steps + sink.unsent_steps
+    assert sink.inserted_steps == table.info()["inserted_steps"]
+    assert sink.unsent_steps <= (sink.max_backlog + N_ENVS) * config.actor_config.chunk_length
+    unsent = [r.getMessage() for r in caplog.records if "inserted" in r.getMessage()]
+    assert len(unsent) == (1 if sink.unsent_steps else 0), unsent
+
+
+def test_a_heartbeat_on_its_way_when_the_channel_closes_ends_quietly(tmp_path: Path) -> None:
+    """The run is over (``_beats_done``) and the role closes the learner channel while a heartbeat
+    is on its way: gRPC raises ``ValueError: Cannot invoke RPC on closed channel!``; the heartbeat
+    thread ends without it (no traceback, nothing for the acting thread to raise)."""
+    replay = ReplayClient(f"127.0.0.1:{free_port()}", SPEC.sensors, SPEC.action.size)
+    learner = LearnerClient(f"127.0.0.1:{free_port()}", SPEC, retry=FAST_RETRY, rpc_timeout_s=1.0)
+    sac = SAC(SPEC, CONFIG.sac_config, CONFIG.nn_config, CONFIG.replay_config)
+    make_env = vector_env_factory("Pendulum-v1")
+    actor = DistributedActor(CONFIG, tmp_path, make_env, sac, replay, learner, "127.0.0.1", heartbeat_s=0.01)
+    actor.registration = Registration("actor-0-x", 0, "learner-x", 0, 30.0)
+    heartbeat = learner.heartbeat
+
+    def closing_heartbeat(*args: Any) -> tuple[str, int]:
+        actor._beats_done.set()  # run() has ended meanwhile ...
+        learner.close()  # ... and the role closed the channel
+        return heartbeat(*args)
+
+    learner.heartbeat = closing_heartbeat  # type: ignore[method-assign]
+    actor._heartbeats()  # returns: no ValueError
+    assert actor._beat_error is None
+    with pytest.raises(ValueError, match="closed channel"):
+        heartbeat("actor-0-x", 0)  # what the heartbeat on its way met
+    replay.close()
