@@ -209,6 +209,19 @@ class NNConfig(Section):
 
 class ActorConfig(Section):
     chunk_length: int = Field(64, ge=1, description="Steps per trajectory chunk sent to replay.")
+    inserts_in_flight: int = Field(
+        2,
+        ge=1,
+        description="Distributed actors: insert requests on their way to the replay while the actor steps on. "
+        "With chunks_per_insert, bounds what an actor holds when the replay holds it back: "
+        "(inserts_in_flight + 1) * chunks_per_insert chunks, which is how stale its data can get.",
+    )
+    chunks_per_insert: int | None = Field(
+        None,
+        ge=1,
+        description="Distributed actors: the most chunks one insert request carries; null = n_agents (one "
+        "chunk per env). Larger requests are cheaper for the replay, smaller ones keep data fresher.",
+    )
     random_steps: int = Field(0, ge=0, description="Uniform random actions for the first N env steps.")
     update_policy_mode: bool = Field(
         True,

@@ -313,7 +313,7 @@ class LearnerCore:
         state = {"sac": self.sac.state_dict(), "counters": asdict(c), "rng": capture_rng(), **extra}
         path = save_checkpoint(self.paths.model, c.env_steps, state, keep=cfg.keep_checkpoints)
         self._last_save = time.perf_counter()
-        log.debug("checkpoint %s (%d updates)", path, c.updates)
+        log.info("checkpoint %s (%d updates)", path, c.updates)
         return path
 
     def restore(self, step: int | None = None) -> tuple[Path, dict[str, Any]]:

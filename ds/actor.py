@@ -120,7 +120,14 @@ class DistributedActor:
         self.env_steps = 0
         self.episodes = 0
         self.done = False
-        self.sink = ReplaySink(replay, lambda: self.stop.is_set() or self.done, between=self._between)
+        actor_cfg = config.actor_config
+        self.sink = ReplaySink(
+            replay,
+            lambda: self.stop.is_set() or self.done,
+            between=self._between,
+            in_flight=actor_cfg.inserts_in_flight,
+            max_chunks_per_insert=actor_cfg.chunks_per_insert or config.base_config.n_agents,
+        )
         self._last_check = time.monotonic()
         self._last_rejoin = -float("inf")
         self._rejoin = threading.Event()  # set by the heartbeat thread: the learner forgot us, or restarted

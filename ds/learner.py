@@ -83,7 +83,7 @@ class LearnerSummary:
     retired: bool = False
 
 
-class _ReplaySink:
+class _RemoteTrainingSink:
     """Where an update's results go over the network: priorities through the :class:`PriorityUpdater`
     (merged, in the background), refreshed recurrent states straight to the replay (skipped and
     counted while it cannot be reached: a refresh only freshens stored states)."""
@@ -140,7 +140,7 @@ class Learner:
         self.rnn_refreshes_skipped = 0
         self.replay_surplus = 0.0  # windows the replay's rate limiter still lets this learner draw
         self.replay_next_key = 0  # the replay's next key at the last poll: how old sampled data is
-        self.sink = _ReplaySink(self)
+        self.sink = _RemoteTrainingSink(self)
         on_evaluation: Callable[[float, int], None] = (
             (lambda mean, steps: None) if member is None else member.link.post
         )
@@ -202,8 +202,7 @@ class Learner:
             self.priorities.close()
         retired = self.member is not None and self.member.link.retired
         interrupted = not core.done() and not retired
-        path = core.finish()
-        log.info("checkpoint %s (%d updates)", path, c.updates)
+        core.finish()
         return LearnerSummary(c.env_steps, c.updates, c.wall_seconds, c.last_eval_mean, interrupted, retired)
 
     def _train_on(self, batch: Batch) -> None:
@@ -305,9 +304,7 @@ class Learner:
     # -- checkpoints ------------------------------------------------------------------------
     def save(self) -> Path:
         """Checkpoint as ``model/<env_steps>.pt`` (the format of ``main.py``, so ``main.py --run`` plays it)."""
-        path = self.core.save()
-        log.info("checkpoint %s (%d updates)", path, self.updates)
-        return path
+        return self.core.save()
 
     def restore(self, step: int | None = None) -> None:
         """Resume from checkpoint ``step`` (default: the latest); a damaged or foreign file is a
