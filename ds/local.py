@@ -61,7 +61,10 @@ LOCAL_HOST = "127.0.0.1"
 NO_HEALTH_PORT = ("--override", "net.health_port=null")
 STOP_ORDER = ("learner", "actor", "replay", "evolver")
 """Who is told to stop first: a replay outlives the learner and actors it serves, the evolver all."""
-HOLD_LINES_S = 20.0  # a population learner's or replay's lines wait this long for its id, then show unnumbered
+HOLD_LINES_S = 60.0
+"""How long after the evolver first answers a population learner's or replay's lines wait for its id
+(then they show unnumbered): long enough for a slow start on a loaded machine, short enough that a
+learner stuck before registering still shows why."""
 _PID = re.compile(r"\(pid (\d+)\)")  # how a learner names itself to the evolver (ds/role_context.py)
 
 
@@ -193,6 +196,7 @@ class LocalProcesses:
     def stop_in_order(self, grace_s: float) -> None:
         """SIGINT to each stage of :data:`STOP_ORDER` in turn, waiting up to ``grace_s`` for the stage
         to exit before the next one is told; a child still running then gets SIGTERM, then SIGKILL."""
+        started = time.monotonic()
         for role in STOP_ORDER:
             names = self.running(self.names(role))
             if not names:
@@ -209,6 +213,7 @@ class LocalProcesses:
                             signal.Signals(signum).name)  # fmt: skip
                 self.signal(late, signum)
                 self.wait_all(5.0, late)
+        log.info("every role has stopped (%.1f s)", time.monotonic() - started)
 
     def kill_all(self) -> None:
         """SIGKILL to every child still running (a forced stop)."""
@@ -380,19 +385,20 @@ def _wait_for_learners(
     """Wait until every learner child is registered with the evolver at ``evolver`` and has a replay,
     labelling each learner (and replay) with the id the evolver gave it (``learner_ids``: child name
     -> id): None; or the outcome when a child failed or a signal came first."""
-    count, waiting, started = len(children.names("learner")), Throttle(30.0), time.monotonic()
+    count, waiting, answered_at = len(children.names("learner")), Throttle(30.0), None
     with EvolverClient(evolver, rpc_timeout_s=2.0, retry=RetryPolicy(attempts=1), credentials=credentials) as client:
         while not stop.wait(1.0):
             if (failed := _failed(children)) is not None:
                 return failed
             try:
                 live = [x for x in client.info().learners if x.live]
+                answered_at = answered_at or time.monotonic()
             except grpc.RpcError:
                 live = []
             _label_members(children, live, learner_ids, replay_ports)
             if sum(1 for x in live if x.replay_address) >= count and not children.unlabelled():
                 return None
-            if time.monotonic() - started > HOLD_LINES_S:
+            if answered_at is not None and time.monotonic() - answered_at > HOLD_LINES_S:
                 children.release()
             if waiting():
                 log.info("actors start once %d learners have registered with a replay each (%d so far)", count,
