@@ -288,8 +288,11 @@ class DistributedActor:
             if reg is None or self._rejoin.is_set():
                 continue
             try:
-                learner_id, _ = self.learner.heartbeat(reg.actor_id, self.env_steps)
-                known = learner_id == reg.learner_id
+                beat = self.learner.heartbeat(reg.actor_id, self.env_steps)
+                known = beat.learner_id == reg.learner_id
+                if known and beat.run_done and not self.done:
+                    log.info("the learner has spent the run's budget (base_config.max_step): done")
+                    self.done = True  # the acting thread stops stepping; the sink sends what it holds
             except LeaseExpired:
                 known = False
             except (grpc.RpcError, ValueError) as e:

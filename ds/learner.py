@@ -196,7 +196,10 @@ class Learner:
                     continue
                 self._train_on(batch)
             if core.done() and not self.stop.is_set():
+                if self.registry is not None:
+                    self.registry.run_done.set()  # heartbeats tell the actors to stop stepping
                 self._train_on_what_is_owed()
+                self._until_actors_are_told()
         finally:
             self.prefetcher.stop()
             self.priorities.close()
@@ -227,6 +230,16 @@ class Learner:
             trained += 1
         if trained:
             log.info("trained %d more updates on the data inserted before max_step", trained)
+
+    def _until_actors_are_told(self) -> None:
+        """Serve heartbeats until every live actor has heard that the run is done (at most one lease):
+        a learner that exited first would leave them waiting for it."""
+        registry = self.registry
+        if registry is None:
+            return
+        deadline = time.monotonic() + registry.lease_s
+        while not registry.all_told() and time.monotonic() < deadline and not self.stop.is_set():
+            time.sleep(0.1)
 
     def _leaving(self) -> bool:
         return self.member is not None and (self.member.link.retired or self.member.link.lost is not None)

@@ -37,7 +37,7 @@ import uuid
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
-from typing import Any, TypeAlias
+from typing import Any, NamedTuple, TypeAlias
 
 import grpc
 import numpy as np
@@ -97,6 +97,7 @@ class ActorLease:
     name: str
     expires: float
     env_steps: int = 0
+    told_done: bool = False  # a heartbeat answered after the run's budget was spent
 
 
 class ActorRegistry:
@@ -106,7 +107,11 @@ class ActorRegistry:
     free), so a restarted actor, or every actor after a learner restart, gets its old index back
     and with it the same seeds and exploration noise. A lease not renewed within ``lease_s``
     seconds expires and frees the index. Registrations and expiries are logged and counted
-    (``registered``, ``expired``). Thread-safe."""
+    (``registered``, ``expired``). Thread-safe.
+
+    ``run_done`` is set by the learner once the run's budget is spent: every heartbeat answers it
+    (the actors stop), :meth:`all_told` says when each live actor has heard it, and actors leaving
+    after it are logged as normal, not as warnings."""
 
     def __init__(self, lease_s: float = 15.0, clock: Callable[[], float] = time.monotonic) -> None:
         self.lease_s = float(lease_s)
@@ -115,6 +120,7 @@ class ActorRegistry:
         self._actors: dict[str, ActorLease] = {}
         self.registered = 0
         self.expired = 0
+        self.run_done = threading.Event()
 
     def register(self, name: str, preferred_index: int | None = None) -> ActorLease:
         with self._lock:
@@ -139,7 +145,14 @@ class ActorRegistry:
                 return False
             lease.expires = self._clock() + self.lease_s
             lease.env_steps = int(env_steps)
+            lease.told_done = self.run_done.is_set()
             return True
+
+    def all_told(self) -> bool:
+        """Whether every live actor has had a heartbeat answered since ``run_done`` was set."""
+        with self._lock:
+            self._expire()
+            return all(a.told_done for a in self._actors.values())
 
     def alive(self) -> list[ActorLease]:
         with self._lock:
@@ -151,9 +164,10 @@ class ActorRegistry:
         for actor_id in [a.actor_id for a in self._actors.values() if a.expires < now]:
             lease = self._actors.pop(actor_id)
             self.expired += 1
-            log.warning("%s (%s, index %d) dropped: no heartbeat for %.1f s (lease %.1f s); %d live", actor_id,
-                        lease.name, lease.index, now - lease.expires + self.lease_s, self.lease_s,
-                        len(self._actors))  # fmt: skip
+            level = logging.INFO if self.run_done.is_set() else logging.WARNING  # leaving at the end is normal
+            log.log(level, "%s (%s, index %d) dropped: no heartbeat for %.1f s (lease %.1f s); %d live", actor_id,
+                    lease.name, lease.index, now - lease.expires + self.lease_s, self.lease_s,
+                    len(self._actors))  # fmt: skip
 
 
 class ParamsStore:
@@ -264,7 +278,9 @@ class LearnerServicer(learner_pb2_grpc.LearnerServiceServicer):
             context.abort(grpc.StatusCode.INVALID_ARGUMENT, f"env_steps must be >= 0, got {request.env_steps}")
         if not self.registry.renew(request.actor_id, request.env_steps):
             context.abort(grpc.StatusCode.NOT_FOUND, f"no live actor {request.actor_id!r} (lease expired?): register")
-        return learner_pb2.HeartbeatReply(learner_id=self.learner_id, params_version=self.store.version)
+        return learner_pb2.HeartbeatReply(
+            learner_id=self.learner_id, params_version=self.store.version, run_done=self.registry.run_done.is_set()
+        )
 
     def GetParams(
         self, request: learner_pb2.GetParamsRequest, context: grpc.ServicerContext
@@ -379,6 +395,14 @@ class LeaseExpired(RuntimeError):
     """The learner does not know this actor id (lease expired, or the learner restarted): register again."""
 
 
+class Beat(NamedTuple):
+    """A heartbeat's answer (learner.proto HeartbeatReply)."""
+
+    learner_id: str
+    params_version: int
+    run_done: bool
+
+
 @dataclass(frozen=True)
 class Registration:
     actor_id: str
@@ -431,9 +455,9 @@ class LearnerClient:
         reply = self._call(self._stub.RegisterActor, request)
         return Registration(reply.actor_id, reply.index, reply.learner_id, reply.params_port, reply.lease_s)
 
-    def heartbeat(self, actor_id: str, env_steps: int) -> tuple[str, int]:
-        """Renew the lease; returns ``(learner_id, latest params version)``; :class:`LeaseExpired`
-        when the learner no longer knows ``actor_id``."""
+    def heartbeat(self, actor_id: str, env_steps: int) -> Beat:
+        """Renew the lease; returns the learner's id, its latest params version and whether the run's
+        budget is spent; :class:`LeaseExpired` when the learner no longer knows ``actor_id``."""
         try:
             request = learner_pb2.HeartbeatRequest(actor_id=actor_id, env_steps=env_steps)
             reply = self._call(self._stub.Heartbeat, request)
@@ -441,7 +465,7 @@ class LearnerClient:
             if e.code() == grpc.StatusCode.NOT_FOUND:
                 raise LeaseExpired(e.details()) from None
             raise
-        return reply.learner_id, reply.params_version
+        return Beat(reply.learner_id, reply.params_version, reply.run_done)
 
     def get_params(self) -> tuple[int, list[bytes]]:
         """The latest published ``(version, frames)``; decode with :func:`ds.params.decode_params`."""

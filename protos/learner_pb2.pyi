@@ -38,12 +38,14 @@ class HeartbeatRequest(_message.Message):
     def __init__(self, actor_id: _Optional[str] = ..., env_steps: _Optional[int] = ...) -> None: ...
 
 class HeartbeatReply(_message.Message):
-    __slots__ = ("learner_id", "params_version")
+    __slots__ = ("learner_id", "params_version", "run_done")
     LEARNER_ID_FIELD_NUMBER: _ClassVar[int]
     PARAMS_VERSION_FIELD_NUMBER: _ClassVar[int]
+    RUN_DONE_FIELD_NUMBER: _ClassVar[int]
     learner_id: str
     params_version: int
-    def __init__(self, learner_id: _Optional[str] = ..., params_version: _Optional[int] = ...) -> None: ...
+    run_done: bool
+    def __init__(self, learner_id: _Optional[str] = ..., params_version: _Optional[int] = ..., run_done: _Optional[bool] = ...) -> None: ...
 
 class GetParamsRequest(_message.Message):
     __slots__ = ()

@@ -117,10 +117,24 @@ def test_registry_gives_the_lowest_free_index_and_expires_leases() -> None:
 
 def test_heartbeat_of_an_unknown_actor_says_register_again(learner_side: LearnerSide) -> None:
     reg = learner_side.client.register("me")
-    learner_id, version = learner_side.client.heartbeat(reg.actor_id, 10)
-    assert learner_id == reg.learner_id and version == -1
+    learner_id, version, run_done = learner_side.client.heartbeat(reg.actor_id, 10)
+    assert learner_id == reg.learner_id and version == -1 and not run_done
     with pytest.raises(LeaseExpired):
         learner_side.client.heartbeat("actor-9-unknown", 0)
+
+
+def test_heartbeats_tell_actors_when_the_runs_budget_is_spent(learner_side: LearnerSide) -> None:
+    # The learner, not the replay, knows the run's env steps (a restarted replay counts from 0):
+    # once it says the run is done, every heartbeat answers so, and it knows who has heard it.
+    a, b = learner_side.client.register("a"), learner_side.client.register("b")
+    registry = learner_side.registry
+    assert not learner_side.client.heartbeat(a.actor_id, 5).run_done
+    registry.run_done.set()
+    assert not registry.all_told()  # nobody has had a heartbeat answered since
+    assert learner_side.client.heartbeat(a.actor_id, 6).run_done
+    assert not registry.all_told()
+    assert learner_side.client.heartbeat(b.actor_id, 6).run_done
+    assert registry.all_told()
 
 
 def test_get_params_returns_the_latest_version(learner_side: LearnerSide) -> None:
