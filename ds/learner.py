@@ -232,12 +232,13 @@ class Learner:
             log.info("trained %d more updates on the data inserted before max_step", trained)
 
     def _until_actors_are_told(self) -> None:
-        """Serve heartbeats until every live actor has heard that the run is done (at most one lease):
-        a learner that exited first would leave them waiting for it."""
+        """Serve heartbeats until every live actor has heard that the run is done: a learner that
+        exited first would leave them waiting for it. Actors beat at least every third of a lease,
+        so one that has not heard within that (and a second) has gone already (its lease lingers)."""
         registry = self.registry
         if registry is None:
             return
-        deadline = time.monotonic() + registry.lease_s
+        deadline = time.monotonic() + registry.lease_s / 3 + 1.0
         while not registry.all_told() and time.monotonic() < deadline and not self.stop.is_set():
             time.sleep(0.1)
 

@@ -113,7 +113,8 @@ def run_evolver(role: RoleContext) -> int:
 def run_replay(role: RoleContext, metrics_every_s: float = 10.0) -> int:
     """Serve the run's prioritized table (rate limiter enforced: actors and learner are separate
     processes) until stopped; with ``save_replay`` load it at start and save it every
-    ``save_replay_per_minute`` (default ``save_model_per_minute``) minutes and at shutdown. A
+    ``save_replay_per_minute`` (default ``save_model_per_minute``) minutes and at shutdown, with
+    ``save_replay_on_stop`` (the default) only at shutdown and start. A
     replay killed without saving comes back with its last snapshot, including the ids of the chunks
     in it: actors send again what was not acknowledged, and what the snapshot holds is not stored
     twice. With an evolver it first asks which learner it serves (announcing
@@ -177,9 +178,10 @@ def _serve_replay(role: RoleContext, keeper: AssignmentKeeper | None, metrics_ev
         burn_in=sac_cfg.burn_in_step,
     )
     path = RunDir(role.run_dir).replay
-    saving = cfg.replay_config.save_replay
+    saving = cfg.replay_config.save_replay  # periodic snapshots
+    saving_at_stop = saving or cfg.replay_config.save_replay_on_stop  # a stopped run resumes with its data
     save_every_min = cfg.replay_config.save_replay_per_minute or sac_cfg.save_model_per_minute
-    if saving and path.exists():
+    if saving_at_stop and path.exists():
         load_replay_snapshot(table, path)  # a bad file stops the role (exit 2) before it is saved over
         info = table.info()
         log.info("replay restored from %s: %d steps, the chunk ids of %d actors", path, info["size"], info["producers"])
@@ -218,7 +220,7 @@ def _serve_replay(role: RoleContext, keeper: AssignmentKeeper | None, metrics_ev
     finally:
         replay_service.set_serving(checker, False)
         server.stop(grace=2.0).wait()
-        if saving:
+        if saving_at_stop:
             table.save(path)
             log.info("replay saved to %s", path)
         writer.close()
