@@ -171,7 +171,8 @@ def _format_errors(err: ValidationError, sources: dict[str, str]) -> str:
         elif e["type"] == "value_error":
             msg = msg.removeprefix("Value error, ")
         lines.append(f"{dotted or 'config'} ({source}): {msg}" + _got(e))
-    return "invalid config: " + "; ".join(lines)  # one line, like every command-line error
+    text = "; ".join(lines).replace("\r", "\\r").replace("\n", "\\n")  # a key may hold a line break
+    return "invalid config: " + text  # one line, like every command-line error
 
 
 def _source_of(loc: list[str], sources: dict[str, str]) -> str:
