@@ -20,6 +20,7 @@ import time
 from pathlib import Path
 
 import pytest
+import torch
 
 from ds.learner_service import LearnerClient
 from ds.local import plan
@@ -204,6 +205,14 @@ def stop_took_s(output: str) -> float:
     return max(stamps) - time.mktime(time.strptime(finished, "%Y-%m-%d %H:%M:%S"))
 
 
+def check_unsent_within_the_bound(output: str) -> None:
+    """What actors could not insert at the stop: logged once per actor at most, and never more than
+    an actor may hold ((inserts_in_flight + 1) * chunks_per_insert = 3 chunks with one env)."""
+    unsent = re.findall(r"^\[actor-(\d+)\] .*\d+ collected steps \((\d+) chunks\) were not inserted", output, re.M)
+    assert len({k for k, _ in unsent}) == len(unsent), unsent
+    assert all(int(chunks) <= 3 for _, chunks in unsent), unsent
+
+
 def check_actor_labels(output: str) -> None:
     """Every line where an actor says its index is prefixed by the launcher with that index."""
     said = re.findall(r"^\[actor-(\d+)\] .*(?:: index (\d+),| actor (\d+) (?:finished|stopped) after)", output, re.M)
@@ -228,8 +237,9 @@ def test_a_local_run_finishes_in_order_and_its_summary_plays_it(tmp_path: Path) 
     assert time.monotonic() - started < 110, out[-4000:]
     assert stop_took_s(out) < 20, out[-4000:]  # the old stop waited 30 s for a child before SIGTERM
     assert first(r"^\[learner\] .*checkpoint ", out) < first(r"^\[replay\] .*SIGINT: stopping", out)
-    for bad in ("Traceback", "could not be inserted", "SIGTERM", "SIGKILL"):
+    for bad in ("Traceback", "SIGTERM", "SIGKILL"):
         assert bad not in out, f"{bad!r} in:\n{out[-4000:]}"
+    check_unsent_within_the_bound(out)
     replay_told = first(r"^\[replay\] .*SIGINT: stopping", out)
     for k in (0, 1):  # done by themselves (the budget is spent), or told to stop before the replay is
         assert first(rf"^\[actor-{k}\] .*actor {k} (?:finished|stopped) after", out) < replay_told, out[-4000:]
@@ -298,3 +308,43 @@ def test_a_population_labels_each_learner_and_replay_with_the_evolver_id(tmp_pat
     _, lines = summary_of(out)
     for k in (0, 1):
         assert any(f"-n pop/learner_{k} --run" in line for line in lines), lines
+
+
+@pytest.mark.slow
+@pytest.mark.grpc
+@pytest.mark.fault
+def test_ctrl_c_then_the_same_command_resumes_keeps_the_ratio_and_the_budget(tmp_path: Path) -> None:
+    """SIGINT mid-run, then the same command: the learner resumes from its checkpoint and the replay
+    from the snapshot it saved at the stop (save_replay_on_stop, the default); the run ends at its
+    budget, at most a chunk per actor past it, with the updates the config asks for (1 per env step
+    once min_size_to_sample steps are stored: TINY's samples_per_insert is null)."""
+    args = command("gym/pendulum", "local", "--actors", "2", "-n", "resumed", *TINY, "--override", "sac.seed=0",
+                   "--override", "base.max_step=1600")  # fmt: skip
+    log = tmp_path / "first.log"
+    with log.open("w") as sink:
+        proc = subprocess.Popen(args, cwd=tmp_path, env=ENV, stdout=sink, stderr=subprocess.STDOUT)
+    deadline = time.monotonic() + 90
+    while not re.search(r"eval at (6|7|8|9)\d\d env steps", log.read_text()):
+        assert proc.poll() is None, log.read_text()[-4000:]
+        assert time.monotonic() < deadline, "the run did not get going: " + log.read_text()[-4000:]
+        time.sleep(0.3)
+    proc.send_signal(signal.SIGINT)
+    assert proc.wait(timeout=60) == 130, log.read_text()[-4000:]
+    run = tmp_path / "models/gym/pendulum/resumed"
+    assert (run / "replay/replay.npz").is_file(), "the replay did not save at the stop"
+    stopped = max(int(p.stem) for p in run.glob("model/*.pt"))
+    assert stopped < 1600
+
+    again = subprocess.run(args, cwd=tmp_path, env=ENV, text=True, stdout=subprocess.PIPE,
+                           stderr=subprocess.STDOUT, timeout=180)  # fmt: skip
+    out = again.stdout
+    assert again.returncode == 0, out[-4000:]
+    assert re.search(rf"resumed from \S+/{stopped}\.pt at {stopped} env steps", out), out[-4000:]
+    assert "replay restored from" in out and "Traceback" not in out, out[-4000:]
+    final = max(run.glob("model/*.pt"), key=lambda p: int(p.stem))
+    counters = torch.load(final, weights_only=True)["counters"]
+    assert 1600 <= counters["env_steps"] <= 1600 + 2 * 64, counters  # at most a chunk per actor past it
+    asked = counters["env_steps"] - 200  # 1 update per step once min_size_to_sample=200 steps are stored
+    assert asked - 64 <= counters["updates"] <= asked + 1, counters
+    outcome, _ = summary_of(out)
+    assert outcome == "finished"
