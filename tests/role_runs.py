@@ -145,11 +145,11 @@ class RoleRun:
 
     def stop_all(self, grace_s: float = 30.0) -> dict[str, int]:
         """Stop every role as ``main_ds.py local`` does: SIGCONT (a stopped one must see the signal),
-        then SIGINT to the actors, then the learner, then the replay, each stage waited for up to
-        ``grace_s``; then SIGKILL. Returns each role's exit code."""
+        then SIGINT to the learner (it saves first), then the actors, then the replay, each stage
+        waited for up to ``grace_s``; then SIGKILL. Returns each role's exit code."""
         for label in self.procs:
             self.signal(label, signal.SIGCONT)
-        stages = [[x for x in self.procs if x.startswith(r)] for r in ("actor", "learner")]
+        stages = [[x for x in self.procs if x.startswith(r)] for r in ("learner", "actor")]
         stages.append([x for x in self.procs if not x.startswith(("actor", "learner"))])
         for labels, signum in [(s, signal.SIGINT) for s in stages] + [(list(self.procs), signal.SIGKILL)]:
             for label in labels:

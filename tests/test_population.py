@@ -108,9 +108,10 @@ class Roles:
         self.wait_for(f"{count} learners registered with a replay", ready, timeout_s)
 
     def stop_all(self, grace_s: float = 30.0) -> None:
-        """Stop every role as ``main_ds.py local`` does: SIGINT (what Ctrl-C sends) to the actors, then the
-        learners, then the replays and the evolver, each stage waited for up to ``grace_s``; then SIGKILL."""
-        stages = [[p for label, p in self.procs.items() if label.startswith(role)] for role in ("actor", "learner")]
+        """Stop every role as ``main_ds.py local`` does: SIGINT (what Ctrl-C sends) to the learners (they
+        save first), then the actors, then the replays and the evolver, each stage waited for up to
+        ``grace_s``; then SIGKILL."""
+        stages = [[p for label, p in self.procs.items() if label.startswith(role)] for role in ("learner", "actor")]
         stages.append([p for label, p in self.procs.items() if not label.startswith(("actor", "learner"))])
         for procs, signum in [(s, signal.SIGINT) for s in stages] + [(list(self.procs.values()), signal.SIGKILL)]:
             for proc in procs:
