@@ -169,7 +169,11 @@ def actor_rate(config: Config, agents: int, seconds: float, replay: ReplayClient
     (None: dropped, to see the policy's share)."""
     env = make_vector_env("HalfCheetah-v5", agents, seed=0)
     sac = SAC(env.spec, config.sac_config, config.nn_config, config.replay_config)
-    sink = (lambda chunk: None) if replay is None else ReplaySink(replay, stopping=lambda: False)
+    actor_cfg = config.actor_config  # the sink as DistributedActor builds it (ds/actor.py)
+    sink = (lambda chunk: None) if replay is None else ReplaySink(
+        replay, stopping=lambda: False, in_flight=actor_cfg.inserts_in_flight,
+        max_chunks_per_insert=actor_cfg.chunks_per_insert or agents,
+    )  # fmt: skip
     loop = ActorLoop(env, sac, sink, chunk_length=config.actor_config.chunk_length, seed=0)
     steps, start = 0, time.perf_counter()
     while time.perf_counter() - start < seconds:
