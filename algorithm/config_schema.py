@@ -210,11 +210,13 @@ class NNConfig(Section):
 class ActorConfig(Section):
     chunk_length: int = Field(64, ge=1, description="Steps per trajectory chunk sent to replay.")
     inserts_in_flight: int = Field(
-        2,
+        1,
         ge=1,
         description="Distributed actors: insert requests on their way to the replay while the actor steps on. "
         "With chunks_per_insert, bounds what an actor holds when the replay holds it back: "
-        "(inserts_in_flight + 1) * chunks_per_insert chunks, which is how stale its data can get.",
+        "(inserts_in_flight + 1) * chunks_per_insert chunks, which is how stale its data can get. 1: Pendulum "
+        "through local --actors 2 reached -200 in a median 2,056 env steps on seeds 0-4 against 2,784 with 2, at "
+        "the same actor throughput (README, Measured results).",
     )
     chunks_per_insert: int | None = Field(
         None,

@@ -207,10 +207,10 @@ def stop_took_s(output: str) -> float:
 
 def check_unsent_within_the_bound(output: str) -> None:
     """What actors could not insert at the stop: logged once per actor at most, and never more than
-    an actor may hold ((inserts_in_flight + 1) * chunks_per_insert = 3 chunks with one env)."""
+    an actor may hold ((inserts_in_flight + 1) * chunks_per_insert = 2 chunks with one env)."""
     unsent = re.findall(r"^\[actor-(\d+)\] .*\d+ collected steps \((\d+) chunks\) were not inserted", output, re.M)
     assert len({k for k, _ in unsent}) == len(unsent), unsent
-    assert all(int(chunks) <= 3 for _, chunks in unsent), unsent
+    assert all(int(chunks) <= 2 for _, chunks in unsent), unsent
 
 
 def check_actor_labels(output: str) -> None:

@@ -25,9 +25,9 @@ SAMPLE_EVERY_S = min(10.0, DURATION_S / 30)
 ACTORS = 4
 CAPACITY = 20_000  # rows: full within seconds at full speed, then every insert evicts
 PREFETCH_DEPTH, PRIORITY_DEPTH = 4, 64  # ds/learner.py's and ds/replay_feeds.py's queue sizes
-# ReplaySink with the actor's defaults (actor_config.inserts_in_flight 2, chunks_per_insert = n_agents
-# = 1): two inserts of one chunk on their way and one waiting (ReplaySink.max_backlog).
-SINK_BACKLOG = (2 + 1) * 1
+# ReplaySink with the actor's defaults (actor_config.inserts_in_flight 1, chunks_per_insert = n_agents
+# = 1): one insert of one chunk on its way and one waiting (ReplaySink.max_backlog).
+SINK_BACKLOG = (1 + 1) * 1
 # Growth allowed between the medians of the middle and the last third of the run, per role. Measured
 # over the full ten minutes (two cores shared with other jobs): every role moved by at most +0.2 MB
 # between those medians (from the first sample to the maximum: +3 MB replay, +4 MB learner, +1 MB
