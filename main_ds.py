@@ -25,6 +25,7 @@ from algorithm.checkpoint import CheckpointError
 from algorithm.config import ConfigError, apply_overrides, config_from_file, config_to_yaml, load_config
 from algorithm.config_schema import Config
 from algorithm.sac import MAX_EXPLORATION_NOISE
+from algorithm.signals import StopRequest
 from algorithm.trainer import RunDir
 from ds import k8s, roles, security
 from ds.evolver_state import EvolverStateError
@@ -230,7 +231,7 @@ def run(args: argparse.Namespace) -> int:
             env_factory(config),
             run_model_builder(RunDir(run_dir)),
             args.device,
-            roles.stop_on_signals(),
+            roles.stop_on_signals("stopping"),
             credentials=credentials(config, role),
             overrides=tuple(cli_overrides(args)),
         )
@@ -242,6 +243,12 @@ def run(args: argparse.Namespace) -> int:
     if role == "local":
         return local(args, config, run_dir, context.credentials)
     log.info("%s of run %s (seed %s)", role, run_dir, config.sac_config.seed)
+    code = run_role(role, context, args)
+    stop = context.stop
+    return stop.exit_code if code == 130 and isinstance(stop, StopRequest) else code  # 143 after SIGTERM
+
+
+def run_role(role: str, context: roles.RoleContext, args: argparse.Namespace) -> int:
     if role == "evolver":
         return roles.run_evolver(context)
     if role == "replay":

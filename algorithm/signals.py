@@ -35,17 +35,16 @@ class StopRequest(threading.Event):
         return 128 + int(self.signum or signal.SIGINT)
 
 
-def stop_on_signals(what: str = "") -> StopRequest:
-    """Install handlers for SIGINT and SIGTERM that set the returned :class:`StopRequest`; ``what``
-    names the process in the log line (e.g. ``"replay"``)."""
+def stop_on_signals(doing: str = "stopping after this step, saving") -> StopRequest:
+    """Install handlers for SIGINT and SIGTERM that set the returned :class:`StopRequest`; ``doing``
+    says in the log line what the process does now (``SIGINT: <doing> (again to force)``)."""
     stop = StopRequest()
 
     def handler(signum: int, frame: FrameType | None) -> None:
         if stop.is_set():
             raise KeyboardInterrupt
         stop.signum = signum
-        name = signal.Signals(signum).name
-        log.info("%s%s: stopping after this step, saving (again to force)", f"{what} " if what else "", name)
+        log.info("%s: %s (again to force)", signal.Signals(signum).name, doing)
         stop.set()
 
     signal.signal(signal.SIGINT, handler)

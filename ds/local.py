@@ -45,10 +45,10 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
-from types import FrameType
 
 import grpc
 
+from algorithm.signals import StopRequest, stop_on_signals
 from ds.evolver_service import EvolverClient
 from ds.evolver_state import LearnerInfo
 from ds.local_summary import PlayableRun, summary
@@ -66,44 +66,6 @@ HOLD_LINES_S = 60.0
 (then they show unnumbered): long enough for a slow start on a loaded machine, short enough that a
 learner stuck before registering still shows why."""
 _PID = re.compile(r"\(pid (\d+)\)")  # how a learner names itself to the evolver (ds/role_context.py)
-
-
-def stop_on_signals() -> threading.Event:
-    """An event set by the first SIGINT or SIGTERM (the role then finishes cleanly: saves, closes);
-    a second signal raises KeyboardInterrupt to cut a stuck shutdown short."""
-    stop = threading.Event()
-
-    def handler(signum: int, frame: FrameType | None) -> None:
-        if stop.is_set():
-            raise KeyboardInterrupt
-        log.info("%s: stopping (again to force)", signal.Signals(signum).name)
-        stop.set()
-
-    signal.signal(signal.SIGINT, handler)
-    signal.signal(signal.SIGTERM, handler)
-    return stop
-
-
-class LauncherSignals:
-    """The launcher's SIGINT/SIGTERM: the first sets :attr:`stop` and is remembered (the exit code
-    says which it was); a second raises KeyboardInterrupt: kill every child now."""
-
-    def __init__(self) -> None:
-        self.stop = threading.Event()
-        self.signum: int | None = None
-        signal.signal(signal.SIGINT, self._handle)
-        signal.signal(signal.SIGTERM, self._handle)
-
-    def _handle(self, signum: int, frame: FrameType | None) -> None:
-        if self.stop.is_set():
-            raise KeyboardInterrupt
-        self.signum = signum
-        log.info("%s: stopping every role in order (again to force)", signal.Signals(signum).name)
-        self.stop.set()
-
-    @property
-    def exit_code(self) -> int:
-        return 128 + (self.signum or signal.SIGINT)
 
 
 def free_port() -> int:
@@ -297,7 +259,7 @@ def run_local(
     order; print ``run``'s summary. Returns the exit code (the module docstring). ``credentials``
     are the launcher's own, for asking the evolver who registered."""
     children = LocalProcesses()
-    signals = LauncherSignals()
+    signals = stop_on_signals("stopping every role in order")
     population = learners is not None
     learner_ids: dict[str, int] = {}
     try:
@@ -324,7 +286,7 @@ def _signal_name(signum: int | None) -> str:
 
 def _run(
     children: LocalProcesses,
-    signals: LauncherSignals,
+    signals: StopRequest,
     planned: list[tuple[str, list[str]]],
     credentials: Credentials,
     learner_ids: dict[str, int],
@@ -338,18 +300,18 @@ def _run(
         evolver = planned[0][1]
         address = f"{LOCAL_HOST}:{evolver[evolver.index('--evolver_port') + 1]}"
         ports = {n: argv[argv.index("--replay_port") + 1] for n, argv in planned if _role(n) == "replay"}
-        failed = _wait_for_learners(children, signals.stop, address, credentials, learner_ids, ports)
+        failed = _wait_for_learners(children, signals, address, credentials, learner_ids, ports)
         if failed is not None:
             return failed
     for name, argv in planned:
-        if _role(name) == "actor" and not signals.stop.is_set():
+        if _role(name) == "actor" and not signals.is_set():
             children.start(name, argv)
     return _supervise(children, signals)
 
 
-def _supervise(children: LocalProcesses, signals: LauncherSignals) -> Outcome:
+def _supervise(children: LocalProcesses, signals: StopRequest) -> Outcome:
     learners = children.names("learner")
-    while not signals.stop.wait(0.2):
+    while not signals.wait(0.2):
         if (failed := _failed(children)) is not None:
             return failed
         if all(children.children[n].poll() == 0 for n in learners):
@@ -358,7 +320,7 @@ def _supervise(children: LocalProcesses, signals: LauncherSignals) -> Outcome:
     return _interrupted(signals)
 
 
-def _interrupted(signals: LauncherSignals) -> Outcome:
+def _interrupted(signals: StopRequest) -> Outcome:
     return Outcome(signals.exit_code, f"interrupted ({_signal_name(signals.signum)})")
 
 
@@ -421,5 +383,4 @@ def _label_members(
             children.relabel(name, f"replay-{x.learner_id}")
 
 
-__all__ = ["LOCAL_HOST", "STOP_ORDER", "LauncherSignals", "LocalProcesses", "free_port", "plan", "run_local",
-           "stop_on_signals"]  # fmt: skip
+__all__ = ["LOCAL_HOST", "STOP_ORDER", "LocalProcesses", "free_port", "plan", "run_local"]

@@ -39,6 +39,7 @@ from algorithm.config_schema import Config
 from algorithm.logging import MetricsWriter
 from algorithm.replay import PrioritizedTable
 from algorithm.sac import SAC
+from algorithm.signals import stop_on_signals
 from algorithm.trainer import EVAL_SEED_OFFSET, RunDir, load_replay_snapshot, seed_everything
 from ds import learner_service, replay_service
 from ds.actor import DistributedActor
@@ -57,7 +58,7 @@ from ds.learner_service import (
     learner_message_limit,
     serve_learner,
 )
-from ds.local import LOCAL_HOST, stop_on_signals
+from ds.local import LOCAL_HOST
 from ds.params import ParamsPublisher, params_spec
 from ds.population import (
     AssignmentKeeper,
