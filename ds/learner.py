@@ -170,6 +170,12 @@ class Learner:
     # -- the loop ---------------------------------------------------------------------------
     def run(self) -> LearnerSummary:
         core, c = self.core, self.core.counters
+        if core.done():  # started again on a finished run: nothing to train, nothing to change
+            result = "n/a" if c.last_eval_mean is None else f"{c.last_eval_mean:.1f}"
+            log.info("already finished at %d env steps; last eval return %s", c.env_steps, result)
+            if self.registry is not None:
+                self.registry.run_done.set()
+            return LearnerSummary(c.env_steps, c.updates, c.wall_seconds, c.last_eval_mean, False)
         last_info = last_publish = time.perf_counter()
         core.start()
         self.publish()

@@ -313,7 +313,9 @@ def test_a_population_labels_each_learner_and_replay_with_the_evolver_id(tmp_pat
 @pytest.mark.slow
 @pytest.mark.grpc
 @pytest.mark.fault
-def test_ctrl_c_then_the_same_command_resumes_keeps_the_ratio_and_the_budget(tmp_path: Path) -> None:
+def test_ctrl_c_then_the_same_command_resumes_and_a_third_run_of_the_finished_run_changes_nothing(
+    tmp_path: Path,
+) -> None:
     """SIGINT mid-run, then the same command: the learner resumes from its checkpoint and the replay
     from the snapshot it saved at the stop (save_replay_on_stop, the default); the run ends at its
     budget, at most a chunk per actor past it, with the updates the config asks for (1 per env step
@@ -348,3 +350,13 @@ def test_ctrl_c_then_the_same_command_resumes_keeps_the_ratio_and_the_budget(tmp
     assert asked - 64 <= counters["updates"] <= asked + 1, counters
     outcome, _ = summary_of(out)
     assert outcome == "finished"
+
+    # A third time: the run is finished; it says so and changes nothing.
+    checkpoints = sorted(p.name for p in run.glob("model/*.pt"))
+    third = subprocess.run(args, cwd=tmp_path, env=ENV, text=True, stdout=subprocess.PIPE,
+                           stderr=subprocess.STDOUT, timeout=120)  # fmt: skip
+    assert third.returncode == 0, third.stdout[-4000:]
+    assert f"already finished at {counters['env_steps']} env steps" in third.stdout, third.stdout[-4000:]
+    assert sorted(p.name for p in run.glob("model/*.pt")) == checkpoints
+    outcome, lines = summary_of(third.stdout)
+    assert outcome == "finished" and "run folder: models/gym/pendulum/resumed" in lines, lines
