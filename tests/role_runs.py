@@ -34,10 +34,27 @@ from ds.rpc import RetryPolicy
 
 ROOT = Path(__file__).resolve().parents[1]
 ENV = {**os.environ, "OMP_WAIT_POLICY": "PASSIVE", "OMP_NUM_THREADS": "1", "MUJOCO_GL": "egl"}
+# A Pendulum run small enough for a test: tiny nets and batches, 1 update per env step from 200 steps.
+TINY_OVERRIDES = [
+    "nn.hidden_units=[16,16]",
+    "replay.batch_size=32",
+    "replay.samples_per_insert=null",
+    "replay.min_size_to_sample=200",
+    "eval.eval_per_step=300",
+    "eval.eval_episodes=2",
+    "eval.eval_envs=2",
+    "sac.write_summary_per_step=50",
+]
+TINY = [arg for override in TINY_OVERRIDES for arg in ("--override", override)] + ["--no_progress"]
 
 
 def flags(*overrides: str) -> list[str]:
     return [arg for override in overrides for arg in ("--override", override)] + ["--no_progress"]
+
+
+def main_ds_command(*args: str) -> list[str]:
+    """``python main_ds.py ARGS`` with this interpreter."""
+    return [sys.executable, str(ROOT / "main_ds.py"), *args]
 
 
 def running(pid: int) -> bool:

@@ -9,7 +9,6 @@ journeys run the real roles on gym/pendulum with tiny budgets.
 
 from __future__ import annotations
 
-import os
 import re
 import shlex
 import signal
@@ -26,20 +25,9 @@ from ds.learner_service import LearnerClient
 from ds.local import plan
 from ds.local_summary import python_command
 from ds.roles import AsksForIndex
+from tests.role_runs import ENV, TINY, main_ds_command
 
 ROOT = Path(__file__).resolve().parents[1]
-ENV = {**os.environ, "OMP_WAIT_POLICY": "PASSIVE", "OMP_NUM_THREADS": "1", "MUJOCO_GL": "egl"}
-TINY_OVERRIDES = [
-    "nn.hidden_units=[16,16]",
-    "replay.batch_size=32",
-    "replay.samples_per_insert=null",
-    "replay.min_size_to_sample=200",
-    "eval.eval_per_step=300",
-    "eval.eval_episodes=2",
-    "eval.eval_envs=2",
-    "sac.write_summary_per_step=50",
-]
-TINY = [arg for override in TINY_OVERRIDES for arg in ("--override", override)] + ["--no_progress"]
 SUMMARY_HEAD = re.compile(r"^== local run (.+) ==$", re.M)
 STAMP = re.compile(r"(\d{4}-\d\d-\d\d \d\d:\d\d:\d\d),\d{3} ")
 
@@ -172,8 +160,7 @@ def test_an_actor_asks_its_learner_for_its_index_first_and_its_own_index_after(m
 # ---------------------------------------------------------------------- journeys on real processes
 
 
-def command(*args: str) -> list[str]:
-    return [sys.executable, str(ROOT / "main_ds.py"), *args]
+command = main_ds_command
 
 
 def summary_of(output: str) -> tuple[str, list[str]]:

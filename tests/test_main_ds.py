@@ -8,7 +8,6 @@ import re
 import signal
 import socket
 import subprocess
-import sys
 import time
 from pathlib import Path
 
@@ -16,25 +15,12 @@ import pytest
 
 from ds.security import ROLES
 from tests.pki import Pki
-from tests.role_runs import running
+from tests.role_runs import ENV, TINY, main_ds_command, running
 
 ROOT = Path(__file__).resolve().parents[1]
-ENV = {**os.environ, "OMP_WAIT_POLICY": "PASSIVE", "OMP_NUM_THREADS": "1", "MUJOCO_GL": "egl"}
-TINY_OVERRIDES = [
-    "nn.hidden_units=[16,16]",
-    "replay.batch_size=32",
-    "replay.samples_per_insert=null",
-    "replay.min_size_to_sample=200",
-    "eval.eval_per_step=300",
-    "eval.eval_episodes=2",
-    "eval.eval_envs=2",
-    "sac.write_summary_per_step=50",
-]
-TINY = [arg for override in TINY_OVERRIDES for arg in ("--override", override)] + ["--no_progress"]
 
 
-def command(*args: str) -> list[str]:
-    return [sys.executable, str(ROOT / "main_ds.py"), *args]
+command = main_ds_command
 
 
 def run_ds(*args: str, cwd: Path, timeout: float = 240) -> subprocess.CompletedProcess[str]:
