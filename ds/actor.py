@@ -3,7 +3,7 @@
 Usage (``ds/roles.py`` composes the parts)::
 
     actor = DistributedActor(config, run_dir, make_env, sac, replay, learner, learner_host="10.0.0.2")
-    summary = actor.run()   # until the replay has seen base_config.max_step env steps, or stop is set
+    summary = actor.run()   # until the learner says the run is done (max_step), or stop is set
 
 What it does, in order: waits for the replay and the learner (logging what it waits for); registers
 with the learner, which gives it an id, an index and a lease; derives its env seeds and its
@@ -16,7 +16,9 @@ and an unreachable replay hold the actor back (it stops stepping; its backlog st
 ``ReplaySink.max_backlog`` chunks), counted and logged. A heartbeat thread renews its lease every
 few seconds (at most a third of the lease), whatever the acting thread waits for; a learner that
 restarted (new id) or forgot it (lease expired: this process was stopped or cut off for longer) is
-registered with again, keeping the index. A replay that does not answer (down, or stalled) is waited
+registered with again, keeping the index. The learner says when the run's budget is spent (its
+heartbeat answer: it counts every actor's steps, across replay restarts); a replay that has itself
+seen ``max_step`` inserts is taken as the same sign. A replay that does not answer (down, or stalled) is waited
 for; chunks stay in the sink until the replay acknowledges them. At the end (budget spent, ``max_iter``
 or a signal) the open chunks and the sink's backlog get one last try each, without waiting in the
 rate limiter or retrying a replay that is gone; what was not stored is counted
