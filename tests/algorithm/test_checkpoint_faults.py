@@ -125,7 +125,9 @@ def test_saves_killed_at_random_moments_always_leave_a_loadable_latest_checkpoin
     rng = random.Random(0)
     model, inside, kills = tmp_path / "model", 0, 0
     while inside < 2:
-        assert kills < 8, f"only {inside} of {kills} kills landed inside a save"
+        # Most kills land inside a save, but not all (one CI run: 1 of 8, when serialising the state,
+        # before any temp file exists, took most of the time): 24 tries keep that from failing the run.
+        assert kills < 24, f"only {inside} of {kills} kills landed inside a save"
         proc = start(model, "loop")
         try:
             read_line(proc, "saved 100")
