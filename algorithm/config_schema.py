@@ -1,6 +1,6 @@
 """The typed config schema: one pydantic model per section, one documented field per key.
 
-Section and key names follow the original system (SPEC.md D) so its users feel at home; new
+Section and key names follow the original Advanced-Soft-Actor-Critic so its users feel at home; new
 sections (``nn_config``, ``actor_config``, ``eval_config``) hold keys for parts it did not have.
 Every model forbids unknown keys; :mod:`algorithm.config` layers YAML files onto these models and
 turns validation errors into messages that name the key and the file.

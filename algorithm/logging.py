@@ -1,4 +1,4 @@
-"""One metrics path (STYLE.md 12): flat namespaced dicts -> TensorBoard, per-phase timers, a progress line.
+"""One metrics path: flat namespaced dicts -> TensorBoard, per-phase timers, a progress line.
 
 Metric names are ``actor/*``, ``learner/*``, ``replay/*``, ``eval/*`` and ``time/*``; every write
 goes through :meth:`MetricsWriter.write` with the env-step counter as the x axis.

@@ -4,7 +4,7 @@ touch; the population and its CEM rounds live in :class:`ds.evolver.Evolver`.
 
 Every method takes the registry's own lock, held for a few dictionary operations: nothing here waits
 for the population, the disk or the network, so heartbeats, PostReward, GetSample and Assign answer
-at once even while a round runs (SPEC.md E: the original ran CEM inside an rpc under a global lock).
+at once even while a round runs (the original system ran CEM inside an rpc under a global lock).
 
 - **Leases.** A learner that sent nothing for ``lease_s`` seconds is *gone*: it keeps its id, config,
   returns and pending sample, but its calls answer :class:`UnknownLearner` until it registers again
