@@ -21,7 +21,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from algorithm.checkpoint import list_checkpoints
-from algorithm.evaluation import read_evaluations
+from algorithm.learner_core import last_evaluation
 from algorithm.trainer import RunDir
 
 DEFAULT_MODEL_ROOT = "models"  # main.py's --model_root default: the play command leaves it out
@@ -54,10 +54,9 @@ def summary(run: PlayableRun, outcome: str, learner_ids: list[int] | None) -> li
 
 def _member_lines(run: PlayableRun, folder: Path, name: str, who: str) -> list[str]:
     paths = RunDir(folder)
-    rows = read_evaluations(paths.evaluations) if paths.evaluations.is_file() else []
-    if rows:
-        last = rows[-1]
-        result = f"final evaluation return {last['return_mean']:.1f} (at {int(last['env_steps'])} env steps)"
+    last = last_evaluation(paths.evaluations)
+    if last is not None:
+        result = f"final evaluation return {last[1]:.1f} (at {last[0]} env steps)"
     else:
         result = f"no evaluation yet ({paths.evaluations} is missing or empty)"
     if not list_checkpoints(paths.model):

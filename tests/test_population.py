@@ -23,7 +23,7 @@ from ds.evolver_service import EvolverClient
 from ds.evolver_state import EvolverInfo
 from ds.local import free_port
 from ds.rpc import RetryPolicy
-from tests.role_runs import running
+from tests.role_runs import TINY_OVERRIDES, running
 
 ROOT = Path(__file__).resolve().parents[1]
 ENV = {**os.environ, "OMP_WAIT_POLICY": "PASSIVE", "OMP_NUM_THREADS": "1", "MUJOCO_GL": "egl"}
@@ -270,13 +270,7 @@ def test_a_sabotaged_learner_is_never_elite_and_is_fixed_by_elite_samples_or_ret
 # ---------------------------------------------------------------------- the evolver killed
 
 RESTART = flags(
-    "nn.hidden_units=[16,16]",
-    "replay.batch_size=32",
-    "replay.samples_per_insert=null",
-    "replay.min_size_to_sample=200",
-    "eval.eval_per_step=300",
-    "eval.eval_episodes=2",
-    "eval.eval_envs=2",
+    *(o for o in TINY_OVERRIDES if not o.startswith("sac.write_summary")),
     "base.evolver_cem_length=2",
     "base.evolver_cem_min_length=1",
     "base.evolver_cem_time=0.3",
