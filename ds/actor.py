@@ -53,7 +53,7 @@ from ds.learner_service import LearnerClient, LeaseExpired, Registration, Remote
 from ds.params import ParamsError, ParamsSubscriber, decode_params, params_spec
 from ds.replay_feeds import Throttle, unavailable
 from ds.replay_service import ReplayClient, ReplayRpcError
-from ds.replay_sink import ReplaySink
+from ds.replay_sink import LAST_INSERTS_WAIT_S, ReplaySink
 from ds.rpc import peer_unresponsive, wait_until_serving
 
 log = logging.getLogger("asac.actor")
@@ -129,6 +129,9 @@ class DistributedActor:
             between=self._between,
             in_flight=actor_cfg.inserts_in_flight,
             max_chunks_per_insert=actor_cfg.chunks_per_insert or config.base_config.n_agents,
+            # at the run's end the learner trains until the actors leave: the last inserts may wait
+            # for it; after a signal nothing is waited for (the learner may be stopping too)
+            last_try_wait_s=lambda: 0.0 if self.stop.is_set() else LAST_INSERTS_WAIT_S,
         )
         self._last_check = time.monotonic()
         self._last_rejoin = -float("inf")
@@ -192,6 +195,8 @@ class DistributedActor:
         finally:
             self._beats_done.set()
             beats.join(timeout=1.0)  # a heartbeat still on its way ends with the channel (daemon thread)
+            if self.registration is not None:  # everything is sent: the learner need not wait for us
+                self.learner.leave(self.registration.actor_id, self.env_steps)
             writer.write(self._metrics(rate.mark(self.env_steps)), self.env_steps)
             writer.close()
             env.close()
@@ -311,7 +316,8 @@ class DistributedActor:
     def _between(self) -> None:
         """In the acting thread, between steps (and while an insert waits): register again when the
         heartbeat thread asks (at most once per heartbeat interval while the learner does not answer),
-        and every ``heartbeat_s`` seconds check whether the run's budget is spent."""
+        and check whether the run's budget is spent: after every insert from its answer, and every
+        ``heartbeat_s`` seconds by asking the replay."""
         if self._beat_error is not None:
             raise self._beat_error
         now = time.monotonic()
@@ -324,17 +330,23 @@ class DistributedActor:
                 self._rejoin.clear()
             except grpc.RpcError as e:
                 self._learner_unreachable(e)
-        if now - self._last_check < self.heartbeat_s:
-            return
-        self._last_check = now
         max_step = self.config.base_config.max_step
-        try:
-            if max_step >= 0 and self.replay.info()["inserted_steps"] >= max_step:
-                log.info("the replay has %d+ env steps (base_config.max_step): done", max_step)
-                self.done = True  # a waiting insert gives up: the run's budget is spent
-        except ReplayRpcError as e:
-            if not unavailable(e):  # gone or not answering (stalled): the sink waits for it too
-                raise
+        if max_step < 0 or self.done:
+            return
+        # The replay's count never exceeds the run's (the learner's, across replay restarts), so
+        # stopping on it is never early; each insert's answer carries it, so an actor stops within
+        # what it holds (the learner's heartbeat says so too, but only every few seconds).
+        inserted = self.sink.replay_inserted_steps
+        if inserted < max_step and now - self._last_check >= self.heartbeat_s:
+            self._last_check = now
+            try:
+                inserted = self.replay.info()["inserted_steps"]
+            except ReplayRpcError as e:
+                if not unavailable(e):  # gone or not answering (stalled): the sink waits for it too
+                    raise
+        if inserted >= max_step:
+            log.info("the replay has %d+ env steps (base_config.max_step): done", max_step)
+            self.done = True  # the loop stops stepping; the sink sends what it holds
 
     def _learner_unreachable(self, error: grpc.RpcError) -> None:
         if not peer_unresponsive(error.code()):

@@ -52,6 +52,7 @@ from ds.learner_service import ActingPolicy, ActorRegistry, ParamsStore
 from ds.params import ParamsPublisher
 from ds.replay_feeds import BatchPrefetcher, PriorityUpdater, Throttle, unavailable
 from ds.replay_service import ReplayRpcError
+from ds.replay_sink import LAST_INSERTS_WAIT_S
 
 log = logging.getLogger("asac.learner")
 
@@ -208,8 +209,8 @@ class Learner:
             if core.done() and not self.stop.is_set():
                 if self.registry is not None:
                     self.registry.run_done.set()  # heartbeats tell the actors to stop stepping
+                self._train_until_actors_leave()
                 self._train_on_what_is_owed()
-                self._until_actors_are_told()
         finally:
             self.prefetcher.stop()
             self.priorities.close()
@@ -241,16 +242,25 @@ class Learner:
         if trained:
             log.info("trained %d more updates on the data inserted before max_step", trained)
 
-    def _until_actors_are_told(self) -> None:
-        """Serve heartbeats until every live actor has heard that the run is done: a learner that
-        exited first would leave them waiting for it. Actors beat at least every third of a lease,
-        so one that has not heard within that (and a second) has gone already (its lease lingers)."""
+    def _train_until_actors_leave(self) -> None:
+        """After ``max_step``: go on training, as the replay's ratio lets batches through, until every
+        live actor has heard that the run is done, sent what it held (its last inserts wait in the
+        rate limiter for these updates) and left, so nothing collected is thrown away and it is all
+        trained on. Actors beat at least every third of a lease and their last inserts wait at most
+        :data:`LAST_INSERTS_WAIT_S` each; one that has not left by then has gone (its lease lingers)."""
         registry = self.registry
         if registry is None:
             return
-        deadline = time.monotonic() + registry.lease_s / 3 + 1.0
-        while not registry.all_told() and time.monotonic() < deadline and not self.stop.is_set():
-            time.sleep(0.1)
+        deadline = time.monotonic() + registry.lease_s / 3 + 1.0 + 2 * LAST_INSERTS_WAIT_S
+        last_info = time.perf_counter()
+        while registry.alive() and time.monotonic() < deadline and not self.stop.is_set():
+            with self.core.timers.phase("wait"):
+                batch = self.prefetcher.get(timeout=0.1)
+            if batch is not None:
+                self._train_on(batch)
+            if time.perf_counter() - last_info >= self.info_every_s:
+                self._poll_replay()
+                last_info = time.perf_counter()
 
     def _leaving(self) -> bool:
         return self.member is not None and (self.member.link.retired or self.member.link.lost is not None)

@@ -53,6 +53,7 @@ from ds.wire import TensorSpec, WireError, from_tensor, to_tensor
 from protos import learner_pb2, learner_pb2_grpc
 
 SERVICE_NAME = "asac.LearnerService"
+LEAVE_TIMEOUT_S = 2.0  # an actor's goodbye (LearnerClient.leave) is one try: the run is ending
 log = logging.getLogger("asac.learner")
 # Who calls what (under mutual TLS, no other role may): actors, except GetWeights, which feeds the
 # evolver's CEM round and is open to the evolver alone.
@@ -97,7 +98,6 @@ class ActorLease:
     name: str
     expires: float
     env_steps: int = 0
-    told_done: bool = False  # a heartbeat answered after the run's budget was spent
 
 
 class ActorRegistry:
@@ -110,8 +110,9 @@ class ActorRegistry:
     (``registered``, ``expired``). Thread-safe.
 
     ``run_done`` is set by the learner once the run's budget is spent: every heartbeat answers it
-    (the actors stop), :meth:`all_told` says when each live actor has heard it, and actors leaving
-    after it are logged as normal, not as warnings."""
+    (the actors stop), an actor that has sent its last inserts says it is leaving (:meth:`leave`:
+    its index is free at once), and :meth:`alive` empty tells the learner that nothing more is on
+    its way. Leases running out after ``run_done`` are logged as normal, not as warnings."""
 
     def __init__(self, lease_s: float = 15.0, clock: Callable[[], float] = time.monotonic) -> None:
         self.lease_s = float(lease_s)
@@ -120,6 +121,7 @@ class ActorRegistry:
         self._actors: dict[str, ActorLease] = {}
         self.registered = 0
         self.expired = 0
+        self.left = 0
         self.run_done = threading.Event()
 
     def register(self, name: str, preferred_index: int | None = None) -> ActorLease:
@@ -145,14 +147,20 @@ class ActorRegistry:
                 return False
             lease.expires = self._clock() + self.lease_s
             lease.env_steps = int(env_steps)
-            lease.told_done = self.run_done.is_set()
             return True
 
-    def all_told(self) -> bool:
-        """Whether every live actor has had a heartbeat answered since ``run_done`` was set."""
+    def leave(self, actor_id: str, env_steps: int) -> bool:
+        """Forget ``actor_id`` now: it has sent everything it will insert and stops. False if it was
+        not live."""
         with self._lock:
             self._expire()
-            return all(a.told_done for a in self._actors.values())
+            lease = self._actors.pop(actor_id, None)
+            if lease is None:
+                return False
+            self.left += 1
+            log.info("%s (%s, index %d) left after %d env steps; %d live", actor_id, lease.name, lease.index,
+                     env_steps, len(self._actors))  # fmt: skip
+            return True
 
     def alive(self) -> list[ActorLease]:
         with self._lock:
@@ -276,7 +284,9 @@ class LearnerServicer(learner_pb2_grpc.LearnerServiceServicer):
     ) -> learner_pb2.HeartbeatReply:
         if request.env_steps < 0:
             context.abort(grpc.StatusCode.INVALID_ARGUMENT, f"env_steps must be >= 0, got {request.env_steps}")
-        if not self.registry.renew(request.actor_id, request.env_steps):
+        if request.leaving:
+            self.registry.leave(request.actor_id, request.env_steps)  # an unknown id has gone already: fine
+        elif not self.registry.renew(request.actor_id, request.env_steps):
             context.abort(grpc.StatusCode.NOT_FOUND, f"no live actor {request.actor_id!r} (lease expired?): register")
         return learner_pb2.HeartbeatReply(
             learner_id=self.learner_id, params_version=self.store.version, run_done=self.registry.run_done.is_set()
@@ -454,6 +464,17 @@ class LearnerClient:
             request.preferred_index = int(preferred_index)
         reply = self._call(self._stub.RegisterActor, request)
         return Registration(reply.actor_id, reply.index, reply.learner_id, reply.params_port, reply.lease_s)
+
+    def leave(self, actor_id: str, env_steps: int) -> bool:
+        """Tell the learner this actor has sent its last inserts and stops (its lease ends now).
+        One try with a short deadline, never raises: a learner that has gone needs no goodbye.
+        Returns whether the learner heard it."""
+        request = learner_pb2.HeartbeatRequest(actor_id=actor_id, env_steps=env_steps, leaving=True)
+        try:
+            self._stub.Heartbeat(request, timeout=min(self.rpc_timeout_s, LEAVE_TIMEOUT_S))
+        except grpc.RpcError:
+            return False
+        return True
 
     def heartbeat(self, actor_id: str, env_steps: int) -> Beat:
         """Renew the lease; returns the learner's id, its latest params version and whether the run's

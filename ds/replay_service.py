@@ -126,7 +126,11 @@ class ReplayServicer(replay_pb2_grpc.ReplayServiceServicer):
             if request.producer:
                 ids = ChunkIds(request.producer, tuple(request.sequence), request.acked_below)
                 inserted = self.table.insert_once(chunks, ids, priorities, wait)
-                return replay_pb2.InsertReply(keys=[to_tensor(k) for k in inserted.keys], duplicate=inserted.duplicate)
+                return replay_pb2.InsertReply(
+                    keys=[to_tensor(k) for k in inserted.keys],
+                    duplicate=inserted.duplicate,
+                    inserted_steps=inserted.inserted_steps,
+                )
             if request.sequence or request.acked_below:
                 raise ValueError("InsertRequest: sequence and acked_below need a producer, but producer is 0")
             keys = self.table.insert_many(chunks, priorities, wait)
@@ -516,7 +520,7 @@ def _inserted(reply: replay_pb2.InsertReply, chunks: Sequence[Chunk], ids: Chunk
     for i, (k, c) in enumerate(zip(reply.keys, chunks, strict=True)):
         t = 0 if duplicate and duplicate[i] and tuple(k.shape) == (0,) else len(c)
         keys.append(from_tensor(k, TensorSpec(f"keys[{i}]", np.dtype(np.uint64), leading=("T",)), {"T": t}))
-    return Inserted(keys, duplicate or [False] * len(chunks))
+    return Inserted(keys, duplicate or [False] * len(chunks), reply.inserted_steps)
 
 
 def _client_error(code: grpc.StatusCode, message: str, attempts: int) -> ReplayRpcError:

@@ -31,6 +31,9 @@ from ds.replay_feeds import Throttle
 from ds.replay_service import PendingInsert, ReplayClient, ReplayRpcError
 
 log = logging.getLogger("asac.actor")
+# How long an actor's last inserts at the end of a run may wait in the rate limiter: the learner
+# trains on until the actors have left (ds/learner.py), so they are let in within a few updates.
+LAST_INSERTS_WAIT_S = 2.0
 
 
 class ReplaySink:
@@ -53,10 +56,11 @@ class ReplaySink:
     failing because the replay is gone (UNAVAILABLE, backing off up to ``max_backoff_s``) is sent
     again; meanwhile ``between()`` runs (heartbeats, done checks).
 
-    Once ``stopping()`` is true (the run's budget is spent, or a signal came) calls return at once,
-    nothing waits in the rate limiter any more and nothing is retried: each chunk still here gets
-    one last try that the replay answers at once (an insert already waiting in the rate limiter
-    finishes its wait), and after the first sign that the replay is gone no more are sent. What
+    Once ``stopping()`` is true (the run's budget is spent, or a signal came) calls return at once
+    and nothing is retried: each chunk still here gets one last try, which waits in the rate limiter
+    for at most ``last_try_wait_s()`` seconds (0 by default; at the end of a run the learner goes on
+    training until the actors have left, so their last inserts are let in: see ds/actor.py), and
+    after the first sign that the replay is gone no more are sent. What
     was not stored is counted in ``unsent_steps`` / ``unsent_chunks`` and logged once, by
     :meth:`flush`, which waits for everything on its way. Chunks may be stored out of order after a
     retry; each is self-contained (no window spans two chunks), so order does not matter.
@@ -77,6 +81,7 @@ class ReplaySink:
         in_flight: int = 4,
         max_chunks_per_insert: int = 16,
         max_backoff_s: float = 2.0,
+        last_try_wait_s: Callable[[], float] = lambda: 0.0,
     ) -> None:
         if in_flight < 1:
             raise ValueError(f"in_flight must be >= 1, got {in_flight}")
@@ -89,6 +94,7 @@ class ReplaySink:
         self.in_flight = in_flight
         self.max_chunks_per_insert = max_chunks_per_insert
         self.max_backoff_s = max_backoff_s
+        self.last_try_wait_s = last_try_wait_s
         self.inserted_steps = 0
         self.requests = 0
         self.insert_waits = 0
@@ -97,6 +103,7 @@ class ReplaySink:
         self.unsent_steps = 0
         self.unsent_chunks = 0
         self.duplicates = 0
+        self.replay_inserted_steps = -1  # the replay's count after the latest answered insert
         self.producer = int.from_bytes(os.urandom(8), "little") or 1
         self._next_seq = 0
         self._pending: deque[PendingInsert] = deque()
@@ -165,7 +172,7 @@ class ReplaySink:
         held += [seq for p in self._pending if p.ids is not None for seq in p.ids.seqs]
         ids = ChunkIds(self.producer, seqs, min(held, default=self._next_seq))
         final = self.stopping()
-        pending = self.replay.insert_async(chunks, timeout=0.0 if final else self.timeout_s, ids=ids)
+        pending = self.replay.insert_async(chunks, timeout=self.last_try_wait_s() if final else self.timeout_s, ids=ids)
         pending.final = final
         self._pending.append(pending)
         self.requests += 1
@@ -196,6 +203,7 @@ class ReplaySink:
         else:
             self.duplicates += sum(inserted.duplicate)
             self.inserted_steps += pending.steps()
+            self.replay_inserted_steps = max(self.replay_inserted_steps, inserted.inserted_steps)
             self._backoff = 0.0
             return
         finally:

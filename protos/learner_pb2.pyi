@@ -30,12 +30,14 @@ class RegisterActorReply(_message.Message):
     def __init__(self, actor_id: _Optional[str] = ..., index: _Optional[int] = ..., learner_id: _Optional[str] = ..., params_port: _Optional[int] = ..., lease_s: _Optional[float] = ...) -> None: ...
 
 class HeartbeatRequest(_message.Message):
-    __slots__ = ("actor_id", "env_steps")
+    __slots__ = ("actor_id", "env_steps", "leaving")
     ACTOR_ID_FIELD_NUMBER: _ClassVar[int]
     ENV_STEPS_FIELD_NUMBER: _ClassVar[int]
+    LEAVING_FIELD_NUMBER: _ClassVar[int]
     actor_id: str
     env_steps: int
-    def __init__(self, actor_id: _Optional[str] = ..., env_steps: _Optional[int] = ...) -> None: ...
+    leaving: bool
+    def __init__(self, actor_id: _Optional[str] = ..., env_steps: _Optional[int] = ..., leaving: _Optional[bool] = ...) -> None: ...
 
 class HeartbeatReply(_message.Message):
     __slots__ = ("learner_id", "params_version", "run_done")

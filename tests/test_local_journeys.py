@@ -193,7 +193,7 @@ def stop_took_s(output: str) -> float:
 
 
 def check_unsent_within_the_bound(output: str) -> None:
-    """What actors could not insert at the stop: logged once per actor at most, and never more than
+    """What actors could not insert at a Ctrl-C: logged once per actor at most, and never more than
     an actor may hold ((inserts_in_flight + 1) * chunks_per_insert = 2 chunks with one env)."""
     unsent = re.findall(r"^\[actor-(\d+)\] .*\d+ collected steps \((\d+) chunks\) were not inserted", output, re.M)
     assert len({k for k, _ in unsent}) == len(unsent), unsent
@@ -212,8 +212,10 @@ def check_actor_labels(output: str) -> None:
 @pytest.mark.grpc
 def test_a_local_run_finishes_in_order_and_its_summary_plays_it(tmp_path: Path) -> None:
     """``local --actors 2`` to its budget: exit 0 in well under the old 30 s grace; the learner's
-    checkpoint before the replay is told to stop; no traceback, no unsent chunks, no kill; the last
-    lines are the summary, whose play command works; ``[actor-k]`` is index k."""
+    checkpoint before the replay is told to stop; no traceback, no kill; nothing collected thrown
+    away (each actor leaves after its last inserts, the run's count is the sum of theirs, at most
+    the two chunks each may hold past max_step); the last lines are the summary, whose play command
+    works; ``[actor-k]`` is index k."""
     started = time.monotonic()
     done = subprocess.run(command("gym/pendulum", "local", "--actors", "2", "-n", "journey", *TINY,
                                   "--override", "base.max_step=1000"),
@@ -226,7 +228,12 @@ def test_a_local_run_finishes_in_order_and_its_summary_plays_it(tmp_path: Path) 
     assert first(r"^\[learner\] .*checkpoint ", out) < first(r"^\[replay\] .*SIGINT: stopping", out)
     for bad in ("Traceback", "SIGTERM", "SIGKILL"):
         assert bad not in out, f"{bad!r} in:\n{out[-4000:]}"
-    check_unsent_within_the_bound(out)
+    assert "were not inserted" not in out, out[-4000:]  # the learner trains until the actors have left
+    assert len(re.findall(r"^\[learner\] .*index \d\) left after \d+ env steps", out, re.M)) == 2, out[-4000:]
+    collected = sum(int(n) for n in re.findall(r"^\[actor-\d\] .*actor \d finished after (\d+) env steps", out, re.M))
+    ended = int(re.findall(r"^\[learner\] .*learner finished after (\d+) env steps", out, re.M)[0])
+    assert ended == collected, out[-4000:]  # every step an actor collected is in the run's count
+    assert 1000 <= ended <= 1000 + 2 * 2 * 64, out[-4000:]  # past max_step by at most what 2 actors held
     replay_told = first(r"^\[replay\] .*SIGINT: stopping", out)
     for k in (0, 1):  # done by themselves (the budget is spent), or told to stop before the replay is
         assert first(rf"^\[actor-{k}\] .*actor {k} (?:finished|stopped) after", out) < replay_told, out[-4000:]
@@ -267,6 +274,7 @@ def test_ctrl_c_mid_run_stops_the_learner_before_the_replay_and_says_interrupted
     assert first(r"^\[learner\] .*learner stopped after", out) < first(r"^\[replay\] .*SIGINT: stopping", out)
     assert first(r"^\[learner\] .*learner stopped after", out) < first(r"^\[actor-\d\] .*SIGINT: stopping", out)
     assert "Traceback" not in out and "SIGKILL" not in out, out[-4000:]
+    check_unsent_within_the_bound(out)  # the learner stopped first: the actors' last tries do not wait
     check_actor_labels(out)
     outcome, lines = summary_of(out)
     assert outcome == "interrupted (SIGINT)", lines

@@ -73,10 +73,13 @@ class ChunkIds:
 class Inserted(NamedTuple):
     """What an idempotent insert returns: each chunk's ``T`` uint64 keys (for a duplicate the keys
     it was stored under, or an empty array when the table no longer knows them) and whether it was
-    a duplicate (already stored, not stored again)."""
+    a duplicate (already stored, not stored again); ``inserted_steps``: the table's count of
+    inserted steps after this insert (-1: not known), which actors read to stop at ``max_step``
+    without asking."""
 
     keys: list[np.ndarray]
     duplicate: list[bool]
+    inserted_steps: int = -1
 
 
 @dataclass

@@ -289,7 +289,7 @@ class PrioritizedTable:
                     keys.append(known_keys.astype(np.uint64))
                     self._counters["duplicates"] += 1
                 duplicate.append(first is not None)
-        return Inserted(keys, duplicate)
+            return Inserted(keys, duplicate, self.rate_limiter.inserted)
 
     def _store(self, chunk: Chunk, t: int, new_p: np.ndarray | None) -> np.ndarray:
         """Write a validated, admitted chunk into the ring (the caller holds the lock)."""

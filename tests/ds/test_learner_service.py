@@ -123,18 +123,25 @@ def test_heartbeat_of_an_unknown_actor_says_register_again(learner_side: Learner
         learner_side.client.heartbeat("actor-9-unknown", 0)
 
 
-def test_heartbeats_tell_actors_when_the_runs_budget_is_spent(learner_side: LearnerSide) -> None:
+def test_heartbeats_tell_actors_when_the_runs_budget_is_spent_and_leaving_actors_are_forgotten(
+    learner_side: LearnerSide,
+) -> None:
     # The learner, not the replay, knows the run's env steps (a restarted replay counts from 0):
-    # once it says the run is done, every heartbeat answers so, and it knows who has heard it.
+    # once it says the run is done, every heartbeat answers so; an actor that has sent its last
+    # inserts says it leaves, and once none is live the learner knows nothing more is on its way.
     a, b = learner_side.client.register("a"), learner_side.client.register("b")
     registry = learner_side.registry
     assert not learner_side.client.heartbeat(a.actor_id, 5).run_done
     registry.run_done.set()
-    assert not registry.all_told()  # nobody has had a heartbeat answered since
     assert learner_side.client.heartbeat(a.actor_id, 6).run_done
-    assert not registry.all_told()
-    assert learner_side.client.heartbeat(b.actor_id, 6).run_done
-    assert registry.all_told()
+    assert learner_side.client.leave(a.actor_id, 7)
+    assert [lease.index for lease in registry.alive()] == [b.index] and registry.left == 1
+    with pytest.raises(LeaseExpired):  # gone: a heartbeat without leaving is refused
+        learner_side.client.heartbeat(a.actor_id, 7)
+    assert learner_side.client.leave(a.actor_id, 7)  # a repeated goodbye is harmless
+    assert learner_side.client.leave(b.actor_id, 6)
+    assert registry.alive() == [] and registry.left == 2 and registry.expired == 0
+    assert learner_side.client.register("c").index == 0  # the indexes are free again
 
 
 def test_get_params_returns_the_latest_version(learner_side: LearnerSide) -> None:

@@ -36,9 +36,11 @@ def test_a_chunk_sent_again_is_answered_with_its_keys_and_stored_once(connect: C
     first = tab.insert_once([a, b], ChunkIds(PRODUCER, (0, 1)))
     assert first.duplicate == [False, False]
     assert [k.tolist() for k in first.keys] == [[0, 1, 2], [4, 5]]
+    assert first.inserted_steps == 5  # the table's count after it: actors stop at max_step on it
     again = tab.insert_once([a, b], ChunkIds(PRODUCER, (0, 1)))  # the reply was lost: sent again
     assert again.duplicate == [True, True]
     assert [k.tolist() for k in again.keys] == [[0, 1, 2], [4, 5]]  # the keys it got the first time
+    assert again.inserted_steps == 5
     mixed = tab.insert_once([b, c], ChunkIds(PRODUCER, (1, 2)))  # only the new chunk is stored
     assert mixed.duplicate == [True, False]
     assert [k.tolist() for k in mixed.keys] == [[4, 5], [7, 8, 9, 10]]
