@@ -47,7 +47,7 @@ from algorithm.nn.models import (
     MASKED_LOG_PROB,
     SacModels,
     masked_branch_one_hot_argmax,
-    squashed_gaussian_log_prob,
+    stored_action_log_prob,
 )
 from algorithm.nn.noisy import NoisyLayer, reset_noise, set_noise
 from algorithm.nn.numpy_acting import numpy_actor_for
@@ -318,13 +318,11 @@ class SAC:
         continuous = None
         extra = 0.0 if deterministic else self.exploration_noise
         if self.models.policy is not None:
-            noise = None
-            if not deterministic:
-                noise = torch.randn(n, spec.continuous_dim, generator=self._act_rng, device=self.device)
-            if noise is not None and extra > 0:
-                continuous, log_prob = self._widened_sample(state, noise, extra)
+            if deterministic:
+                continuous, log_prob = self.models.policy.sample(state, None)
             else:
-                continuous, log_prob = self.models.policy.sample(state, noise)
+                noise = torch.randn(n, spec.continuous_dim, generator=self._act_rng, device=self.device)
+                continuous, log_prob = self._behaviour_sample(state, noise, extra)
         parts = []
         if self._branches is not None:
             mask = self._mask(tensors)
@@ -351,15 +349,17 @@ class SAC:
         action = parts[0] if len(parts) == 1 else torch.cat(parts, dim=-1)
         return action, log_prob
 
-    def _widened_sample(self, state: Tensor, noise: Tensor, extra: float) -> tuple[Tensor, Tensor]:
-        """A policy sample with ``extra`` Gaussian noise added before the tanh: ``u ~ N(mean, std^2 +
-        extra^2)``, so the log-prob is that of the widened Gaussian, exact (log std' = logaddexp(2 log
-        std, 2 log extra) / 2)."""
+    def _behaviour_sample(self, state: Tensor, noise: Tensor, extra: float) -> tuple[Tensor, Tensor]:
+        """An exploring action and its behaviour log-prob, as the learner will evaluate it again
+        from the stored action (:func:`stored_action_log_prob`). With ``extra`` Gaussian noise added
+        before the tanh, ``u ~ N(mean, std^2 + extra^2)`` (log std' = logaddexp(2 log std, 2 log
+        extra) / 2), and the log-prob is that of the widened Gaussian."""
         assert self.models.policy is not None
         mean, log_std = self.models.policy(state)
-        wide = 0.5 * torch.logaddexp(2.0 * log_std, torch.full_like(log_std, 2.0 * math.log(extra)))
-        pre_tanh = mean + wide.exp() * noise
-        return torch.tanh(pre_tanh), squashed_gaussian_log_prob(noise, wide, pre_tanh)
+        if extra > 0:
+            log_std = 0.5 * torch.logaddexp(2.0 * log_std, torch.full_like(log_std, 2.0 * math.log(extra)))
+        action = torch.tanh(mean + log_std.exp() * noise)
+        return action, stored_action_log_prob(mean, log_std, action)
 
     def _normalize(self, obs: list[Tensor]) -> list[Tensor]:
         return obs if self.models.normalizer is None else self.models.normalizer(obs)

@@ -27,9 +27,18 @@ import math
 from collections.abc import Callable
 
 import numpy as np
+from scipy.special import log_ndtr
 from torch import nn
 
-from algorithm.nn.models import _HALF_LOG_2PI, _LOG2, SacModels, TanhGaussianPolicy, VectorRepresentation
+from algorithm.nn.models import (
+    _HALF_LOG_2PI,
+    _LOG2,
+    _SATURATED_PRE_TANH,
+    SATURATED_ACTION,
+    SacModels,
+    TanhGaussianPolicy,
+    VectorRepresentation,
+)
 from algorithm.nn.normalization import ObservationNormalizer
 
 _Trunk = list[tuple[nn.Linear, Callable[[np.ndarray], np.ndarray]]]
@@ -92,7 +101,7 @@ class NumpyGaussianActor:
     """``tanh``-Gaussian actions and their log-probabilities from a policy's weights, in NumPy.
 
     Build with :func:`numpy_actor_for` (which checks the models and reads ``trunk`` from the policy);
-    it mirrors :meth:`TanhGaussianPolicy.sample`, ``SAC._widened_sample`` (extra exploration noise)
+    it mirrors :meth:`TanhGaussianPolicy.sample`, ``SAC._behaviour_sample`` (extra exploration noise)
     and the observation normalizer."""
 
     def __init__(self, models: SacModels, trunk: _Trunk) -> None:
@@ -127,16 +136,13 @@ class NumpyGaussianActor:
         mean, log_std = out[:, : self._action_dim], out[:, self._action_dim :]
         log_std = np.clip(log_std, self._log_std_min, self._log_std_max)
         if noise is None:
-            noise = np.zeros_like(mean)
-            pre_tanh = mean
-        else:
-            if extra_noise > 0:
-                log_std = 0.5 * np.logaddexp(2.0 * log_std, np.float32(2.0 * math.log(extra_noise)))
-            pre_tanh = mean + np.exp(log_std) * noise
-        gaussian = -0.5 * noise * noise - log_std - np.float32(_HALF_LOG_2PI)
-        log_det = 2.0 * (np.float32(_LOG2) - pre_tanh - np.logaddexp(np.float32(0.0), -2.0 * pre_tanh))
-        log_prob = (gaussian - log_det).sum(axis=-1)
-        return np.tanh(pre_tanh).astype(np.float32, copy=False), log_prob.astype(np.float32, copy=False)
+            action = np.tanh(mean).astype(np.float32, copy=False)
+            return action, _log_density(np.zeros_like(mean), log_std, mean).sum(axis=-1).astype(np.float32)
+        if extra_noise > 0:
+            log_std = 0.5 * np.logaddexp(2.0 * log_std, np.float32(2.0 * math.log(extra_noise)))
+        action = np.tanh(mean + np.exp(log_std) * noise).astype(np.float32, copy=False)
+        return action, stored_action_log_prob(mean, log_std, action)
+
 
     def _state(self, obs: list[np.ndarray]) -> np.ndarray:
         parts = []
@@ -147,6 +153,25 @@ class NumpyGaussianActor:
                 o = np.clip((o - stats[0]) / stats[1], -self._clip, self._clip)
             parts.append(o.reshape(o.shape[0], -1) if self._flatten[i] else o)
         return parts[0] if len(parts) == 1 else np.concatenate(parts, axis=-1)
+
+
+def _log_density(noise: np.ndarray, log_std: np.ndarray, pre_tanh: np.ndarray) -> np.ndarray:
+    """Per dimension, as algorithm/nn/models.py's ``_squashed_gaussian_log_density``."""
+    gaussian = -0.5 * noise * noise - log_std - np.float32(_HALF_LOG_2PI)
+    return gaussian - 2.0 * (np.float32(_LOG2) - pre_tanh - np.logaddexp(np.float32(0.0), -2.0 * pre_tanh))
+
+
+def stored_action_log_prob(mean: np.ndarray, log_std: np.ndarray, action: np.ndarray) -> np.ndarray:
+    """algorithm/nn/models.py's :func:`~algorithm.nn.models.stored_action_log_prob` in NumPy
+    (float32 ``[N]``): the density inside ``|a| < SATURATED_ACTION``, the edge's probability beyond."""
+    inside = np.abs(action) < SATURATED_ACTION
+    pre_tanh = np.arctanh(np.clip(action, -SATURATED_ACTION, SATURATED_ACTION))
+    density = _log_density((pre_tanh - mean) * np.exp(-log_std), log_std, pre_tanh)
+    if inside.all():
+        return density.sum(axis=-1).astype(np.float32, copy=False)
+    std, edge = np.exp(log_std), np.float32(_SATURATED_PRE_TANH)
+    edges = np.where(action > 0, log_ndtr((mean - edge) / std), log_ndtr((-edge - mean) / std))
+    return np.where(inside, density, edges).sum(axis=-1).astype(np.float32, copy=False)
 
 
 def numpy_actor_for(models: SacModels, device_type: str, rnn: bool, discrete: bool) -> NumpyGaussianActor | None:

@@ -3,6 +3,7 @@ change, draws the same noise, and is used only where it computes the same thing.
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 import numpy as np
@@ -10,6 +11,7 @@ import pytest
 import torch
 
 from algorithm.config_schema import NNConfig, ReplayConfig, SacConfig
+from algorithm.nn.models import stored_action_log_prob
 from algorithm.nn.numpy_acting import NumpyGaussianActor
 from algorithm.sac import SAC
 from algorithm.spaces import ActionSpec, EnvSpec, SensorSpec
@@ -37,15 +39,20 @@ def observations(n: int, seed: int = 0, spec: EnvSpec = TWO_SENSORS) -> list[np.
     return [3.0 * rng.standard_normal((n, *s.shape)).astype(np.float32) for s in spec.sensors]
 
 
-def torch_sample(sac: SAC, obs: list[np.ndarray], noise: np.ndarray, extra: float) -> tuple[np.ndarray, np.ndarray]:
-    """What torch acting computes for the given standard-normal ``noise``."""
+def torch_sample(
+    sac: SAC, obs: list[np.ndarray], noise: np.ndarray, extra: float, stored: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """What torch acting computes for the given standard-normal ``noise``: the action, and the
+    behaviour log-prob of the action as ``stored`` (both paths evaluate it at the stored float32
+    action, where atanh turns a 1e-6 difference near |a| = 1 into a visible one)."""
     with torch.no_grad():
         state = sac.models.representation(sac._obs_tensors(obs))
         assert sac.models.policy is not None
+        action, _ = sac._behaviour_sample(state, torch.from_numpy(noise), extra)
+        mean, log_std = sac.models.policy(state)
         if extra > 0:
-            action, log_prob = sac._widened_sample(state, torch.from_numpy(noise), extra)
-        else:
-            action, log_prob = sac.models.policy.sample(state, torch.from_numpy(noise))
+            log_std = 0.5 * torch.logaddexp(2.0 * log_std, torch.full_like(log_std, 2.0 * math.log(extra)))
+        log_prob = stored_action_log_prob(mean, log_std, torch.from_numpy(stored))
     return action.numpy(), log_prob.numpy()
 
 
@@ -57,7 +64,8 @@ def assert_same_acting(a: SAC, b: SAC, obs: list[np.ndarray], extra: float = 0.0
     noise = np.random.default_rng(seed).standard_normal((obs[0].shape[0], a.spec.action.continuous_dim))
     assert a._numpy_actor is not None
     noise = noise.astype(np.float32)
-    compared.append((*a._numpy_actor.act(obs, noise, extra), *torch_sample(b, obs, noise, extra)))
+    x, logp_x = a._numpy_actor.act(obs, noise, extra)
+    compared.append((x, logp_x, *torch_sample(b, obs, noise, extra, stored=x)))
     for x, logp_x, y, logp_y in compared:
         assert x.dtype == y.dtype == logp_x.dtype == logp_y.dtype == np.float32
         assert x.shape == y.shape and logp_x.shape == logp_y.shape

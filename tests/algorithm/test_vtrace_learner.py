@@ -109,3 +109,28 @@ def test_policy_log_prob_of_its_own_sample_matches_the_sampling_log_prob() -> No
     state = torch.randn(64, OBS)
     action, log_prob = policy.sample(state, torch.randn(64, 2))
     torch.testing.assert_close(policy.log_prob(state, action), log_prob, rtol=1e-3, atol=1e-3)
+
+
+@pytest.mark.parametrize("mean", [0.0, 5.0, 8.0, 10.0, 30.0])
+def test_on_policy_ratios_stay_one_when_the_policy_saturates(mean: float) -> None:
+    # Issue 15, defect 2: the learner recomputed log pi by atanh of the stored float32 action
+    # clamped below 1, so a saturated policy (pre-tanh mean 8: median ratio 0.03; 10: ~1e-14) cut
+    # its own on-policy traces. Both sides now use the stored action's measure (models.py).
+    spec = EnvSpec((SensorSpec("obs", (OBS,)),), ActionSpec((), 2, (-1.0, -1.0), (1.0, 1.0)))
+    sac = make_sac(spec)
+    policy = sac.models.policy
+    assert policy is not None and sac._numpy_actor is not None
+    with torch.no_grad():
+        policy.head.weight.zero_()
+        policy.head.bias.copy_(torch.tensor([mean, -mean, -0.5, 0.0]))  # means +-mean, std 0.61 and 1
+    obs = np.random.default_rng(0).standard_normal((2000, OBS), dtype=np.float32)
+    numpy_actor = sac._numpy_actor
+    for acting in (numpy_actor, None):  # an actor acts with NumPy where it can, else with torch
+        sac._numpy_actor = acting
+        actions, behaviour_logp = sac.act([obs])
+        with torch.no_grad():
+            state = sac.models.representation.policy_state(sac.models.representation([torch.from_numpy(obs)]))
+            log_pi = policy.log_prob(state, torch.from_numpy(actions)).numpy()
+        ratios = np.exp(log_pi - behaviour_logp)
+        assert np.all(np.isfinite(ratios))
+        np.testing.assert_allclose(ratios, 1.0, atol=1e-3)
