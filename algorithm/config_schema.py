@@ -125,7 +125,11 @@ class SacConfig(Section):
     ensemble_q_num: int = Field(2, ge=1, description="Q heads in the ensemble.")
     ensemble_q_sample: int = Field(2, ge=1, description="Heads in each random subset a minimum is taken over.")
     burn_in_step: int = Field(0, ge=0, description="Steps before the trained one that warm up the recurrent state.")
-    burn_in_gradient: bool = Field(False, description="Let gradients flow through the burn-in steps.")
+    burn_in_gradient: bool = Field(
+        True,
+        description="Let gradients flow through the burn-in steps. Off, the recurrent cell gets one step of "
+        "backpropagation through time and cannot learn what to remember (gym/pendulum_novel: -950 vs -190).",
+    )
     n_step: int = Field(1, ge=1)
     use_rnn: bool = Field(False, description="Recurrent representation (nn_config.rnn_type, rnn_units).")
     tau: float = Field(0.005, gt=0.0, le=1.0)

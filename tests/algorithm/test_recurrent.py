@@ -79,6 +79,17 @@ def test_a_recurrent_policy_acts_through_act_recurrent_only() -> None:
         sac.act_recurrent(obs, np.zeros((2, ACT), np.float32), np.zeros((2, H + 1), np.float32))
 
 
+def test_a_recurrent_config_backpropagates_through_its_burn_in_unless_told_not_to() -> None:
+    # Issue 15, defect 1: burn_in_gradient defaulted to false, so a recurrent config that did not
+    # name it (as the original's never did: it always backpropagated through burn-in) trained its
+    # cell with one step of backpropagation through time and could not learn memory.
+    overrides = ["sac.use_rnn=true", "sac.burn_in_step=4"]
+    assert load_config(None, None, overrides).config.sac_config.burn_in_gradient
+    assert SacConfig(use_rnn=True, burn_in_step=4).burn_in_gradient
+    off = load_config(None, None, [*overrides, "sac.burn_in_gradient=false"]).config.sac_config
+    assert not off.burn_in_gradient
+
+
 def test_burn_in_needs_use_rnn() -> None:
     with pytest.raises(ValueError, match="use_rnn"):
         SacConfig(burn_in_step=2)
