@@ -456,12 +456,17 @@ class SAC:
     ) -> tuple[Tensor, Tensor, Tensor]:
         """``use_rnn``: online and target states ``[B, L + 1, H]`` at every obs position of the window,
         from the stored state at its first valid row, and the online recurrent state fed in at each
-        position ``[B, L + 1, S]``. Position ``L`` (after the last step) reads the last action as its
-        previous action; positions before the first valid row keep the state."""
+        position ``[B, L + 1, S]``. Positions before the first valid row keep the state.
+
+        A position's previous action is the stored one on a step row; on the bootstrap position of a
+        window cut short by its chunk's end (or a time-limit truncation, which ends a chunk), and on
+        position ``L``, it is the action of the step before, which the window holds (the table
+        stores zeros on a chunk's bootstrap row)."""
         first = mask.long().argmax(dim=1)  # the first valid step (look-back rows before it are masked)
         positions = torch.arange(mask.shape[1] + 1, device=mask.device)
         valid = positions[None, :] >= first[:, None]
-        prev = torch.cat([prev_actions, actions[:, -1:]], dim=1)
+        stepped = torch.where(mask[:, 1:, None], prev_actions[:, 1:], actions[:, :-1])
+        prev = torch.cat([prev_actions[:, :1], stepped, actions[:, -1:]], dim=1)
         rep, target_rep = self.models.representation, self.target_representation
         assert isinstance(rep, RecurrentRepresentation) and isinstance(target_rep, RecurrentRepresentation)
         burn_in = self.sac.burn_in_step

@@ -90,6 +90,31 @@ def test_a_recurrent_config_backpropagates_through_its_burn_in_unless_told_not_t
     assert not off.burn_in_gradient
 
 
+@pytest.mark.parametrize("cut", [2, 4, 5])  # the bootstrap row at 2, at 4 (inside), at L = 5 (a full window)
+def test_the_bootstrap_position_is_fed_the_last_action_taken(cut: int) -> None:
+    # Issue 15, defect 3: a window cut short by its chunk's end (or a time-limit truncation, which
+    # ends a chunk) fed its bootstrap position the zeros the table stores on a bootstrap row as
+    # previous action, where the action taken before it is in the window.
+    sac, length, b = make_sac(), 5, 3
+    rng = np.random.default_rng(cut)
+    mask = np.zeros((b, length), bool)
+    mask[:, :cut] = True
+    actions = np.where(mask[..., None], rng.uniform(-1, 1, (b, length, ACT)), 0.0).astype(np.float32)
+    prev_actions = np.concatenate([rng.uniform(-1, 1, (b, 1, ACT)), actions[:, :-1]], axis=1).astype(np.float32)
+    prev_actions[~mask] = 0.0  # what the table's bootstrap row holds
+    obs = torch.from_numpy(rng.standard_normal((b, length + 1, OBS), dtype=np.float32))
+    state = torch.from_numpy(rng.standard_normal((b, H), dtype=np.float32))
+    with torch.no_grad():
+        online, _, _ = sac._sequence_states([obs], torch.from_numpy(actions), torch.from_numpy(prev_actions),
+                                            torch.from_numpy(mask), state)  # fmt: skip
+        rep = sac.models.representation
+        assert isinstance(rep, RecurrentRepresentation)
+        for t in range(cut + 1):  # the step rows, then the bootstrap position
+            prev = prev_actions[:, t] if t < cut else actions[:, cut - 1]
+            h, state = rep.step([obs[:, t]], torch.from_numpy(prev), state)
+            torch.testing.assert_close(online[:, t], h, rtol=1e-5, atol=1e-6)
+
+
 def test_burn_in_needs_use_rnn() -> None:
     with pytest.raises(ValueError, match="use_rnn"):
         SacConfig(burn_in_step=2)
