@@ -38,6 +38,7 @@ from algorithm.checkpoint import CheckpointError, list_checkpoints, load_for_res
 from algorithm.config import ConfigError, apply_overrides, config_from_file, load_config
 from algorithm.config_schema import Config
 from algorithm.evaluation import evaluate
+from algorithm.evolution import draw_for_run
 from algorithm.learner_core import last_evaluation
 from algorithm.nn.user import ModelBuilder, model_builder
 from algorithm.sac import SAC
@@ -255,7 +256,7 @@ def train(args: argparse.Namespace) -> int:
     name_template = args.name or config.base_config.name
     stop = stop_on_signals()  # Ctrl-C and SIGTERM: finish the step, save, exit 130 / 143
     for repeat in range(args.repeat):
-        run_config = config.model_copy(deep=True)
+        run_config, drawn = config.model_copy(deep=True), {}
         name = name_template.replace("{time}", time.strftime("%Y%m%d%H%M%S"))
         if args.repeat > 1:
             name = f"{name}_{repeat}"
@@ -264,10 +265,14 @@ def train(args: argparse.Namespace) -> int:
         if saved_config.exists():
             # Resuming: the run's own resolved config (seed included) wins; command-line overrides still apply.
             run_config = apply_overrides(config_from_file(saved_config), cli_overrides(args))
-        elif run_config.sac_config.seed is None:
-            run_config.sac_config.seed = random.SystemRandom().randrange(2**31)  # recorded in config.yaml
-        elif args.repeat > 1:
-            run_config.sac_config.seed = int(run_config.sac_config.seed) + repeat
+        else:
+            if run_config.sac_config.seed is None:
+                run_config.sac_config.seed = random.SystemRandom().randrange(2**31)  # recorded in config.yaml
+            elif args.repeat > 1:
+                run_config.sac_config.seed = int(run_config.sac_config.seed) + repeat
+            # As the original did for every standalone run; the values land in config.yaml, so a
+            # resume runs with them (random_params emptied) instead of drawing again.
+            run_config, drawn = draw_for_run(run_config, run_config.sac_config.seed)
         run_config.base_config.name = name
         with removed_if_not_started(run_dir):
             copy_model_file(task, run_config, run_dir, explicit=args.nn is not None)
@@ -286,6 +291,9 @@ def train(args: argparse.Namespace) -> int:
             except (ValueError, TypeError, gymnasium.error.Error) as e:  # the config does not fit the task
                 raise ConfigError(f"cannot start {run_dir} with this config: {type(e).__name__}: {e}") from None
         log.info("run %s (seed %s)", run_dir, run_config.sac_config.seed)
+        if drawn:
+            values = ", ".join(f"{k}={v!r}" for k, v in drawn.items())
+            log.info("random_params drew %s (recorded in config.yaml)", values)
         if trainer.done():
             report_finished(run_dir, args, trainer.env_steps, trainer.last_eval_mean, already=True)
             continue

@@ -318,7 +318,7 @@ class Config(Section):
         default_factory=dict,
         description="Hyper-parameters the evolver samples per learner, as {section: {key: spec}} with spec "
         "{in: [...]}, {truncated: [lo, hi]}, {std: s} or {std: s, truncated: [lo, hi]} (algorithm/evolution.py); "
-        "main.py's single learner ignores it.",
+        "main.py draws them once for a new run, from its seed, and records the values in the run's config.yaml.",
     )
 
     @field_validator("random_params", mode="before")

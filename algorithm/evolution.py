@@ -279,6 +279,21 @@ def apply_params(config: Config, values: Mapping[str, Any]) -> Config:
         raise ValueError(f"apply_params: {problems}") from None
 
 
+def draw_for_run(config: Config, seed: int) -> tuple[Config, dict[str, Any]]:
+    """A single run's config (``main.py``): each ``random_params`` entry drawn once, as the evolver
+    draws a first-round learner's (no elite counts), from a generator seeded by ``seed`` (the run's
+    ``sac_config.seed``: the same seed draws the same values), applied by :func:`apply_params`.
+    Returns the config to run and the values drawn, by dotted key (empty without random_params)."""
+    if not config.random_params:
+        return config, {}
+    specs = parse_random_params(config.random_params, config)
+    values = sample_params(specs, config, {}, np.random.default_rng([seed, _RUN_DRAW_STREAM]))
+    return apply_params(config, values), values
+
+
+_RUN_DRAW_STREAM = 0x72616E64  # keeps these draws apart from every other use of the seed
+
+
 def elite_count(n: int, best_fraction: float) -> int:
     """``ceil(best_fraction * n)``, at least 1 and at most ``n``.
 

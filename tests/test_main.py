@@ -9,6 +9,7 @@ from pathlib import Path
 
 import pytest
 import torch
+import yaml
 
 ROOT = Path(__file__).resolve().parents[1]
 TINY_OVERRIDES = [
@@ -82,6 +83,30 @@ def test_same_name_resumes(trained: Path) -> None:
     assert done.returncode == 0, done.stderr
     assert "resumed at 250 env steps" in done.stderr
     assert (trained / "models/gym/pendulum/tiny/model/300.pt").is_file()
+
+
+def test_random_params_are_drawn_once_per_new_run_from_its_seed_and_kept_on_resume(tmp_path: Path) -> None:
+    # Issue 15, defect 4: main.py ignored random_params, which the original drew for every
+    # standalone run. Drawn from the run's seed (same seed, same draw), recorded in config.yaml.
+    draws = ["--override", "random_params.sac_config={tau: {truncated: [0.001, 0.01]}, n_step: {in: [1, 2, 3, 4, 5]}}"]
+    said = {}
+    for name in ("a", "b"):
+        done = run_main("gym/pendulum", "-n", name, *TINY, *draws, cwd=tmp_path)
+        assert done.returncode == 0, done.stderr
+        said[name] = next(line.split("random_params drew ")[1] for line in done.stderr.splitlines()
+                          if "random_params drew " in line)  # fmt: skip
+        saved = yaml.safe_load((tmp_path / f"models/gym/pendulum/{name}/config.yaml").read_text())
+        assert saved["random_params"] in ({}, None)
+        tau, n_step = saved["sac_config"]["tau"], saved["sac_config"]["n_step"]
+        assert 0.001 <= tau <= 0.01 and tau != 0.005 and n_step in range(1, 6)
+        assert f"sac_config.tau={tau!r}" in said[name] and f"sac_config.n_step={n_step!r}" in said[name]
+    assert said["a"] == said["b"]  # both runs have seed 3
+    before = (tmp_path / "models/gym/pendulum/a/config.yaml").read_text()
+    done = run_main("gym/pendulum", "-n", "a", *TINY, *draws, "--override", "base.max_step=300", cwd=tmp_path)
+    assert done.returncode == 0 and "resumed at 250 env steps" in done.stderr, done.stderr
+    assert "random_params drew" not in done.stderr  # a resume runs with the values it drew
+    after = (tmp_path / "models/gym/pendulum/a/config.yaml").read_text()
+    assert yaml.safe_load(after)["sac_config"]["tau"] == yaml.safe_load(before)["sac_config"]["tau"]
 
 
 def test_bad_task_name_is_a_clear_error(tmp_path: Path) -> None:
