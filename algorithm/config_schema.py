@@ -33,7 +33,12 @@ class BaseConfig(Section):
     max_iter: int = Field(-1, ge=-1, description="Stop after this many iterations (episodes of env 0); -1 off.")
     max_step: int = Field(-1, ge=-1, description="Stop after this many env steps over all envs; -1 off.")
     max_step_each_iter: int = Field(-1, ge=-1, description="Time limit per episode in steps; -1 = env's own.")
-    reset_on_iteration: bool = Field(True, description="Reset every env when an iteration ends.")
+    reset_on_iteration: bool = Field(
+        False,
+        description="When env 0's episode ends, cut (truncate) and reset every other env too, so all envs start the "
+        "next iteration together. Off (default): each env runs its own episodes, as gymnasium's vector envs do. On, "
+        "an early-terminating task's data skews toward episode starts (the other envs rarely reach later states).",
+    )
     torch_threads: int = Field(0, ge=0, description="torch.set_num_threads; 0 leaves torch's default.")
     evolver_enabled: bool = Field(False, description="Run an evolver: a population of learners improved by CEM.")
     evolver_cem_length: int = Field(

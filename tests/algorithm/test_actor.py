@@ -104,6 +104,28 @@ def test_reset_on_iteration_truncates_the_other_envs() -> None:
     assert [float(o) for o in actor.obs[0][:, 1]] == [0.0, 0.0]  # both start the next iteration together
 
 
+def test_by_default_each_env_runs_its_own_episodes() -> None:
+    # Issue 15, defect 5: reset_on_iteration defaulted to true, so with several envs every episode
+    # was cut when env 0's ended: on an early-terminating task the data skewed toward episode starts.
+    from algorithm.config import load_config
+
+    base = load_config(None, None, []).config.base_config
+    assert not base.reset_on_iteration
+    env = make_vector_env("asac/Chain-v0", 2, seed=0, env_kwargs={"terminate_at": 3}, max_episode_steps=None)
+    chunks: list[Chunk] = []
+    actor = ActorLoop(env, RecordingPolicy(1), chunks.append, chunk_length=64,
+                      reset_on_iteration=base.reset_on_iteration, seed=0)  # fmt: skip
+    actor.step()
+    actor.builder.flush(1, [o[1] for o in actor.obs], truncate=False)  # env 1 one step behind env 0
+    for o, fresh in zip(actor.obs, env.reset_env(1), strict=True):
+        o[1] = fresh
+    chunks.clear()
+    for _ in range(3):
+        actor.step()
+    ends = [(bool(c.terminated[-1]), bool(c.truncated[-1]), float(c.obs[0][-1, 1])) for c in chunks]
+    assert ends == [(True, False, 3.0), (True, False, 3.0)]  # env 0 at its step 3, env 1 one step later: neither cut
+
+
 def test_envs_out_of_step_still_record_each_row_where_it_was_acted() -> None:
     """The chunk builder writes one slice while every env is at the same step and scatters per env
     otherwise; after env 1 is cut a step early both paths must leave every chunk as acted."""
