@@ -10,6 +10,9 @@ Layers, each overriding the previous (ARCHITECTURE.md 8):
 
 Every leaf remembers which layer set it, so an unknown key, a wrong type or an out-of-range value
 is reported as ``sac_config.learning_rate (envs/gym/pendulum/config.yaml [fast]): ...``.
+
+A task file (and an override) written for the original system is read through
+:mod:`algorithm.config_port` first: its moved keys land where ASAC keeps them, with a warning.
 """
 
 from __future__ import annotations
@@ -24,6 +27,7 @@ from typing import Any
 import yaml
 from pydantic import BaseModel, ValidationError
 
+from algorithm.config_port import Port, looks_like_original
 from algorithm.config_schema import Config
 from algorithm.evolution import ParamSpecError
 
@@ -148,6 +152,15 @@ def parse_override(text: str) -> tuple[list[str], Any]:
 
 
 def _format_errors(err: ValidationError, sources: dict[str, str]) -> str:
+    return _one_line(_error_lines(err, sources))
+
+
+def _one_line(lines: list[str]) -> str:
+    text = "; ".join(lines).replace("\r", "\\r").replace("\n", "\\n")  # a key may hold a line break
+    return "invalid config: " + text  # one line, like every command-line error
+
+
+def _error_lines(err: ValidationError, sources: dict[str, str]) -> list[str]:
     lines = []
     for e in err.errors():
         loc = [str(p) for p in e["loc"]]
@@ -171,8 +184,7 @@ def _format_errors(err: ValidationError, sources: dict[str, str]) -> str:
         elif e["type"] == "value_error":
             msg = msg.removeprefix("Value error, ")
         lines.append(f"{dotted or 'config'} ({source}): {msg}" + _got(e))
-    text = "; ".join(lines).replace("\r", "\\r").replace("\n", "\\n")  # a key may hold a line break
-    return "invalid config: " + text  # one line, like every command-line error
+    return lines
 
 
 def _source_of(loc: list[str], sources: dict[str, str]) -> str:
@@ -210,6 +222,7 @@ def load_config(
     """Resolve the four layers into a validated :class:`Config` (raises :class:`ConfigError`)."""
     merged: dict[str, Any] = {}
     sources: dict[str, str] = {}
+    port = Port()
     _merge(merged, read_yaml(default_path) or {}, str(default_path), sources)
 
     if task_dir is not None:
@@ -217,16 +230,20 @@ def load_config(
         task_file = read_yaml(path) if path.exists() else {}
         if not isinstance(task_file, dict):
             raise ConfigError(f"{path}: top level must map section names (default, ...) to configs")
-        _merge(merged, task_file.get("default") or {}, f"{path} [default]", sources)
+        layers = [("default", task_file.get("default"))]
         if config_name is not None:
             if config_name not in task_file or config_name == "default":
                 names = sorted(k for k in task_file if k != "default")
                 raise ConfigError(f"{path}: no config section {config_name!r}; available: {names or 'none'}")
-            _merge(merged, task_file[config_name] or {}, f"{path} [{config_name}]", sources)
+            layers.append((config_name, task_file[config_name]))
+        original = looks_like_original(task_file)  # the original's keys anywhere in the file
+        for name, layer in layers:
+            source = f"{path} [{name}]"
+            _merge(merged, port.layer(layer or {}, source, str(path), original), source, sources)
     elif config_name is not None:
         raise ConfigError(f"-c {config_name}: no task folder to look it up in")
 
-    return _validate(merged, sources, overrides)
+    return _validate(merged, sources, overrides, port)
 
 
 def apply_overrides(config: Config, overrides: list[str] | tuple[str, ...]) -> Config:
@@ -237,10 +254,15 @@ def apply_overrides(config: Config, overrides: list[str] | tuple[str, ...]) -> C
 
 
 def _validate(
-    merged: dict[str, Any], sources: dict[str, str], overrides: list[str] | tuple[str, ...]
+    merged: dict[str, Any], sources: dict[str, str], overrides: list[str] | tuple[str, ...], port: Port | None = None
 ) -> ResolvedConfig:
+    port = port or Port()
     for text in overrides:
         parts, value = parse_override(text)
+        ported = port.override(parts, f"override {text!r}")
+        if ported is None:
+            continue
+        parts = ported
         section = merged.setdefault(parts[0], {})
         if not isinstance(section, dict):
             raise ConfigError(f"override {text!r}: {parts[0]} is not a section")
@@ -248,8 +270,10 @@ def _validate(
         sources[".".join(parts)] = f"override {text!r}"
     try:
         config = Config.model_validate(merged)
-    except ValidationError as e:
-        raise ConfigError(_format_errors(e, sources)) from None
+    except ValidationError as e:  # the port's errors first: they say what a key of the original became
+        raise ConfigError(_one_line(port.errors + _error_lines(e, sources))) from None
+    if port.errors:
+        raise ConfigError(_one_line(port.errors))
     return ResolvedConfig(config, sources)
 
 
