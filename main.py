@@ -221,7 +221,8 @@ def env_factory(config: Config) -> Callable[[int, int | None], VectorEnv]:
     """``factory(num_envs, seed)`` for the task's envs, with the config's kwargs and time limit."""
     base = config.base_config
     limit = base.max_step_each_iter if base.max_step_each_iter > 0 else None
-    return vector_env_factory(base.build_path, env_kwargs=base.env_kwargs, max_episode_steps=limit)
+    return vector_env_factory(base.build_path, env_kwargs=base.env_kwargs, max_episode_steps=limit,
+                              reset_options=config.reset_config)  # fmt: skip
 
 
 def check_env(config: Config) -> None:

@@ -263,6 +263,8 @@ def _validate(
         if ported is None:
             continue
         parts = ported
+        if parts[0] == "reset_config" and merged.get("reset_config") is None:
+            merged["reset_config"] = {}  # the env's reset options: a free mapping, null until one is set
         section = merged.setdefault(parts[0], {})
         if not isinstance(section, dict):
             raise ConfigError(f"override {text!r}: {parts[0]} is not a section")

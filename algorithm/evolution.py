@@ -39,7 +39,7 @@ from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
-from pydantic import BaseModel, ValidationError
+from pydantic import BaseModel, ValidationError, create_model
 
 if TYPE_CHECKING:
     from algorithm.config_schema import Config
@@ -95,6 +95,7 @@ def parse_random_params(raw: Mapping[str, Any], config: Config) -> dict[str, Par
     (each ``in`` value and both bounds are checked with the rest of ``config`` as configured).
     """
     sections = [name for name in type(config).model_fields if isinstance(getattr(config, name), BaseModel)]
+    sections.append("reset_config")
     specs: dict[str, ParamSpec] = {}
     for section, keys in raw.items():
         where = f"random_params.{section}"
@@ -110,8 +111,10 @@ def parse_random_params(raw: Mapping[str, Any], config: Config) -> dict[str, Par
 
 def _parse_spec(config: Config, section: str, key: str, entry: Any) -> ParamSpec:
     path = f"random_params.{section}.{key}"
-    model = getattr(config, section)
+    model = _section(config, section)
     fields = type(model).model_fields
+    if key not in fields and section == "reset_config":
+        raise ParamSpecError(path, f"reset_config has no option {key!r}: give it its configured value there first")
     if key not in fields:
         raise ParamSpecError(path, "unknown key" + _did_you_mean(key, list(fields)))
     if not isinstance(entry, Mapping) or set(entry) not in _SPEC_FORMS:
@@ -193,7 +196,7 @@ def sample_params(
     sections: dict[str, dict[str, Any]] = {}
     values: dict[str, Any] = {}
     for path, spec in specs.items():
-        model = getattr(defaults, spec.section)
+        model = _section(defaults, spec.section)
         data = sections.setdefault(spec.section, model.model_dump())
         centre = getattr(model, spec.key)
         count = counts.get(path)
@@ -600,6 +603,18 @@ class Population:
             )
             population.learners[record.learner_id] = record
         return population
+
+
+def _section(config: Config, name: str) -> BaseModel:
+    """The config section ``name`` as a model. ``reset_config`` (the env's reset options, a free
+    mapping) becomes a model with one field per configured option, typed as its value (an int
+    option stays an int), so its options are drawn and checked like any other section's keys."""
+    if name != "reset_config":
+        section: BaseModel = getattr(config, name)
+        return section
+    options = config.reset_config or {}
+    fields: dict[str, Any] = {key: (type(value) if value is not None else Any, value) for key, value in options.items()}
+    return create_model("reset_config", **fields)()
 
 
 def _validated(model_cls: type[BaseModel], data: dict[str, Any], key: str, value: Any) -> Any:

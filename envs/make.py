@@ -99,9 +99,10 @@ def make_vector_env(
     seed: int | None,
     env_kwargs: dict[str, Any] | None = None,
     max_episode_steps: int | None = None,
+    reset_options: dict[str, Any] | None = None,
 ) -> VectorEnv:
     """``num_envs`` copies of :func:`make_env`'s env in one :class:`VectorEnv`; env ``i`` gets
-    ``seed + i``."""
+    ``seed + i``; every reset passes ``reset_options`` (the config's ``reset_config``)."""
     if isinstance(num_envs, bool) or not isinstance(num_envs, int) or num_envs < 1:
         raise ValueError(f"num_envs must be a positive int, got {num_envs!r}")
     return VectorEnv(
@@ -113,19 +114,24 @@ def make_vector_env(
                 max_episode_steps=max_episode_steps,
             )
             for i in range(num_envs)
-        ]
+        ],
+        reset_options=reset_options,
     )
 
 
 def vector_env_factory(
-    build_path: str, *, env_kwargs: dict[str, Any] | None = None, max_episode_steps: int | None = None
+    build_path: str,
+    *,
+    env_kwargs: dict[str, Any] | None = None,
+    max_episode_steps: int | None = None,
+    reset_options: dict[str, Any] | None = None,
 ) -> Callable[[int, int | None], VectorEnv]:
     """:func:`make_vector_env` with everything but the env count and the seed fixed: what a trainer
     takes to build its training and evaluation envs, ``factory(num_envs, seed)``."""
 
     def factory(num_envs: int, seed: int | None) -> VectorEnv:
         return make_vector_env(build_path, num_envs, seed=seed, env_kwargs=env_kwargs,
-                               max_episode_steps=max_episode_steps)
+                               max_episode_steps=max_episode_steps, reset_options=reset_options)
 
     return factory
 
@@ -226,7 +232,7 @@ class VectorEnv:
     is new, so callers may keep and modify them.
     """
 
-    def __init__(self, envs: Sequence[gym.Env[Any, Any]]) -> None:
+    def __init__(self, envs: Sequence[gym.Env[Any, Any]], reset_options: dict[str, Any] | None = None) -> None:
         if not envs:
             raise ValueError("VectorEnv needs at least one env")
         first = envs[0]
@@ -236,6 +242,7 @@ class VectorEnv:
             if env.action_space != first.action_space:
                 raise ValueError(f"env {i}'s action space {env.action_space} differs from env 0's")
         self.envs = list(envs)
+        self.reset_options = dict(reset_options) if reset_options else None  # every reset's options
         self.num_envs = len(self.envs)
         self.spec = env_spec(first.observation_space, first.action_space)
         self._sensors = _sensor_getter(first.observation_space, self.spec)
@@ -254,7 +261,7 @@ class VectorEnv:
         its RNG, seeded at creation) and return the first observations, per sensor ``[N, ...]``."""
         per_env = []
         for i, env in enumerate(self.envs):
-            obs, _ = env.reset(seed=None if seed is None else seed + i)
+            obs, _ = env.reset(seed=None if seed is None else seed + i, options=self.reset_options)
             per_env.append(self._sensors(obs))
         self._started = True
         return self._batch(per_env)
@@ -266,7 +273,7 @@ class VectorEnv:
             raise IndexError(f"env index {i} out of range for {self.num_envs} envs")
         if not self._started:
             raise RuntimeError("VectorEnv.reset_env called before reset()")
-        obs, _ = self.envs[i].reset()
+        obs, _ = self.envs[i].reset(options=self.reset_options)
         return [
             np.array(x, dtype=s.dtype) for x, s in zip(self._sensors(obs), self.spec.sensors, strict=True)
         ]
@@ -302,7 +309,7 @@ class VectorEnv:
             if term or trunc:
                 terminated[i] = term
                 truncated[i] = trunc and not term
-                obs, reset_info = env.reset()
+                obs, reset_info = env.reset(options=self.reset_options)
                 info = {**info, "reset_info": reset_info}
                 next_sensors.append(self._sensors(obs))
             else:

@@ -244,7 +244,7 @@ BAD_SPECS = [
     ("sac_config: {tau: {uniform: [0.0, 1.0]}}", "random_params.sac_config.tau", "expected {in: [...]}"),
     ("sac_config: {n_stepp: {in: [1]}}", "random_params.sac_config.n_stepp", "did you mean 'n_step'"),
     ("sac_confg: {n_step: {in: [1]}}", "random_params.sac_confg", "unknown section"),
-    ("reset_config: {seed: {in: [1]}}", "random_params.reset_config", "unknown section"),
+    ("reset_config: {seed: {in: [1]}}", "random_params.reset_config.seed", "reset_config has no option 'seed'"),
     ("nn_config: {activation: {std: 0.1}}", "random_params.nn_config.activation", "numeric key"),
     ("sac_config: {use_rnn: {truncated: [0, 1]}}", "random_params.sac_config.use_rnn", "numeric key"),
     ("sac_config: {n_step: 5}", "random_params.sac_config.n_step", "valid dictionary"),
@@ -458,3 +458,25 @@ def test_restored_counts_follow_values_when_the_choices_change() -> None:
     assert Population.from_state(changed, state).counts == {"sac_config.n_step": [6, 0, 4]}
     with pytest.raises(ValueError, match="version"):
         Population.from_state(changed, {**state, "version": 0})
+
+
+def test_reset_config_options_are_drawn_like_any_key_and_must_be_configured_first() -> None:
+    # Issue 15, defect 4: reset_config (the env's reset options, a free mapping) could not be
+    # randomized: random_params knew only the schema's sections.
+    config = Config.model_validate({
+        "reset_config": {"low": -0.05, "high": 0.05, "mode": "a"},
+        "random_params": {"reset_config": {"high": {"truncated": [0.1, 0.3]}, "mode": {"in": ["a", "b"]}}},
+    })  # fmt: skip
+    specs = parse_random_params(config.random_params, config)
+    rng = np.random.default_rng(0)
+    draws = [sample_params(specs, config, {}, rng) for _ in range(200)]
+    assert all(0.1 <= d["reset_config.high"] <= 0.3 for d in draws)
+    assert {d["reset_config.mode"] for d in draws} == {"a", "b"}
+    applied = apply_params(config, draws[0])
+    assert applied.reset_config == {"low": -0.05, **{k.split(".")[1]: v for k, v in draws[0].items()}}
+    with pytest.raises(ParamSpecError, match=r"random_params.reset_config.lo: reset_config has no option 'lo'"):
+        parse_random_params({"reset_config": {"lo": {"truncated": [0.0, 1.0]}}}, config)
+    with pytest.raises(ParamSpecError, match="'truncated' and 'std' need a numeric key"):
+        parse_random_params({"reset_config": {"mode": {"truncated": [0.0, 1.0]}}}, config)
+    overridden = load_config(None, None, ["reset_config.high=0.2"]).config  # null by default: a key sets it
+    assert overridden.reset_config == {"high": 0.2}

@@ -310,3 +310,20 @@ def test_reset_env_restarts_one_env_and_returns_unbatched_sensors() -> None:
     assert step.obs[0].tolist() == [[1.0, 1.0], [0.0, 2.0]]
     with pytest.raises(IndexError, match="env index 2"):
         venv.reset_env(2)
+
+
+def test_every_reset_passes_the_configured_reset_options() -> None:
+    # reset_config reaches env.reset(options=...) at the first reset, a forced one and every
+    # auto-reset (CartPole draws its start state from [low, high]).
+    from envs.make import make_vector_env
+
+    env = make_vector_env("CartPole-v1", 2, seed=0, reset_options={"low": 0.2, "high": 0.25})
+    starts = [np.stack(env.reset(seed=0)[0])]
+    starts.append(np.stack(env.reset_env(1)[0])[None])
+    for _ in range(100):
+        result = env.step(np.tile(np.array([[1.0, 0.0]], np.float32), (2, 1)))
+        ended = result.terminated | result.truncated
+        if ended.any():
+            starts.append(result.obs[0][ended])
+    assert len(starts) > 3  # auto-resets happened
+    assert all(((s >= 0.2) & (s <= 0.25)).all() for s in starts), starts
