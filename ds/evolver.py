@@ -23,6 +23,11 @@ registry's (ds/evolver_registry.py). What this class adds:
   that do not decode) sits the round out, logged, and the elites are ranked again without it. With
   fewer than two learners left the round waits ``retry_round_s``. Then ``Population.run_round``
   fits the Gaussian and draws a sample for every other learner, under the population lock only.
+- **Late learners.** The last round's Gaussian is kept (and saved): a learner that registers as new
+  after a round gets a draw of it as its pending sample (``sample_weights``, as in a round), saved
+  before the registration returns, so it loads it (GetSample) before its first update instead of
+  starting from its own random weights. Before the first round, and for a learner back with
+  ``previous_id``, nothing is drawn.
 - **Persistence** (ds/evolver_state.py). Registrations, rounds and new assignments are saved before
   the call returns (a round before any learner hears of it); returns, acknowledgements and expiries
   are saved by the thread within ``save_every_s``, so a ``kill -9`` loses at most that much. A new
@@ -56,7 +61,7 @@ import numpy as np
 import yaml
 
 from algorithm.config_schema import Config
-from algorithm.evolution import Population, RoundResult, cem_due
+from algorithm.evolution import Population, RoundResult, cem_due, sample_weights
 from algorithm.logging import MetricsWriter
 from ds.evolver_registry import LearnerRegistry, Return, check_address, check_host, check_port
 from ds.evolver_state import (
@@ -64,15 +69,18 @@ from ds.evolver_state import (
     SAMPLES_DIR,
     STATE_FILE,
     Assignment,
+    CemDistribution,
     EvolverInfo,
     EvolverStateError,
     LearnerOrders,
     LearnerRegistration,
     Role,
     load_state,
+    read_distribution,
     read_sample,
     remove_unreferenced,
     save_state,
+    write_distribution,
     write_sample,
 )
 from ds.learner_service import LearnerClient
@@ -139,6 +147,7 @@ class Evolver:
         self.population = Population(config)
         self._rng = np.random.default_rng(config.sac_config.seed if seed is None else seed)
         self._started_wall = self._last_round_wall = wall_clock()
+        self._cem: CemDistribution | None = None  # the last round's Gaussian, for learners that join later
         self._load()
 
     @property
@@ -158,7 +167,8 @@ class Evolver:
     ) -> LearnerRegistration:
         """A new learner (a new id and its random_params draws), or ``previous_id`` back with its id
         and config at the address given now. :class:`~ds.evolver_state.UnknownLearner` for an id this
-        evolver never gave out, :class:`~ds.evolver_state.LearnerRetired` for a retired one."""
+        evolver never gave out, :class:`~ds.evolver_state.LearnerRetired` for a retired one. A new
+        learner after a round gets a sample of the last round's Gaussian, waiting for it (GetSample)."""
         if not host:
             raise ValueError("host: empty; say where actors reach this learner")
         check_host("host", host)
@@ -176,6 +186,10 @@ class Evolver:
                 entry = self.registry.add(learner_id, params, name, host, *ports)
                 self._event(_params_text(learner_id, params))
                 log.info("learner %d registered at %s (%s) with %s", learner_id, entry.address, name, params)
+                if (cem := self._cem) is not None:
+                    self.registry.add_sample(learner_id, cem.round, sample_weights(cem.mean, cem.std, self._rng))
+                    log.info("learner %d joined after round %d: starting from a sample of the CEM distribution",
+                             learner_id, cem.round)  # fmt: skip
         registration = self.registry.registration(entry)
         self.save()
         return registration
@@ -255,6 +269,7 @@ class Evolver:
                             self._round_retry_at = self._clock() + self.retry_round_s
                             return None
                         self.registry.apply_round(result, self.population)
+                        self._cem = CemDistribution(result.round, result.mean, result.std)
                         self._last_round_wall = self._wall()
                         self._event(_round_metrics(result))
                         break
@@ -367,13 +382,22 @@ class Evolver:
                     "started_wall": self._started_wall,
                     "last_round_wall": self._last_round_wall,
                     "registry": registry,
+                    "cem_round": 0 if (cem := self._cem) is None else cem.round,
                 }
             for sample in unsaved:
                 write_sample(self.state_dir, sample)
+            new_cem = cem if cem is not None and not cem.saved else None
+            if new_cem is not None:
+                write_distribution(self.state_dir, new_cem)
             save_state(self.state_dir, state)
             self.registry.mark_saved(unsaved)
             for name in obsolete - {s.file_name for s in unsaved}:
                 (self.state_dir / SAMPLES_DIR / name).unlink(missing_ok=True)
+            if new_cem is not None:
+                new_cem.saved = True
+                for path in self.state_dir.glob("cem.round_*.npz"):  # the previous round's
+                    if path.name != new_cem.file_name:
+                        path.unlink(missing_ok=True)
 
     def _load(self) -> None:
         state = load_state(self.state_dir)
@@ -392,12 +416,15 @@ class Evolver:
             self._rng.bit_generator.state = state["rng"]
             self._started_wall, self._last_round_wall = float(state["started_wall"]), float(state["last_round_wall"])
             self.registry.load(state["registry"], lambda i, r: read_sample(self.state_dir, i, r))
+            if cem_round := int(state.get("cem_round", 0)):  # absent in states saved before it was kept
+                self._cem = read_distribution(self.state_dir, cem_round)
             active = {i for i, e in self.registry.learners.items() if not e.retired}
             if active != set(self.population.learners):
                 raise ValueError(f"registry learners {sorted(active)} differ from the population's")
         except (AttributeError, KeyError, TypeError, ValueError) as e:
             raise EvolverStateError(f"evolver state {where} is inconsistent: {type(e).__name__}: {e}") from None
-        removed = remove_unreferenced(self.state_dir, {p.file_name for p in self.registry.pending.values()})
+        keep = {p.file_name for p in self.registry.pending.values()} | ({self._cem.file_name} if self._cem else set())
+        removed = remove_unreferenced(self.state_dir, keep)
         log.info(
             "evolver state loaded from %s: %d learners, %d rounds, %d samples pending%s",
             where,

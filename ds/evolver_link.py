@@ -5,7 +5,8 @@ round (:class:`WeightsSnapshot`); and what ds/learner.py gets of both (:class:`M
 Usage (ds/roles.py; the learner joined with :func:`ds.population.join_population`)::
 
     link = EvolverLink(client, joined, params_spec(sac.models.state_dict()))
-    link.start()                               # heartbeats every 3 s on a thread of its own
+    link.start()                               # a new learner after a round: its first sample; then
+                                               # heartbeats every 3 s on a thread of its own
     address = wait_for_replay(link, stop)      # the replay the evolver pairs with this learner
     member = Membership(link, WeightsSnapshot(token), connect_replay)
     LearnerServicer(..., weights=member.snapshot)
@@ -44,7 +45,9 @@ class EvolverLink:
     against ``weights_spec`` (the learner's own full weights), for :meth:`take_sample`; RETIRE sets
     :attr:`retired`; a new replay address lands in :attr:`replay_address`. Returns queued by
     :meth:`post` go out at once, tagged with the round of the weights they describe, and wait while
-    the evolver is unreachable (it is waited out: training goes on). A lease that ran out
+    the evolver is unreachable (it is waited out: training goes on). A learner that joined as new
+    after a CEM round fetches the sample the evolver drew for it in :meth:`start`, before the
+    thread starts, so the learner loads it before its first update. A lease that ran out
     (NOT_FOUND) is renewed by registering again with ``previous_id``; if the evolver no longer knows
     the id at all, :attr:`lost` says so and the learner should exit (and start again as a new one).
     """
@@ -74,7 +77,17 @@ class EvolverLink:
         self._log = Throttle(30.0)
 
     def start(self) -> None:
+        if self.joined.fresh and self.rounds > 0:
+            self._guarded(self._take_join_sample)
         self._thread.start()
+
+    def _take_join_sample(self) -> None:
+        sample = self.client.get_sample(self.learner_id, self.weights_spec)
+        if sample is not None:
+            with self._lock:
+                self._sample = sample
+            log.info("learner %d joined after round %d: starting from a sample of the CEM distribution",
+                     self.learner_id, sample.round)  # fmt: skip
 
     def close(self, timeout_s: float = 5.0) -> None:
         self._stop.set()

@@ -27,6 +27,8 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import Any
 
+import numpy as np
+
 from algorithm.config import config_to_yaml
 from algorithm.config_schema import Config
 from algorithm.evolution import Population, RoundResult, apply_params
@@ -263,6 +265,13 @@ class LearnerRegistry:
                     self._obsolete.add(old.file_name)
                 self.assignments.end_learner(i)
             self.rounds, self.last_elites = result.round, list(result.elites)
+            self.dirty = True
+
+    def add_sample(self, learner_id: int, round_: int, weights: dict[str, np.ndarray]) -> None:
+        """A sample for a learner outside a round (one that registered after round ``round_``), offered
+        like a round's once saved."""
+        with self._lock:
+            self.pending[learner_id] = PendingSample(learner_id, round_, weights)
             self.dirty = True
 
     # ------------------------------------------------------------------ state

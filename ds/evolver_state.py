@@ -1,6 +1,7 @@
 """The evolver's data: the answers it gives (the same types on both ends of the network), the records
 it keeps, and how they persist: ``<state_dir>/state.json`` plus one ``.npz`` per pending sample under
-``<state_dir>/samples/``.
+``<state_dir>/samples/`` and, once a CEM round ran, the last round's distribution (its mean and std,
+from which a learner that joins later is drawn) in ``<state_dir>/cem.round_<R>.npz``.
 
 Every file is written atomically (temp file, fsync, rename; :func:`algorithm.files.atomic_write`),
 samples before the state that names them, so a crash at any point leaves a state whose files exist;
@@ -16,8 +17,13 @@ Usage of the files (by ds/evolver.py only)::
 
     saved = load_state(state_dir)                    # None for a fresh directory
     write_sample(state_dir, pending)                 # a CEM round's sample for one learner
+    write_distribution(state_dir, cem)               # the round's mean and std (CemDistribution)
     save_state(state_dir, {"format": FORMAT, ...})   # after every change that matters
-    remove_unreferenced(state_dir, keep={"learner_3.round_2.npz"})
+    remove_unreferenced(state_dir, keep={"learner_3.round_2.npz", "cem.round_2.npz"})
+
+The state names the distribution's round as ``cem_round`` (0: none); a state saved before it was
+kept lacks the key and loads without one (late learners start from their own weights until the next
+round).
 """
 
 from __future__ import annotations
@@ -39,6 +45,7 @@ _FORMATS = ("asac.evolver/1", FORMAT)
 STATE_FILE = "state.json"
 SAMPLES_DIR = "samples"
 _SAMPLE_NAME = re.compile(r"^learner_(\d+)\.round_(\d+)\.npz$")
+_CEM_NAME = re.compile(r"^cem\.round_(\d+)\.npz$")
 
 
 class EvolverStateError(RuntimeError):
@@ -232,6 +239,21 @@ class PendingSample:
         return f"learner_{self.learner_id}.round_{self.round}.npz"
 
 
+@dataclass
+class CemDistribution:
+    """The Gaussian of the last CEM round (``RoundResult.mean``/``std``): a learner that registers
+    after the round starts from a draw of it. ``saved``: its file is on disk."""
+
+    round: int
+    mean: dict[str, np.ndarray]
+    std: dict[str, np.ndarray]
+    saved: bool = False
+
+    @property
+    def file_name(self) -> str:
+        return f"cem.round_{self.round}.npz"
+
+
 def save_state(state_dir: Path, state: dict[str, Any]) -> None:
     """Write ``state`` (JSON-able) and its digest to ``<state_dir>/state.json`` atomically."""
     text = json.dumps({**state, "sha256": _digest(state)}, indent=1, allow_nan=False).encode()
@@ -247,6 +269,31 @@ def write_sample(state_dir: Path, sample: PendingSample) -> None:
     """Write ``sample``'s weights to ``<state_dir>/samples/<file_name>`` atomically."""
     savez: Any = np.savez  # numpy's stub reads **weights as its own keyword arguments
     atomic_write(state_dir / SAMPLES_DIR / sample.file_name, lambda f: savez(f, **sample.weights))
+
+
+def write_distribution(state_dir: Path, cem: CemDistribution) -> None:
+    """Write ``cem``'s mean and std (as ``mean/<name>``, ``std/<name>``) to ``<state_dir>/<file_name>`` atomically."""
+    arrays = {f"mean/{k}": v for k, v in cem.mean.items()} | {f"std/{k}": v for k, v in cem.std.items()}
+    savez: Any = np.savez
+    atomic_write(state_dir / cem.file_name, lambda f: savez(f, **arrays))
+
+
+def read_distribution(state_dir: Path, round_: int) -> CemDistribution:
+    """The distribution a saved state names; :class:`EvolverStateError` names a missing or corrupt file."""
+    cem = CemDistribution(round_, {}, {}, saved=True)
+    path = state_dir / cem.file_name
+    try:
+        with np.load(path, allow_pickle=False) as npz:
+            for key in npz.files:
+                part, _, name = key.partition("/")
+                {"mean": cem.mean, "std": cem.std}[part][name] = npz[key]
+        if set(cem.mean) != set(cem.std) or any(cem.mean[k].shape != cem.std[k].shape for k in cem.mean):
+            raise ValueError("its means and stds name different tensors or shapes")
+    except Exception as e:  # numpy raises several types for a missing, truncated or foreign file
+        raise EvolverStateError(
+            f"CEM distribution {path} (named by {state_dir / STATE_FILE}) is unreadable: {e}"
+        ) from None
+    return cem
 
 
 def load_state(state_dir: Path) -> dict[str, Any] | None:
@@ -293,14 +340,16 @@ def read_sample(state_dir: Path, learner_id: int, round_: int) -> PendingSample:
 
 
 def remove_unreferenced(state_dir: Path, keep: set[str]) -> list[str]:
-    """Delete sample files not in ``keep`` and temp files of interrupted writes; returns their names."""
+    """Delete sample and distribution files not in ``keep`` and temp files of interrupted writes;
+    returns their names."""
     removed = []
     samples = state_dir / SAMPLES_DIR
     for folder in (state_dir, samples):
         if not folder.is_dir():
             continue
         for path in folder.iterdir():
-            stale_sample = folder == samples and _SAMPLE_NAME.match(path.name) and path.name not in keep
+            ours = _SAMPLE_NAME if folder == samples else _CEM_NAME
+            stale_sample = ours.match(path.name) and path.name not in keep
             if stale_sample or (path.name.startswith(".") and path.name.endswith(".tmp")):
                 path.unlink(missing_ok=True)
                 removed.append(path.name)

@@ -24,7 +24,8 @@ its final evaluation and checkpoint.
 
 In an evolver's population (``member``, ds/evolver_link.py) it also posts every evaluation's return,
 copies its full weights for the evolver's GetWeights between updates, loads the CEM samples the
-evolver draws for it (:meth:`SAC.load_model_weights`) and publishes them to its actors at once,
+evolver draws for it (:meth:`SAC.load_model_weights`; one waiting when it starts, a new learner's draw
+of the CEM distribution, before its first update) and publishes them to its actors at once,
 follows its replay to a new address, and stops, checkpointed, when the evolver retires it.
 """
 
@@ -183,6 +184,8 @@ class Learner:
             return LearnerSummary(c.env_steps, c.updates, c.wall_seconds, c.last_eval_mean, False)
         last_info = last_publish = time.perf_counter()
         core.start()
+        if self.member is not None:  # a learner that joined after a round starts from its sample
+            self._load_sample(self.member)
         self.publish()
         self.prefetcher.start()
         self.priorities.start()
@@ -283,14 +286,7 @@ class Learner:
     def _follow_evolver(self, member: Membership) -> None:
         """Between updates: load a CEM sample that arrived, and follow the replay to a new address."""
         member.link.env_steps = self.env_steps.total
-        sample = member.link.take_sample()
-        if sample is not None:
-            self.sac.load_model_weights(sample.weights)
-            self.core.counters.weights_round = sample.round
-            member.link.loaded(sample.round)
-            self.publish(force=True)  # actors act with the new weights from their next step
-            log.info("loaded the CEM sample of round %d (targets hard-copied, optimizer moments reset); "
-                     "published as version %s", sample.round, self.publisher.version)  # fmt: skip
+        self._load_sample(member)
         address = member.link.replay_address
         if address and address != self.replay_address:
             log.info(
@@ -304,6 +300,17 @@ class Learner:
             self.priorities = PriorityUpdater(self.replay)
             self.prefetcher.start()
             self.priorities.start()
+
+    def _load_sample(self, member: Membership) -> None:
+        """Load the CEM sample the link holds, if any, and publish it."""
+        sample = member.link.take_sample()
+        if sample is not None:
+            self.sac.load_model_weights(sample.weights)
+            self.core.counters.weights_round = sample.round
+            member.link.loaded(sample.round)
+            self.publish(force=True)  # actors act with the new weights from their next step
+            log.info("loaded the CEM sample of round %d (targets hard-copied, optimizer moments reset); "
+                     "published as version %s", sample.round, self.publisher.version)  # fmt: skip
 
     def _poll_replay(self) -> None:
         """Env steps from the replay's counters and, with use_normalization, its observation stats."""

@@ -173,6 +173,7 @@ class Joined:
     registration: LearnerRegistration
     slot: LearnerSlot
     address: LearnerAddress
+    fresh: bool = False  # registered as a new learner (not back with its id and folder)
 
     @property
     def learner_id(self) -> int:
@@ -213,7 +214,7 @@ def join_population(
             continue
         if slot is None:
             slot = LearnerSlot.create(run_dir, registration.learner_id)
-        return Joined(registration, slot, address)
+        return Joined(registration, slot, address, fresh=previous is None)
     if slot is not None:
         slot.release()
     return None

@@ -406,7 +406,8 @@ def test_a_restarted_evolver_carries_on_where_it_stopped(setup: Setup) -> None:
 
     client.heartbeat(ids[0], 50, loaded_round=1)
     evolver.save()
-    assert sorted(p.name for p in (setup.state_dir / SAMPLES_DIR).iterdir()) == [], "the loaded sample's file stayed"
+    # Left: only the new learner's, drawn from round 1's distribution (tests/ds/test_evolver_late_join.py).
+    assert sorted(p.name for p in (setup.state_dir / SAMPLES_DIR).iterdir()) == ["learner_3.round_1.npz"]
 
 
 def test_a_killed_evolver_loses_at_most_the_last_save_interval(setup: Setup, tmp_path: Path) -> None:
