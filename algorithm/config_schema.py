@@ -103,6 +103,14 @@ class ReplayConfig(Section):
         description="Replay role with save_replay: snapshot the table every N minutes (and at shutdown); "
         "null = sac.save_model_per_minute. What a crash loses is what came in since the last snapshot.",
     )
+    max_producers: int = Field(
+        1024,
+        ge=1,
+        description="Producers (actor processes; a restarted actor is a new one) whose chunk ids the replay keeps "
+        "so that a re-sent chunk is stored at most once (algorithm/replay/dedup.py). Each takes a place for the life "
+        "of the replay and its snapshots, unless it has nothing unacknowledged stored; a new producer past the bound "
+        "is refused (its inserts fail with RESOURCE_EXHAUSTED) rather than another producer's ids forgotten.",
+    )
 
     @model_validator(mode="after")
     def _check_td_range(self) -> ReplayConfig:

@@ -26,6 +26,8 @@ Errors map to gRPC status codes on the server and back to exceptions on the clie
 - a file the server cannot write (``OSError``): FAILED_PRECONDITION -> :class:`ReplayRpcError`;
 - a message over the size limit: RESOURCE_EXHAUSTED -> :class:`ReplayRpcError` (the client refuses
   to send an oversize request itself, with a ``WireError`` naming the size and the limit);
+- an Insert from a new producer past ``replay_config.max_producers`` (``ProducerLimitReached``):
+  RESOURCE_EXHAUSTED -> :class:`ReplayRpcError` carrying the server's message;
 - server unreachable: UNAVAILABLE -> retried with backoff, then :class:`ReplayRpcError`;
 - a missing or wrong token, a caller whose certificate names no role that may call the rpc
   (:data:`CALLERS`, ds/security.py): UNAUTHENTICATED / PERMISSION_DENIED -> :class:`ReplayRpcError`.
@@ -43,7 +45,7 @@ import grpc
 import numpy as np
 from grpc_health.v1 import health, health_pb2_grpc
 
-from algorithm.replay import ChunkIds, Inserted, InsertTimeout, PrioritizedTable, SampleTimeout
+from algorithm.replay import ChunkIds, Inserted, InsertTimeout, PrioritizedTable, ProducerLimitReached, SampleTimeout
 from algorithm.spaces import SensorSpec
 from algorithm.types import Batch, Chunk
 from ds import rpc, security
@@ -210,6 +212,8 @@ def _status_codes(context: grpc.ServicerContext) -> Iterator[None]:
         context.abort(grpc.StatusCode.DEADLINE_EXCEEDED, str(e))
     except ValueError as e:
         context.abort(grpc.StatusCode.INVALID_ARGUMENT, str(e))
+    except ProducerLimitReached as e:
+        context.abort(grpc.StatusCode.RESOURCE_EXHAUSTED, str(e))
     except OSError as e:
         context.abort(grpc.StatusCode.FAILED_PRECONDITION, f"{type(e).__name__}: {e}")
 

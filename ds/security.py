@@ -20,13 +20,17 @@ probes call with neither TLS nor metadata; it says SERVING or NOT_SERVING and no
    certificate signed by that CA (the client sees UNAVAILABLE), and each rpc is open only to
    the roles its service's ``CALLERS`` table names (e.g. a learner's GetWeights only to the
    evolver): a client's roles are the DNS subject alternative names of its certificate among
-   :data:`ROLES`. Otherwise PERMISSION_DENIED.
+   :data:`ROLES` (:func:`client_roles`; URI, email and IP SANs and the subject CN never count).
+   Otherwise PERMISSION_DENIED.
 
 Clients verify servers the same way: a channel to a role accepts only a server certificate
 signed by ``tls_ca`` that names that role (``grpc.ssl_target_name_override``; certificates name
 roles, not hosts, which move). So a learner loads CEM samples only from a process holding the
 evolver's credentials, and the evolver reads weights only from learners. One certificate may name
-several roles (``main_ds.py local`` runs every role with the same flags).
+several roles (``main_ds.py local`` runs every role with the same flags). The client's check is
+gRPC's own hostname check, which, for a certificate with no DNS SAN at all, accepts a subject CN
+equal to the role instead: the run's CA should sign no such certificate (README's commands give
+each a DNS SAN).
 """
 
 from __future__ import annotations
@@ -287,13 +291,26 @@ class _Guard(grpc.ServerInterceptor):
                 f"{method}: this plaintext port serves only the health service; call the role's TLS port",
             )
         if self._mutual:
-            names = {n.decode("utf-8", "replace") for n in auth.get("x509_subject_alternative_name", [])}
-            if not names & allowed:
+            roles = client_roles(auth)
+            if not roles & allowed:
                 context.abort(
                     grpc.StatusCode.PERMISSION_DENIED,
                     f"{method} is for {', '.join(sorted(allowed))}; the caller's certificate names "
-                    f"{', '.join(sorted(names & ROLES)) or 'no role'} (roles are DNS subject alternative names)",
+                    f"{', '.join(sorted(roles)) or 'no role'} (roles are DNS subject alternative names; "
+                    "URI, email and IP SANs and the subject CN do not count)",
                 )
+
+
+def client_roles(auth: Mapping[str, Sequence[bytes]]) -> frozenset[str]:
+    """The roles a verified client certificate names: its DNS subject alternative names (gRPC's
+    ``peer_dns`` property of the call's ``auth_context()``) that are in :data:`ROLES`.
+
+    Only DNS SANs: gRPC's ``x509_subject_alternative_name`` lists every SAN type alike, so reading
+    it let a certificate naming ``URI:evolver`` pass as the evolver (issue 17). Never the subject
+    CN either (the code never read it): roles are DNS SANs (README, Security), so a certificate
+    without them names no role, whatever its CN says.
+    """
+    return frozenset(n.decode("utf-8", "replace") for n in auth.get("peer_dns", ())) & ROLES
 
 
 _BEHAVIOURS = ("unary_unary", "unary_stream", "stream_unary", "stream_stream")
@@ -395,6 +412,7 @@ __all__ = [
     "Credentials",
     "bearer",
     "check_server_credentials",
+    "client_roles",
     "describe",
     "is_loopback",
     "listen",

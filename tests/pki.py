@@ -7,6 +7,7 @@ Usage::
     learner = pki.issue("learner")             # learner.crt / learner.key, DNS SAN "learner"
     local = pki.issue("local", "actor", "learner", "replay", "evolver")   # one certificate, every role
     stranger = pki.issue("replay", ca="wrong") # a replay certificate from the wrong CA
+    uri = pki.issue("uri", sans=[x509.UniformResourceIdentifier("evolver")], common_name="evolver")  # no DNS SAN
     learner.cert, learner.key, pki.ca          # paths, for --tls_cert / --tls_key / --tls_ca
 
 Role names travel as DNS subject alternative names: that is what ds/security.py checks (README Security).
@@ -16,6 +17,7 @@ Keys are EC P-256: generated in milliseconds.
 from __future__ import annotations
 
 import datetime
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -82,15 +84,25 @@ class Pki:
         path.write_bytes(cert.public_bytes(serialization.Encoding.PEM))
         return _Authority(key, cert, path)
 
-    def issue(self, name: str, *roles: str, ca: str = "ca") -> Issued:
+    def issue(
+        self,
+        name: str,
+        *roles: str,
+        ca: str = "ca",
+        sans: Sequence[x509.GeneralName] | None = None,
+        common_name: str | None = None,
+    ) -> Issued:
         """``<name>.crt`` and ``<name>.key``, signed by ``ca`` ("ca" or "wrong"), naming ``roles`` (default:
-        ``name``) as DNS SANs, usable as server and as client certificate."""
+        ``name``) as DNS SANs, usable as server and as client certificate. ``sans`` replaces those
+        subject alternative names (e.g. ``[x509.UniformResourceIdentifier("evolver")]``: no DNS SAN);
+        ``common_name`` replaces the subject CN (default: ``name``)."""
         authority = self._cas["wrong-ca" if ca == "wrong" else "ca"]
         key = ec.generate_private_key(ec.SECP256R1())
-        sans = [x509.DNSName(r) for r in roles or (name,)]
+        if sans is None:
+            sans = [x509.DNSName(r) for r in roles or (name,)]
         cert = (
             _validity(x509.CertificateBuilder())
-            .subject_name(_name(name))
+            .subject_name(_name(common_name or name))
             .issuer_name(authority.cert.subject)
             .public_key(key.public_key())
             .serial_number(x509.random_serial_number())

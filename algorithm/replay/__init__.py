@@ -1,7 +1,7 @@
 """Replay: the table interface, the prioritized in-process table, its sum tree and rate limiter."""
 
 from algorithm.replay.base import ReplayTable, SampleTimeout
-from algorithm.replay.dedup import ChunkIds, Inserted
+from algorithm.replay.dedup import ChunkIds, Inserted, ProducerLimitReached
 from algorithm.replay.rate_limiter import InsertTimeout, RateLimiter
 from algorithm.replay.sum_tree import SumTree
 from algorithm.replay.table import PrioritizedTable
@@ -11,6 +11,7 @@ __all__ = [
     "Inserted",
     "InsertTimeout",
     "PrioritizedTable",
+    "ProducerLimitReached",
     "RateLimiter",
     "ReplayTable",
     "SampleTimeout",

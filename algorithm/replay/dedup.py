@@ -4,7 +4,8 @@ is answered with the keys it already got instead of being stored twice.
 Usage (:meth:`PrioritizedTable.insert_once` does this under the table's lock)::
 
     ids = ChunkIds(producer=0x5EED, seqs=(12, 13), acked_below=12)
-    ledger.settle(ids)                 # forget what the producer says it will never send again
+    ledger.settle(ids)                 # forget what the producer says it will never send again;
+                                       # a new producer past max_producers: ProducerLimitReached
     known = ledger.lookup(ids)         # per chunk: None (new), a first key, or FORGOTTEN
     ...store the new chunks...
     ledger.record(ids.producer, 12, first_key)
@@ -23,10 +24,25 @@ carries ``acked_below``, the producer's promise that every chunk numbered lower 
 (stored, or given up when stopping) and will not be sent again. The ledger keeps, per producer,
 that floor plus the first key of each stored chunk at or above it; a chunk below the floor that
 still arrives (a stale copy of a request the producer already gave up waiting for) is a duplicate
-whose keys are forgotten. Past the caps (:data:`MAX_OPEN_PER_PRODUCER` stored chunks above a
-producer's floor, :data:`MAX_PRODUCERS` producers, least recently seen first) entries are dropped:
-a chunk sent again after that would be stored twice, never lost. The actor's sink has at most
-``in_flight * max_chunks_per_insert`` (64) chunks on their way, far below the caps.
+whose keys are forgotten. Past :data:`MAX_OPEN_PER_PRODUCER` stored chunks above one producer's
+floor its oldest are dropped: a chunk of it sent again after that would be stored twice, never
+lost. The actor's sink has at most ``in_flight * max_chunks_per_insert`` (64) chunks on their way,
+far below that cap.
+
+Producers are bounded by ``max_producers`` (``replay_config.max_producers``, default
+:data:`MAX_PRODUCERS`), and reaching the bound never forgets a producer that may still send a chunk
+again: a new producer that would exceed it is refused (:class:`ProducerLimitReached`, nothing
+stored; over gRPC RESOURCE_EXHAUSTED) unless a *settled* producer can make room. Settled: nothing
+of it is stored above its floor, so every chunk it ever had stored is acknowledged and will not be
+sent again; the least recently seen settled producer is forgotten (a chunk of it at or above its
+floor was never stored, so storing it later is its first time). What is not done is forgetting
+producers that have been quiet for a long time: an actor cut off from the replay keeps its
+unacknowledged chunks and sends them again whenever it gets through, however long that takes, so
+no idle time makes forgetting it safe. Note that an actor's sink acknowledges a request's chunks
+only in its next request, so a finished actor stays unsettled, and each actor process (a
+restarted actor is a new producer) holds a place for the life of the replay and its snapshots:
+``max_producers`` bounds the actor processes a replay serves. Residual: a stale copy of a settled
+producer's chunk below its floor that arrives after the producer was forgotten is stored again.
 """
 
 from __future__ import annotations
@@ -38,7 +54,7 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-MAX_PRODUCERS = 1024
+MAX_PRODUCERS = 1024  # the default of replay_config.max_producers
 MAX_OPEN_PER_PRODUCER = 4096
 FORGOTTEN = -1  # lookup(): stored once, below the producer's floor, keys no longer known
 _U64 = 1 << 64
@@ -88,27 +104,61 @@ class _Producer:
     stored: dict[int, int] = field(default_factory=dict)  # seq -> first key, for stored seqs >= floor
 
 
-class ChunkLedger:
-    """Per producer: the floor it acknowledged and the first key of each stored chunk above it.
-    Not thread-safe: the table calls it under its own lock."""
+class ProducerLimitReached(RuntimeError):
+    """A new producer was refused: the ledger holds ``max_producers`` producers and none of them is
+    settled (see the module docstring). Nothing was stored; the message names the bound and the
+    config key that raises it. Over gRPC: RESOURCE_EXHAUSTED with the same message."""
 
-    def __init__(self) -> None:
-        self._producers: OrderedDict[int, _Producer] = OrderedDict()
+
+class ChunkLedger:
+    """Per producer: the floor it acknowledged and the first key of each stored chunk above it, for
+    at most ``max_producers`` producers. Not thread-safe: the table calls it under its own lock."""
+
+    def __init__(self, max_producers: int = MAX_PRODUCERS) -> None:
+        if int(max_producers) < 1:
+            raise ValueError(f"max_producers must be >= 1, got {max_producers}")
+        self.max_producers = int(max_producers)
+        self._producers: OrderedDict[int, _Producer] = OrderedDict()  # least recently seen first
+        self._settled: OrderedDict[int, None] = OrderedDict()  # those with nothing stored above the floor, ditto
 
     def __len__(self) -> int:
         return len(self._producers)
 
     def settle(self, ids: ChunkIds) -> None:
-        """Raise the producer's floor to ``ids.acked_below`` and forget the chunks below it."""
+        """Raise the producer's floor to ``ids.acked_below`` and forget the chunks below it. A new
+        producer takes a place, forgetting the least recently seen settled producer when the ledger
+        is full; raises :class:`ProducerLimitReached`, changing nothing, when none is settled."""
         p = self._producers.get(ids.producer)
         if p is None:
+            self._make_room(ids.producer)
             p = self._producers[ids.producer] = _Producer()
-            while len(self._producers) > MAX_PRODUCERS:
-                self._producers.popitem(last=False)
         self._producers.move_to_end(ids.producer)
         if ids.acked_below > p.floor:
             p.floor = ids.acked_below
             p.stored = {s: k for s, k in p.stored.items() if s >= p.floor}
+        if p.stored:
+            self._settled.pop(ids.producer, None)
+        else:
+            self._settled[ids.producer] = None
+            self._settled.move_to_end(ids.producer)
+
+    def _make_room(self, producer: int) -> None:
+        """Forget settled producers, least recently seen first, until a new one fits (a ledger
+        loaded from a table saved with a larger bound may hold more than ``max_producers``)."""
+        excess = len(self._producers) + 1 - self.max_producers
+        if excess <= 0:
+            return
+        if excess > len(self._settled):
+            raise ProducerLimitReached(
+                f"replay refuses a new producer (an actor process, id {producer:#x}): it keeps the chunk ids of "
+                f"{len(self._producers)} producers (replay_config.max_producers: {self.max_producers}) and each "
+                "may still send a chunk again, which would be stored twice if its ids were forgotten; raise "
+                "replay_config.max_producers in the replay's config (every actor process started over the "
+                "replay's life takes a place, restarts included)"
+            )
+        for _ in range(excess):
+            forgotten, _ = self._settled.popitem(last=False)
+            del self._producers[forgotten]
 
     def lookup(self, ids: ChunkIds) -> list[int | None]:
         """Per chunk: None if it is new, else the first key it was stored under (:data:`FORGOTTEN`
@@ -119,9 +169,11 @@ class ChunkLedger:
         return [FORGOTTEN if s < p.floor else p.stored.get(s) for s in ids.seqs]
 
     def record(self, producer: int, seq: int, first_key: int) -> None:
-        """Remember that chunk ``seq`` of ``producer`` is stored from key ``first_key`` on."""
-        p = self._producers.setdefault(producer, _Producer())
+        """Remember that chunk ``seq`` of ``producer`` (admitted by :meth:`settle` since the table
+        last released its lock) is stored from key ``first_key`` on."""
+        p = self._producers[producer]
         p.stored[seq] = first_key
+        self._settled.pop(producer, None)
         while len(p.stored) > MAX_OPEN_PER_PRODUCER:
             del p.stored[min(p.stored)]
 
@@ -130,10 +182,11 @@ class ChunkLedger:
         return [[pid, p.floor, sorted(p.stored.items())] for pid, p in self._producers.items()]
 
     @classmethod
-    def from_state(cls, state: Sequence[Any], next_key: int) -> ChunkLedger:
+    def from_state(cls, state: Sequence[Any], next_key: int, max_producers: int = MAX_PRODUCERS) -> ChunkLedger:
         """A ledger from :meth:`state_dict`; raises ``ValueError`` if it is malformed or names keys
-        the table has not issued (``>= next_key``)."""
-        ledger = cls()
+        the table has not issued (``>= next_key``). Every producer of ``state`` is kept, even past
+        ``max_producers`` (a file saved under a larger bound): new producers then wait for room."""
+        ledger = cls(max_producers)
         for entry in state:
             producer, floor, stored = entry
             ids = [producer, floor] + [x for pair in stored for x in pair]
@@ -146,4 +199,6 @@ class ChunkLedger:
             if producer in ledger._producers:
                 raise ValueError(f"ledger: producer {producer} listed twice")
             ledger._producers[int(producer)] = _Producer(int(floor), seqs)
+            if not seqs:
+                ledger._settled[int(producer)] = None
         return ledger

@@ -35,7 +35,7 @@ import numpy as np
 
 from algorithm.normalizer import RunningMeanStd
 from algorithm.replay import persistence
-from algorithm.replay.dedup import FORGOTTEN, ChunkIds, ChunkLedger, Inserted
+from algorithm.replay.dedup import FORGOTTEN, MAX_PRODUCERS, ChunkIds, ChunkLedger, Inserted
 from algorithm.replay.rate_limiter import RateLimiter
 from algorithm.replay.sum_tree import SumTree
 from algorithm.spaces import SensorSpec
@@ -55,6 +55,7 @@ class ReplayConfigLike(Protocol):
     batch_size: int
     samples_per_insert_tolerance: float
     min_size_to_sample: int
+    max_producers: int
 
 
 class PrioritizedTable:
@@ -77,6 +78,9 @@ class PrioritizedTable:
             ``rnn_state=None``).
         rate_limiter: one per table; default: ratio not enforced, ``min_size_to_sample=1``.
         seed: seeds the table's numpy Generator (saved and restored with the table).
+        max_producers: producers whose chunk ids :meth:`insert_once` keeps (a new one past it is
+            refused with :class:`~algorithm.replay.dedup.ProducerLimitReached`; see
+            algorithm/replay/dedup.py).
     """
 
     def __init__(
@@ -92,6 +96,7 @@ class PrioritizedTable:
         rate_limiter: RateLimiter | None = None,
         seed: int | None = None,
         burn_in: int = 0,
+        max_producers: int = MAX_PRODUCERS,
     ) -> None:
         if int(capacity) < 2:
             raise ValueError(f"replay capacity must be >= 2 rows, got {capacity}")
@@ -145,7 +150,8 @@ class PrioritizedTable:
         self._tree = SumTree(cap)
         self._normalizers = {s.name: RunningMeanStd(s.shape) for s in self.sensors if not s.is_image}
         self._next_key = 0
-        self._ledger = ChunkLedger()  # which producers' chunks are stored (insert_once)
+        self.max_producers = int(max_producers)
+        self._ledger = ChunkLedger(self.max_producers)  # which producers' chunks are stored (insert_once)
         self._max_priority = float(self._transform(np.ones(1))[0])
         self._counters = dict.fromkeys(
             (
@@ -197,6 +203,7 @@ class PrioritizedTable:
             rate_limiter=limiter,
             seed=seed,
             burn_in=burn_in,
+            max_producers=replay_config.max_producers,
         )
 
     # ------------------------------------------------------------------ public interface
@@ -243,7 +250,9 @@ class PrioritizedTable:
         answered with the keys it got (counted in ``info()["duplicates"]``); the new ones are
         stored all or nothing. The ids are saved with the table (algorithm/replay/dedup.py says
         what that guarantees and how little it keeps). A request of duplicates only is never held
-        back by the rate limiter. Bad ``ids`` raise ``ValueError`` and store nothing."""
+        back by the rate limiter. Bad ``ids`` raise ``ValueError`` and store nothing; a new producer
+        that would exceed ``max_producers`` raises
+        :class:`~algorithm.replay.dedup.ProducerLimitReached` and stores nothing."""
         checked = self._check_many(chunks, priorities)
         ids.check(len(checked))
         return self._insert(checked, ids, timeout)
@@ -276,7 +285,8 @@ class PrioritizedTable:
             steps = sum(t for (_, t, _), first in zip(checked, known, strict=True) if first is None)
             if steps:
                 self.rate_limiter.await_insert(steps, timeout)
-                if ids is not None:  # the wait released the lock: a copy of this request may have been stored
+                if ids is not None:  # the wait released the lock: a copy of this request may have been
+                    self._ledger.settle(ids)  # stored, or (nothing of it stored) its producer forgotten
                     known = self._ledger.lookup(ids)
             keys, duplicate = [], []
             for i, ((chunk, t, new_p), first) in enumerate(zip(checked, known, strict=True)):
@@ -529,7 +539,7 @@ class PrioritizedTable:
         tree.set_all(leaves)
         rng = np.random.default_rng()
         rng.bit_generator.state = meta["rng"]
-        ledger = ChunkLedger.from_state(meta.get("ledger", []), next_key)  # files from before insert_once: none
+        ledger = ChunkLedger.from_state(meta.get("ledger", []), next_key, self.max_producers)  # old files: none
         normalizers = {}
         for i, s in enumerate(self.sensors):
             if s.name in self._normalizers:

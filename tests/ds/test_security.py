@@ -6,11 +6,12 @@ for a server open beyond loopback."""
 
 from __future__ import annotations
 
+import ipaddress
 import logging
 import tempfile
 import threading
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from types import ModuleType
 from typing import Any
@@ -18,6 +19,7 @@ from typing import Any
 import grpc
 import numpy as np
 import pytest
+from cryptography import x509
 from cryptography.hazmat.primitives import serialization
 from grpc_health.v1 import health_pb2, health_pb2_grpc
 
@@ -324,6 +326,43 @@ def test_the_evolver_reads_weights_from_learners_only(material: Material, server
             client.get_weights()
         assert denied.value.code() == grpc.StatusCode.PERMISSION_DENIED
         assert "GetWeights is for evolver" in (denied.value.details() or "")
+
+
+# A client certificate from the run's CA whose subject CN is "evolver" (never a role: roles are DNS SANs)
+# and whose subject alternative names are these: only a DNS SAN "evolver" makes it the evolver.
+EVOLVER_CLAIMS: dict[str, tuple[list[x509.GeneralName], bool]] = {
+    "URI:evolver": ([x509.UniformResourceIdentifier("evolver")], False),
+    "email:evolver@x": ([x509.RFC822Name("evolver@x")], False),
+    "URI:evolver, email:evolver@x, DNS:actor": (
+        [x509.UniformResourceIdentifier("evolver"), x509.RFC822Name("evolver@x"), x509.DNSName("actor")],
+        False,
+    ),
+    "IP:127.0.0.1": ([x509.IPAddress(ipaddress.ip_address("127.0.0.1"))], False),
+    "DNS:evolver": ([x509.DNSName("evolver")], True),
+}
+
+
+@pytest.mark.parametrize("claim", sorted(EVOLVER_CLAIMS))
+def test_roles_are_read_from_dns_subject_alternative_names_only(
+    claim: str, material: Material, servers: Callable[..., Served]
+) -> None:
+    """Issue 17: a certificate naming ``URI:evolver`` was accepted as the evolver on GetWeights."""
+    sans, is_evolver = EVOLVER_CLAIMS[claim]
+    stem = "claim-" + "".join(c if c.isalnum() else "-" for c in claim)
+    issued = material.pki.issue(stem, sans=sans, common_name="evolver")
+    client = replace(material.creds(None), cert=issued.cert.read_bytes(), key=issued.key.read_bytes())
+    learner = servers("learner", material.creds("learner"))
+    with LearnerClient(learner.address, credentials=client, retry=ONCE) as caller:
+        if is_evolver:
+            assert caller.get_weights()[0] == 3
+            return
+        with pytest.raises(grpc.RpcError) as denied:
+            caller.get_weights()
+    assert denied.value.code() == grpc.StatusCode.PERMISSION_DENIED
+    details = denied.value.details() or ""
+    assert "GetWeights is for evolver" in details and "roles are DNS subject alternative names" in details
+    names = "actor" if "DNS:actor" in claim else "no role"
+    assert f"the caller's certificate names {names} " in details
 
 
 def test_the_clients_carry_tls_and_the_token_on_blocking_and_future_calls(

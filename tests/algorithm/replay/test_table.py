@@ -155,9 +155,10 @@ def test_from_config_wires_the_rate_limiter(connect: Connect) -> None:
         samples_per_insert=4.0,
         samples_per_insert_tolerance=0.0,
         min_size_to_sample=3,
+        max_producers=7,
     )
     built = PrioritizedTable.from_config(cfg, (VECTOR,), 2, window=2, enforce_ratio=True, seed=0)
-    assert (built.capacity, built.window, built.alpha) == (50, 2, 0.6)
+    assert (built.capacity, built.window, built.alpha, built.max_producers) == (50, 2, 0.6, 7)
     tab = connect(built)
     fill(tab, [3])
     with pytest.raises(SampleTimeout, match="rate-limited"):

@@ -1,5 +1,6 @@
 """insert_once: a chunk sent again under its (producer, sequence) is answered, not stored twice;
-the ids are forgotten once acknowledged, bounded, and saved with the table."""
+the ids are forgotten once acknowledged, bounded (a new producer past the bound is refused), and
+saved with the table."""
 
 from __future__ import annotations
 
@@ -11,7 +12,7 @@ from typing import Any
 import numpy as np
 import pytest
 
-from algorithm.replay import ChunkIds, InsertTimeout, PrioritizedTable, RateLimiter, dedup
+from algorithm.replay import ChunkIds, InsertTimeout, PrioritizedTable, ProducerLimitReached, RateLimiter, dedup
 from algorithm.replay.dedup import ChunkLedger
 
 from .chunks import VECTOR, make_chunk
@@ -22,6 +23,13 @@ PRODUCER = 0xA5A5_0000_1234_5678
 
 def table(capacity: int = 200, **kwargs: Any) -> PrioritizedTable:
     return PrioritizedTable(capacity, (VECTOR,), 2, 1, seed=0, **kwargs)
+
+
+def refused_for_producers(error: BaseException) -> bool:
+    """The refusal of a new producer past max_producers: in process :class:`ProducerLimitReached`,
+    over gRPC (tests/ds/test_replay_contract.py) an error with status RESOURCE_EXHAUSTED."""
+    code = getattr(error, "code", None)
+    return isinstance(error, ProducerLimitReached) or getattr(code, "name", None) == "RESOURCE_EXHAUSTED"
 
 
 def stored_observations(tab: Any) -> list[float]:
@@ -166,6 +174,60 @@ def test_a_snapshot_with_a_bad_ledger_is_refused(connect: Connect, tmp_path: Pat
     assert fresh.info()["producers"] == 0
 
 
+def test_past_max_producers_a_new_producer_is_refused_and_no_chunk_is_stored_twice(connect: Connect) -> None:
+    """Issue 17: with the bound at 4 the 5th producer used to push producer 1 out of the ledger, and
+    producer 1's re-sent chunk was stored a second time. Now the 5th is refused, with a message naming
+    the bound and the key, and producer 1's re-send is a duplicate."""
+    tab = connect(table(max_producers=4))
+    for producer in (1, 2, 3, 4):
+        tab.insert_once([make_chunk(2, 10 * producer)], ChunkIds(producer, (0,)))
+    with pytest.raises(RuntimeError, match=r"replay_config\.max_producers: 4\)") as refused:
+        tab.insert_once([make_chunk(2, 50)], ChunkIds(5, (0,)))
+    assert refused_for_producers(refused.value)
+    resent = tab.insert_once([make_chunk(2, 10)], ChunkIds(1, (0,)))  # its reply was lost: sent again
+    assert resent.duplicate == [True] and resent.keys[0].tolist() == [0, 1]
+    info = tab.info()
+    assert (info["inserted_chunks"], info["duplicates"], info["producers"]) == (4, 1, 4)
+    assert stored_observations(tab) == [10.0, 11.0, 20.0, 21.0, 30.0, 31.0, 40.0, 41.0]
+    # Producer 1 acknowledges its last chunk (a request naming only numbers below acked_below stores
+    # nothing): it can never send it again, so it gives its place to producer 5.
+    assert tab.insert_once([make_chunk(2, 10)], ChunkIds(1, (0,), acked_below=1)).duplicate == [True]
+    assert tab.insert_once([make_chunk(2, 50)], ChunkIds(5, (0,))).duplicate == [False]
+    assert tab.insert_once([make_chunk(2, 20)], ChunkIds(2, (0,))).duplicate == [True]  # 2 is still known
+    with pytest.raises(RuntimeError, match="max_producers") as again:
+        tab.insert_once([make_chunk(2, 60)], ChunkIds(6, (0,)))
+    assert refused_for_producers(again.value)
+    info = tab.info()
+    assert (info["inserted_chunks"], info["duplicates"], info["producers"]) == (5, 3, 4)
+
+
+def test_a_new_producer_forgotten_while_it_waits_in_the_rate_limiter_comes_back_in(connect: Connect) -> None:
+    # A new producer holds a place with nothing stored (settled) while the rate limiter holds its first
+    # insert back, so another new producer may take that place meanwhile: once admitted, the first one
+    # must claim a place again, not store its chunk under ids the ledger no longer holds.
+    tab = connect(table(rate_limiter=RateLimiter(1.0, min_size_to_sample=2, tolerance=0.0), max_producers=1))
+    tab.insert(make_chunk(3, 0))  # one window owed to the learner: inserts wait
+    results: list[Any] = []
+    waiting = threading.Thread(
+        target=lambda: results.append(tab.insert_once([make_chunk(3, 50)], ChunkIds(1, (0,)), timeout=30.0))
+    )
+    waiting.start()
+    while tab.info()["insert_waits"] < 1:
+        threading.Event().wait(0.01)
+    with pytest.raises(InsertTimeout):  # producer 2 takes the place of producer 1, then is held back too
+        tab.insert_once([make_chunk(3, 70)], ChunkIds(2, (0,)), timeout=0)
+    tab.sample(2, timeout=0)  # the learner catches up: producer 1 is admitted, takes the place of 2, stores
+    waiting.join(30)
+    assert len(results) == 1 and results[0].duplicate == [False] and results[0].keys[0].tolist() == [4, 5, 6]
+    with pytest.raises(RuntimeError, match="max_producers") as refused:  # 1 holds a stored chunk now
+        tab.insert_once([make_chunk(3, 70)], ChunkIds(2, (0,)), timeout=0)
+    assert refused_for_producers(refused.value)
+    again = tab.insert_once([make_chunk(3, 50)], ChunkIds(1, (0,)), timeout=0)
+    assert again.duplicate == [True] and again.keys[0].tolist() == [4, 5, 6]
+    info = tab.info()
+    assert (info["inserted_chunks"], info["duplicates"], info["producers"]) == (2, 1, 1)
+
+
 # ---------------------------------------------------------------------- the ledger's bounds
 
 
@@ -180,14 +242,60 @@ def test_past_the_cap_the_oldest_numbers_are_forgotten_so_a_resend_is_stored_aga
     assert ledger.lookup(ChunkIds(PRODUCER, (0, 1, 2, 3, 4, 5))) == [None, None, 20, 30, 40, None]
 
 
-def test_the_least_recently_seen_producer_is_forgotten_first(monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.setattr(dedup, "MAX_PRODUCERS", 2)
-    ledger = ChunkLedger()
-    for producer in (1, 2, 1, 3):  # 2 is the least recent when 3 arrives
+def test_a_full_ledger_refuses_a_new_producer_rather_than_forget_one_that_may_send_again() -> None:
+    """Issue 17: past 1,024 producers the least recently seen one was forgotten, so its re-sent chunk
+    was stored twice; any client with Insert rights could make that happen to every actor."""
+    ledger = ChunkLedger(max_producers=2)
+    for producer in (1, 2, 1):
         ledger.settle(ChunkIds(producer, (0,)))
-        ledger.record(producer, 0, producer)
+        ledger.record(producer, 0, 10 * producer)
+    with pytest.raises(ProducerLimitReached, match=r"replay_config\.max_producers: 2\)") as refused:
+        ledger.settle(ChunkIds(3, (0,)))
+    assert "raise replay_config.max_producers" in str(refused.value)
     assert len(ledger) == 2
-    assert [ledger.lookup(ChunkIds(p, (0,)))[0] for p in (1, 2, 3)] == [1, None, 3]
+    assert [ledger.lookup(ChunkIds(p, (0,)))[0] for p in (1, 2, 3)] == [10, 20, None]
+
+
+def test_only_a_producer_with_every_stored_chunk_acknowledged_makes_room_least_recent_first() -> None:
+    ledger = ChunkLedger(max_producers=3)
+    for producer in (1, 2, 3):
+        ledger.settle(ChunkIds(producer, (0,)))
+        ledger.record(producer, 0, 10 * producer)
+    ledger.settle(ChunkIds(2, (1,), acked_below=1))  # 2 acknowledged its chunk 0 and sends 1
+    ledger.record(2, 1, 25)
+    with pytest.raises(ProducerLimitReached):
+        ledger.settle(ChunkIds(4, (0,)))  # 2's chunk 1 is stored and not acknowledged: not settled
+    ledger.settle(ChunkIds(2, (1,), acked_below=2))  # a stale copy of 1 acknowledging everything of 2
+    ledger.settle(ChunkIds(1, (0,), acked_below=1))  # and everything of 1, after 2: 2 is the least recent
+    ledger.settle(ChunkIds(4, (0,)))
+    assert len(ledger) == 3 and ledger.lookup(ChunkIds(2, (0, 1))) == [None, None]  # 2 is forgotten
+    assert ledger.lookup(ChunkIds(1, (0,))) == [dedup.FORGOTTEN]  # 1 is known, its chunk 0 acknowledged
+    assert ledger.lookup(ChunkIds(3, (0,))) == [30]
+    ledger.record(4, 0, 40)
+    ledger.settle(ChunkIds(5, (0,)))  # 1 is settled: it makes room
+    ledger.record(5, 0, 50)
+    with pytest.raises(ProducerLimitReached):
+        ledger.settle(ChunkIds(6, (0,)))  # 3, 4 and 5 each hold a chunk they may send again
+    assert [ledger.lookup(ChunkIds(p, (0,)))[0] for p in (1, 3, 4, 5, 6)] == [None, 30, 40, 50, None]
+
+
+def test_a_ledger_saved_under_a_larger_bound_keeps_every_producer(tmp_path: Path) -> None:
+    big = ChunkLedger(max_producers=4)
+    for producer in (1, 2, 3, 4):
+        big.settle(ChunkIds(producer, (0,), acked_below=1 if producer == 2 else 0))
+        if producer != 2:
+            big.record(producer, 0, producer)
+    small = ChunkLedger.from_state(big.state_dict(), next_key=10, max_producers=2)
+    assert len(small) == 4 and small.lookup(ChunkIds(3, (0,))) == [3]
+    with pytest.raises(ProducerLimitReached):  # only 2 is settled: it cannot make room for 3 more
+        small.settle(ChunkIds(5, (0,)))
+    assert len(small) == 4
+    small.settle(ChunkIds(1, (1,), acked_below=1))  # acknowledged: 1 and 2 are settled, 2 the least recent
+    small.settle(ChunkIds(3, (1,), acked_below=1))  # and 3
+    small.settle(ChunkIds(5, (0,)))  # 4 producers + 5 > 2: all three settled ones are forgotten
+    assert len(small) == 2 and small.lookup(ChunkIds(4, (0,))) == [4]
+    with pytest.raises(ValueError, match="max_producers must be >= 1"):
+        ChunkLedger(max_producers=0)
 
 
 @pytest.mark.parametrize(
