@@ -3,7 +3,8 @@
 Usage, a replay process and its peers (protos/replay.proto documents every rpc)::
 
     limit = message_limit_bytes(sensors, action_size, batch_size, window, rnn_state_size, chunk_length)
-    server, port = serve_replay(table, "0.0.0.0:50051", max_message_bytes=limit, credentials=creds)  # replay role
+    server, port = serve_replay(table, "0.0.0.0:50051", max_message_bytes=limit, credentials=creds,
+                                snapshot_dir=run / "replay")  # replay role: Save/Load name files in there
     ...
     replay = ReplayClient("replay:50051", sensors, action_size, rnn_state_size, max_message_bytes=limit,
                           credentials=creds)   # creds: ds.security.load_credentials (token, TLS)
@@ -21,9 +22,13 @@ so the replay contract tests run unchanged against it (tests/ds/test_replay_cont
 Errors map to gRPC status codes on the server and back to exceptions on the client:
 
 - bad data or a bad file (``WireError``, ``ValueError``): INVALID_ARGUMENT -> :class:`ReplayRequestRejected`,
-  a ``ValueError`` carrying the server's message;
+  a ``ValueError`` carrying the server's message; so is a Save/Load path the server does not own
+  (outside its snapshot folder, or not a regular file: ds/replay_files.py);
 - the rate limiter's ``SampleTimeout`` / ``InsertTimeout``: DEADLINE_EXCEEDED -> the same exception;
-- a file the server cannot write (``OSError``): FAILED_PRECONDITION -> :class:`ReplayRpcError`;
+- a file the server cannot write (``OSError``), a server without a snapshot folder: FAILED_PRECONDITION ->
+  :class:`ReplayRpcError`;
+- a Save or Load while another runs: ABORTED; one past its deadline is abandoned having changed
+  nothing: DEADLINE_EXCEEDED -> :class:`ReplayRpcError`;
 - a message over the size limit: RESOURCE_EXHAUSTED -> :class:`ReplayRpcError` (the client refuses
   to send an oversize request itself, with a ``WireError`` naming the size and the limit);
 - an Insert from a new producer past ``replay_config.max_producers`` (``ProducerLimitReached``):
@@ -58,6 +63,7 @@ from ds.replay_codec import (
     message_limit_bytes,
     sample_reply_bytes,
 )
+from ds.replay_files import FileWork, FileWorkAbandoned, FileWorkBusy, SnapshotFolder
 from ds.rpc import RetryPolicy, call_with_retry, channel_options, peer_gone
 from ds.security import ACTOR, LEARNER, NO_CREDENTIALS, Credentials
 from ds.wire import TensorSpec, WireError, from_tensor, to_tensor
@@ -99,7 +105,10 @@ class ReplayServicer(replay_pb2_grpc.ReplayServiceServicer):
 
     ``sensors``, ``action_size`` and ``rnn_state_size`` are what clients must send (they must
     equal the table's). The table has its own lock, so the servicer is safe under any number of
-    concurrent RPCs; it keeps no state of its own.
+    concurrent RPCs. ``snapshot_dir`` is the one folder whose files Save and Load may name (the
+    replay role's ``<run>/replay/``; rules in ds/replay_files.py); None: Save and Load are refused
+    with FAILED_PRECONDITION. They run one at a time on a thread of their own, bounded by their
+    call's deadline, so that file work never holds the workers the other rpcs need.
     """
 
     def __init__(
@@ -109,6 +118,7 @@ class ReplayServicer(replay_pb2_grpc.ReplayServiceServicer):
         action_size: int,
         rnn_state_size: int = 0,
         max_message_bytes: int = GRPC_DEFAULT_MESSAGE_BYTES,
+        snapshot_dir: str | Path | None = None,
     ) -> None:
         self.specs = ReplaySpecs(tuple(sensors), int(action_size), int(rnn_state_size))
         stored = ReplaySpecs(table.sensors, table.action_size, table.rnn_state_size)
@@ -116,6 +126,8 @@ class ReplayServicer(replay_pb2_grpc.ReplayServiceServicer):
             raise ValueError(f"replay servicer specs {self.specs} differ from the table's {stored}")
         self.table = table
         self.max_message_bytes = int(max_message_bytes)
+        self.snapshots = None if snapshot_dir is None else SnapshotFolder(snapshot_dir)
+        self._file_work = FileWork()
 
     def Insert(self, request: replay_pb2.InsertRequest, context: grpc.ServicerContext) -> replay_pb2.InsertReply:
         with _status_codes(context):
@@ -171,21 +183,44 @@ class ReplayServicer(replay_pb2_grpc.ReplayServiceServicer):
 
     def Save(self, request: replay_pb2.SaveRequest, context: grpc.ServicerContext) -> replay_pb2.SaveReply:
         with _status_codes(context):
-            self.table.save(_path(request.path))
+            path = self._snapshots().for_save(request.path)
+            self._file_work.run(
+                f"Save of {request.path or path.name!r}",
+                lambda gate: self.table.save(path, before_replace=gate),
+                _deadline_seconds(context),
+            )
         return replay_pb2.SaveReply()
 
     def Load(self, request: replay_pb2.LoadRequest, context: grpc.ServicerContext) -> replay_pb2.LoadReply:
         with _status_codes(context):
-            self.table.load(_path(request.path))
+            path = self._snapshots().for_load(request.path)
+            self._file_work.run(
+                f"Load of {request.path or path.name!r}",
+                lambda gate: self.table.load(path, follow_symlinks=False, before_install=gate),
+                _deadline_seconds(context),
+            )
         return replay_pb2.LoadReply()
 
+    def _snapshots(self) -> SnapshotFolder:
+        if self.snapshots is None:
+            raise _NoSnapshotFolder(
+                "this replay server was started without a snapshot folder (serve_replay(..., snapshot_dir=None)): "
+                "Save and Load are off"
+            )
+        return self.snapshots
 
-def _path(path: str) -> Path:
-    if not path:
-        raise WireError("path", "is empty")
-    if "\0" in path:  # the OS would refuse it with a message that does not say which field
-        raise WireError("path", f"holds a NUL character: {path!r}")
-    return Path(path)
+
+class _NoSnapshotFolder(Exception):
+    """Save or Load on a server started without a snapshot folder (FAILED_PRECONDITION)."""
+
+
+def _deadline_seconds(context: grpc.ServicerContext) -> float | None:
+    """Seconds left of the call's deadline, a little less so that the answer reaches the caller
+    before it gives up; None: the call has none."""
+    remaining = context.time_remaining()  # about 9e18 for a call without deadline
+    if remaining is None or remaining >= threading.TIMEOUT_MAX:
+        return None
+    return max(0.0, remaining - 0.05)
 
 
 def _wait_seconds(request: Any, context: grpc.ServicerContext) -> float | None:
@@ -208,8 +243,12 @@ def _status_codes(context: grpc.ServicerContext) -> Iterator[None]:
     """Turn the table's exceptions into status codes with the exception's message."""
     try:
         yield
-    except (SampleTimeout, InsertTimeout) as e:  # before OSError: TimeoutError is an OSError
+    except (SampleTimeout, InsertTimeout, FileWorkAbandoned) as e:  # before OSError: TimeoutError is an OSError
         context.abort(grpc.StatusCode.DEADLINE_EXCEEDED, str(e))
+    except FileWorkBusy as e:
+        context.abort(grpc.StatusCode.ABORTED, str(e))
+    except _NoSnapshotFolder as e:
+        context.abort(grpc.StatusCode.FAILED_PRECONDITION, str(e))
     except ValueError as e:
         context.abort(grpc.StatusCode.INVALID_ARGUMENT, str(e))
     except ProducerLimitReached as e:
@@ -234,6 +273,7 @@ def serve_replay(
     credentials: Credentials = NO_CREDENTIALS,
     health_port: int | None = None,
     interceptors: Sequence[grpc.ServerInterceptor] = (),
+    snapshot_dir: str | Path | None = None,
 ) -> tuple[grpc.Server, int]:
     """Start a gRPC server for ``table`` on ``address`` (port 0: any free port); returns it and its port.
 
@@ -245,11 +285,15 @@ def serve_replay(
     saved table, say). ``credentials`` and ``health_port``: see :func:`ds.security.listen` (TLS, the
     token, who may call what); plaintext on loopback by default (ARCHITECTURE.md 6: without
     credentials servers bind to loopback). ``interceptors`` wrap every call after those checks (tests inject
-    faults with them). Stop it with ``server.stop(grace)``.
+    faults with them). ``snapshot_dir``: the folder whose files the Save and Load rpcs may name
+    (a replay role's ``<run>/replay/``; ds/replay_files.py), None: Save and Load are refused. Stop
+    it with ``server.stop(grace)``.
     """
     options = channel_options(max_message_bytes)
     server = security.new_server("replay", SERVICE_NAME, CALLERS, credentials, max_workers, options, interceptors)
-    servicer = ReplayServicer(table, table.sensors, table.action_size, table.rnn_state_size, max_message_bytes)
+    servicer = ReplayServicer(
+        table, table.sensors, table.action_size, table.rnn_state_size, max_message_bytes, snapshot_dir
+    )
     rpc.add_servicer(server, servicer, replay_pb2.DESCRIPTOR.services_by_name["ReplayService"])
     health_servicer = health_servicer or health.HealthServicer()
     health_pb2_grpc.add_HealthServicer_to_server(health_servicer, server)
@@ -431,13 +475,15 @@ class ReplayClient:
         reply = self._call("Info", self._stub.Info, replay_pb2.InfoRequest(), self.rpc_timeout_s)
         return self.specs.normalizer_from_proto(reply)
 
-    def save(self, path: str | Path) -> None:
-        """Save the table to ``path`` on the replay server's filesystem (atomically)."""
+    def save(self, path: str | Path = "") -> None:
+        """Save the table atomically to ``path``, a file name inside the replay server's snapshot
+        folder (relative, no ``..``; empty: its default snapshot ``replay.npz``; ds/replay_files.py)."""
         self._call("Save", self._stub.Save, replay_pb2.SaveRequest(path=str(path)), self.file_timeout_s)
 
-    def load(self, path: str | Path) -> None:
-        """Replace the server table's contents with ``path`` on the server's filesystem; a bad
-        file raises ``ValueError`` and changes nothing."""
+    def load(self, path: str | Path = "") -> None:
+        """Replace the server table's contents with ``path``, a file name inside the replay
+        server's snapshot folder (as for :meth:`save`); a bad file or name raises ``ValueError``
+        and changes nothing."""
         self._call("Load", self._stub.Load, replay_pb2.LoadRequest(path=str(path)), self.file_timeout_s)
 
     # ------------------------------------------------------------------ calls

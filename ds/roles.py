@@ -118,7 +118,8 @@ def run_replay(role: RoleContext, metrics_every_s: float = 10.0) -> int:
     ``save_replay_on_stop`` (the default) only at shutdown and start. A
     replay killed without saving comes back with its last snapshot, including the ids of the chunks
     in it: actors send again what was not acknowledged, and what the snapshot holds is not stored
-    twice. With an evolver it first asks which learner it serves (announcing
+    twice. Its Save and Load rpcs may name files in ``<run>/replay/`` only (an empty name: the
+    snapshot itself; ds/replay_files.py). With an evolver it first asks which learner it serves (announcing
     ``replay_host:replay_port``) and builds its table from that learner's config."""
     client, keeper = None, None
     try:
@@ -190,7 +191,7 @@ def _serve_replay(role: RoleContext, keeper: AssignmentKeeper | None, metrics_ev
     address = f"{cfg.net_config.bind_host}:{cfg.net_config.replay_port}"
     server, port = listen("replay", address, "--replay_port", lambda: serve_replay(
         table, address, max_message_bytes=role.replay_limit(spec, rnn), health_servicer=checker, max_workers=64,
-        credentials=role.credentials, health_port=cfg.net_config.health_port,
+        credentials=role.credentials, health_port=cfg.net_config.health_port, snapshot_dir=path.parent,
     ))  # fmt: skip
     log.info("replay serving on %s:%d (capacity %d steps)", cfg.net_config.bind_host, port, table.capacity)
     writer = MetricsWriter(role.run_dir / "log" / "replay")

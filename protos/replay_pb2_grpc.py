@@ -148,18 +148,27 @@ class ReplayServiceServicer:
         raise NotImplementedError('Method not implemented!')
 
     def Save(self, request, context):
-        """Writes the whole table atomically to a file on the server. Called by the learner when it
-        checkpoints, or by operators. Errors: INVALID_ARGUMENT (empty path, or one holding a NUL),
-        FAILED_PRECONDITION (the file cannot be written).
+        """Writes the whole table atomically (a temp file in the folder, fsync, rename) to a file in the
+        server's snapshot folder (see SaveRequest), so an existing snapshot is never left half-written;
+        a regular file there is replaced, nothing else is. Called by the learner or by operators.
+        Save and Load run one at a time on a thread of their own, never holding a worker past the
+        call's deadline; the other rpcs are answered meanwhile.
+        Errors: INVALID_ARGUMENT (a path the server does not own, see SaveRequest; nothing is written),
+        FAILED_PRECONDITION (the file cannot be written, or the server was started without a snapshot
+        folder), ABORTED (another Save or Load is running: try again once it has finished),
+        DEADLINE_EXCEEDED (not done by the call's deadline: abandoned, the old file is kept).
         """
         context.set_code(grpc.StatusCode.UNIMPLEMENTED)
         context.set_details('Method not implemented!')
         raise NotImplementedError('Method not implemented!')
 
     def Load(self, request, context):
-        """Replaces the table's contents with a file written by Save. Called by the replay role on
-        restart or by operators. Errors: INVALID_ARGUMENT (empty path; a missing, unreadable, corrupt
-        or mismatched file, named in the message; the table is unchanged either way).
+        """Replaces the table's contents with a file in the snapshot folder written by Save. Called by
+        operators (the replay role loads its own snapshot at start without it). Errors: INVALID_ARGUMENT
+        (a path the server does not own, see LoadRequest; a missing, unreadable, corrupt or mismatched
+        file, named in the message), FAILED_PRECONDITION (no snapshot folder), ABORTED (another Save or
+        Load is running), DEADLINE_EXCEEDED (not done by the call's deadline: abandoned); the table is
+        unchanged by every error.
         """
         context.set_code(grpc.StatusCode.UNIMPLEMENTED)
         context.set_details('Method not implemented!')

@@ -59,6 +59,7 @@ class Run:
         self.procs: dict[str, subprocess.Popen[bytes]] = {}
         self.killed: set[int] = set()  # pids the test sent SIGKILL
         self.run_dir = tmp_path / "models/gym/pendulum" / name
+        self.snapshots = self.run_dir / "replay"  # the replay's snapshot folder: its Save rpc names files in it
 
     def start(self, name: str) -> None:
         role = name.split("-")[0]
@@ -223,8 +224,8 @@ def test_training_goes_on_when_one_actor_and_then_two_at_once_are_killed(tmp_pat
                       and updates(client.info()) >= updates(b) + 50)  # fmt: skip
                 assert_windows_keep_to_one_chunk(client, batches=5)
             assert run.procs["actor-3"].poll() is None and run.procs["learner"].poll() is None
-            client.save(tmp_path / "after_kills.npz")
-            table = read_table(tmp_path / "after_kills.npz")
+            client.save("after_kills.npz")
+            table = read_table(run.snapshots / "after_kills.npz")
             assert assert_whole_chunks(table) >= 20
         finally:
             client.close()
@@ -249,30 +250,30 @@ def test_a_killed_replay_comes_back_from_its_snapshot_and_the_actors_carry_on(tm
             run.start("replay")
             until(run, "the replay serves again", lambda: bool(info(client)), timeout_s=90)
             restored = client.info()
-            client.save(tmp_path / "restored.npz")
+            client.save("restored.npz")
             run.signal(peers, signal.SIGCONT)
             limiter = meta["rate_limiter"]
             assert (restored["inserted_steps"], restored["size"], restored["sampled_windows"]) == (
                 limiter["inserted"], limiter["inserted"] - limiter["evicted"], limiter["sampled"])  # fmt: skip
             assert (restored["next_key"], restored["producers"]) == (meta["next_key"], 2)
             assert restored["inserted_chunks"] == meta["counters"]["inserted_chunks"]
-            again = read_table(tmp_path / "restored.npz")
+            again = read_table(run.snapshots / "restored.npz")
             for name in ("priorities", "row_key", "end_key", "start_key", "obs_0", "actions", "rewards"):
                 np.testing.assert_array_equal(again[name], saved[name], err_msg=name)
-            assert meta_of(tmp_path / "restored.npz")["ledger"] == meta["ledger"]
+            assert meta_of(run.snapshots / "restored.npz")["ledger"] == meta["ledger"]
             assert "replay restored from" in run.log("replay").read_text()
 
             # Both actors, the same processes (producer ids), store chunks numbered past the snapshot's.
-            before, final = newest_chunks(meta), tmp_path / "final.npz"
+            before, final = newest_chunks(meta), run.snapshots / "final.npz"
 
             def both_actors_carry_on() -> bool:
-                client.save(final)
+                client.save(final.name)
                 now = newest_chunks(meta_of(final))
                 return now.keys() == before.keys() and all(now[p] > before[p] for p in now)
 
             until(run, "both actors insert into the restarted replay", both_actors_carry_on)
             until(run, "the learner trains on", lambda: updates(client.info()) >= updates(restored) + 20)
-            client.save(final)
+            client.save(final.name)
             final_table = read_table(final)
             count = assert_whole_chunks(final_table)
             # No chunk is stored twice: real env data never repeats a chunk's actions by chance.

@@ -4,37 +4,49 @@
 and fsyncs the directory, so a crash leaves either the old file or the new one. :func:`read_checked`
 reads everything and checks the format, the layout the reader expects and every array's name,
 shape and dtype before returning; any problem is a ``ValueError`` that names the file and the field.
+It opens only a regular file, never blocking (:func:`algorithm.files.open_regular`): a FIFO, device
+or socket in its place is refused at once.
 """
 
 from __future__ import annotations
 
 import json
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from algorithm.files import atomic_write
+from algorithm.files import atomic_write, open_regular
 
 FORMAT = "asac-replay-v1"
 
 
-def write_atomic(path: Path, arrays: dict[str, np.ndarray], meta: dict[str, Any]) -> None:
-    """Write ``arrays`` and JSON ``meta`` to ``path`` atomically (temp file, fsync, rename)."""
+def write_atomic(
+    path: Path,
+    arrays: dict[str, np.ndarray],
+    meta: dict[str, Any],
+    before_replace: Callable[[], object] | None = None,
+) -> None:
+    """Write ``arrays`` and JSON ``meta`` to ``path`` atomically (temp file, fsync, rename);
+    ``before_replace``: see :func:`algorithm.files.atomic_write` (raise to keep the old file)."""
     contents: dict[str, Any] = {**arrays, "meta": np.array(json.dumps({"format": FORMAT, **meta}))}
-    atomic_write(path, lambda f: np.savez(f, **contents))
+    atomic_write(path, lambda f: np.savez(f, **contents), before_replace)
 
 
 def read_checked(
-    path: Path, layout: dict[str, Any], expected: dict[str, tuple[tuple[int, ...], np.dtype]]
+    path: Path,
+    layout: dict[str, Any],
+    expected: dict[str, tuple[tuple[int, ...], np.dtype]],
+    follow_symlinks: bool = True,
 ) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
     """Read a file written by :func:`write_atomic`; returns ``(arrays, meta)``.
 
     ``meta`` must hold every ``layout`` entry with the same value, and the arrays must be exactly
-    ``expected`` (name -> shape, dtype).
+    ``expected`` (name -> shape, dtype). ``follow_symlinks=False``: a symlink at ``path`` is refused.
     """
     try:
-        with np.load(path, allow_pickle=False) as f:
+        with open_regular(path, follow_symlinks=follow_symlinks) as raw, np.load(raw, allow_pickle=False) as f:
             arrays = {name: f[name] for name in f.files}
         meta = json.loads(str(arrays.pop("meta")))
     except Exception as e:  # numpy and zipfile raise many types for a damaged file (NotImplementedError too)

@@ -27,7 +27,7 @@ atomic); the hot paths are vectorised numpy plus compiled tree loops, with no pe
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any, Protocol
 
@@ -436,11 +436,13 @@ class PrioritizedTable:
         with self._lock:
             return self._normalizer_state()
 
-    def save(self, path: str | Path) -> None:
+    def save(self, path: str | Path, *, before_replace: Callable[[], object] | None = None) -> None:
         """Write the table to ``path`` (an ``.npz`` archive, no pickles) atomically: the state is
         copied under the lock, then written to a temp file beside ``path``, fsynced and renamed.
         The ids of :meth:`insert_once` are saved with the rows they name, so a table loaded from
-        the file recognises exactly the chunks it holds."""
+        the file recognises exactly the chunks it holds. ``before_replace`` is called right before
+        the rename; if it raises, ``path`` is left as it was (the replay server abandons a save
+        past its call's deadline with it)."""
         with self._lock:
             arrays = self._state_arrays()
             meta = {
@@ -453,20 +455,31 @@ class PrioritizedTable:
                 "normalizer_counts": {name: rms.count for name, rms in self._normalizers.items()},
                 "ledger": self._ledger.state_dict(),
             }
-        persistence.write_atomic(Path(path), arrays, meta)
+        persistence.write_atomic(Path(path), arrays, meta, before_replace)
 
-    def load(self, path: str | Path) -> None:
+    def load(
+        self,
+        path: str | Path,
+        *,
+        follow_symlinks: bool = True,
+        before_install: Callable[[], object] | None = None,
+    ) -> None:
         """Replace the contents with a file written by :meth:`save` of a table with the same
         capacity, sensors, action size, recurrent state size and priority transform. Everything
         is read and validated first; a bad or mismatched file raises ``ValueError`` naming the
         problem and leaves this table unchanged. Sampling then continues exactly as it would have
-        in the saved table (same rows, priorities, counters and random state)."""
+        in the saved table (same rows, priorities, counters and random state). Only a regular file
+        is opened (a FIFO or device is a ``ValueError`` at once); ``follow_symlinks=False`` refuses
+        a symlink at ``path`` too. ``before_install`` is called once the file is validated, right
+        before the contents are replaced; if it raises, the table is left unchanged."""
         expected = {name: (arr.shape, arr.dtype) for name, arr in self._state_arrays(copy=False).items()}
-        data, meta = persistence.read_checked(Path(path), self._layout(), expected)
+        data, meta = persistence.read_checked(Path(path), self._layout(), expected, follow_symlinks)
         try:
             attributes, limiter_state = self._validated_state(data, meta)
         except (KeyError, TypeError, ValueError, AttributeError, IndexError, ArithmeticError) as e:
             raise ValueError(f"{path}: inconsistent replay file ({type(e).__name__}: {e})") from e
+        if before_install is not None:
+            before_install()
         with self._lock:
             self.rate_limiter.load_state_dict(limiter_state)
             for name, value in attributes.items():

@@ -67,9 +67,9 @@ class Served:
 
 
 @pytest.fixture
-def served() -> Iterator[Served]:
+def served(tmp_path: Path) -> Iterator[Served]:
     table = build()
-    server, port = serve_replay(table, max_message_bytes=LIMIT)
+    server, port = serve_replay(table, max_message_bytes=LIMIT, snapshot_dir=tmp_path)
     address = f"127.0.0.1:{port}"
     # A raw channel that may send more than the server accepts, to test the server's own limit.
     channel = grpc.insecure_channel(address, options=[("grpc.max_send_message_length", 64 << 20)])
@@ -242,14 +242,14 @@ def test_client_raises_the_servers_message_as_a_value_error(served: Served, tmp_
     assert isinstance(e.value, ValueError) and e.value.code == grpc.StatusCode.INVALID_ARGUMENT
     with pytest.raises(ReplayRequestRejected, match="batch_size must be >= 1"):
         served.client.sample(0)
-    with pytest.raises(ReplayRequestRejected, match="path is empty"):
-        served.client.save("")
+    with pytest.raises(ReplayRequestRejected, match="path '/.*' is absolute"):  # tmp_path is its snapshot folder
+        served.client.save(tmp_path / "replay.npz")
     (tmp_path / "a file").write_text("")
     with pytest.raises(ReplayRpcError, match="(FileExists|NotADirectory)Error") as failed:
-        served.client.save(tmp_path / "a file" / "replay.npz")  # a folder that cannot be made
+        served.client.save("a file/replay.npz")  # a folder that cannot be made
     assert failed.value.code == grpc.StatusCode.FAILED_PRECONDITION
     with pytest.raises(ReplayRequestRejected, match="not a readable replay file"):
-        served.client.load(tmp_path / "missing.npz")
+        served.client.load("missing.npz")
     assert_unchanged(served)
 
 

@@ -150,14 +150,13 @@ class Replay:
     table: PrioritizedTable
     stub: replay_pb2_grpc.ReplayServiceStub
     channel: grpc.Channel
-    folder: Path
+    folder: Path  # the server's snapshot folder: Save and Load name files in it
     baseline: dict[str, Any]
 
     def state(self) -> dict[str, Any]:
         """Everything the table stores, through its own Save rpc, and its counters."""
-        path = self.folder / "state.npz"
-        self.stub.Save(replay_pb2.SaveRequest(path=str(path)), timeout=10)
-        with np.load(path) as f:
+        self.stub.Save(replay_pb2.SaveRequest(path="state.npz"), timeout=10)
+        with np.load(self.folder / "state.npz") as f:
             arrays = {name: f[name] for name in f.files}
         state: dict[str, Any] = {"meta": json.loads(str(arrays.pop("meta")))}
         state |= {name: (a.dtype.str, a.shape, a.tobytes()) for name, a in arrays.items()}
@@ -178,9 +177,10 @@ def replay(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Replay]:
     table = PrioritizedTable(200, SENSORS, 2, window=3, alpha=0.6, rnn_state_size=RNN, seed=0)
     for t in (5, 9, 3):
         table.insert(make_chunk(t, table.info()["next_key"], SENSORS, rnn_state_size=RNN))
-    server, port = serve_replay(table, max_message_bytes=LIMIT)
+    folder = tmp_path_factory.mktemp("replay")
+    server, port = serve_replay(table, max_message_bytes=LIMIT, snapshot_dir=folder)
     channel = grpc.insecure_channel(f"127.0.0.1:{port}", options=BIG_SEND)
-    r = Replay(table, replay_pb2_grpc.ReplayServiceStub(channel), channel, tmp_path_factory.mktemp("replay"), {})
+    r = Replay(table, replay_pb2_grpc.ReplayServiceStub(channel), channel, folder, {})
     r.baseline = r.state()
     yield r
     channel.close()
@@ -346,8 +346,8 @@ def test_an_unknown_field_in_any_other_replay_request_is_refused(
             keys=keys, states=to_tensor(np.ones((2, RNN), np.float32))
         ),
         "Info": replay_pb2.InfoRequest(),
-        "Save": replay_pb2.SaveRequest(path=str(replay.folder / "unknown.npz")),
-        "Load": replay_pb2.LoadRequest(path=str(replay.folder / "good.npz")),
+        "Save": replay_pb2.SaveRequest(path="unknown.npz"),
+        "Load": replay_pb2.LoadRequest(path="good.npz"),
     }[method]
     with_unknown_field(request, field[1])
     assert f"unknown field number {field[0]}" in refused(getattr(replay.stub, method), request)
@@ -379,9 +379,9 @@ def test_an_oversize_insert_is_resource_exhausted(replay: Replay) -> None:
     replay.assert_unchanged()
 
 
-@pytest.mark.parametrize("path", ["", "with\0nul"])
-def test_save_to_an_empty_or_nul_path_is_refused(replay: Replay, path: str) -> None:
-    assert "path" in refused(replay.stub.Save, replay_pb2.SaveRequest(path=path))
+@pytest.mark.parametrize("path", ["with\0nul", "/tmp/replay.npz", "../replay.npz", "."])
+def test_save_to_a_nul_or_outside_path_is_refused(replay: Replay, path: str) -> None:
+    assert refused(replay.stub.Save, replay_pb2.SaveRequest(path=path)).startswith("path ")
     replay.assert_unchanged()
 
 
@@ -397,7 +397,7 @@ def test_loading_a_corrupt_snapshot_is_refused_and_changes_nothing(
     """A snapshot of this very table, damaged: refused naming the file, or (a flip in bytes nobody
     reads, such as a zip timestamp) loaded as the same table. Never anything in between."""
     good = replay.folder / "good.npz"
-    replay.stub.Save(replay_pb2.SaveRequest(path=str(good)), timeout=10)
+    replay.stub.Save(replay_pb2.SaveRequest(path=good.name), timeout=10)
     data = bytearray(good.read_bytes())
     if how == "truncate":
         data = data[: at % len(data)]
@@ -407,7 +407,7 @@ def test_loading_a_corrupt_snapshot_is_refused_and_changes_nothing(
     bad = replay.folder / "bad.npz"
     bad.write_bytes(bytes(data))
     try:
-        replay.stub.Load(replay_pb2.LoadRequest(path=str(bad)), timeout=10)
+        replay.stub.Load(replay_pb2.LoadRequest(path=bad.name), timeout=10)
     except grpc.RpcError as e:
         assert e.code() == INVALID and str(bad) in str(e.details()), e.details()
     replay.assert_unchanged()
@@ -417,10 +417,12 @@ def test_loading_a_missing_foreign_or_empty_path_is_refused(replay: Replay) -> N
     other = PrioritizedTable(200, (VECTOR,), 2, window=3, alpha=0.6, rnn_state_size=RNN)  # another task's table
     foreign = replay.folder / "foreign.npz"
     other.save(foreign)
-    for path, message in [(foreign, "saved sensors"), (replay.folder / "missing.npz", "not a readable replay file"),
-                          (replay.folder, "not a readable replay file"), ("", "path is empty")]:  # fmt: skip
-        details = refused(replay.stub.Load, replay_pb2.LoadRequest(path=str(path)))
-        assert message in details and str(path) in details, details
+    (replay.folder / "sub").mkdir(exist_ok=True)
+    for name, message in [("foreign.npz", "saved sensors"), ("missing.npz", "not a readable replay file"),
+                          ("sub", "is a folder"), (".", "names the snapshot folder itself"),
+                          ("", "not a readable replay file")]:  # fmt: skip  (empty: the default replay.npz)
+        details = refused(replay.stub.Load, replay_pb2.LoadRequest(path=name))
+        assert message in details and (name or "replay.npz") in details, details
     replay.assert_unchanged()
 
 
