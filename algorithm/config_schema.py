@@ -107,8 +107,9 @@ class ReplayConfig(Section):
         1024,
         ge=1,
         description="Producers (actor processes; a restarted actor is a new one) whose chunk ids the replay keeps "
-        "so that a re-sent chunk is stored at most once (algorithm/replay/dedup.py). Each takes a place for the life "
-        "of the replay and its snapshots, unless it has nothing unacknowledged stored; a new producer past the bound "
+        "so that a re-sent chunk is stored at most once (algorithm/replay/dedup.py). An actor that stops acknowledges "
+        "everything and gives its place up; one that is killed keeps it for the life of the replay and its "
+        "snapshots; a new producer past the bound "
         "is refused (its inserts fail with RESOURCE_EXHAUSTED) rather than another producer's ids forgotten.",
     )
 

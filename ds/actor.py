@@ -192,6 +192,7 @@ class DistributedActor:
                     last_metrics = time.monotonic()
             loop.flush()  # the open chunks too: once stopping, one try each, stored or counted as unsent
             self.sink.flush()  # logs what was not stored, once
+            self.sink.acknowledge_all()  # the replay may forget this producer
         finally:
             self._beats_done.set()
             beats.join(timeout=1.0)  # a heartbeat still on its way ends with the channel (daemon thread)

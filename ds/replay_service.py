@@ -131,8 +131,9 @@ class ReplayServicer(replay_pb2_grpc.ReplayServiceServicer):
 
     def Insert(self, request: replay_pb2.InsertRequest, context: grpc.ServicerContext) -> replay_pb2.InsertReply:
         with _status_codes(context):
-            if not request.chunks:
-                raise WireError("chunks", "is empty: an Insert carries at least one chunk")
+            if not request.chunks and not request.producer:
+                raise WireError("chunks", "is empty: an Insert carries at least one chunk (or, with a producer, none: "
+                                "it only acknowledges)")  # fmt: skip
             # Decode every chunk first: a bad one anywhere rejects the whole request untouched.
             decoded = [self.specs.chunk_from_proto(c, f"chunks[{i}]") for i, c in enumerate(request.chunks)]
             chunks, priorities = [chunk for chunk, _ in decoded], [p for _, p in decoded]

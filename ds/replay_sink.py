@@ -7,6 +7,7 @@ Usage (``ds/actor.py`` wires it into :class:`~algorithm.actor.ActorLoop`)::
     loop = ActorLoop(env, policy, sink, chunk_length=64)
     ...                 # loop.step() calls sink(chunk); it returns once the replay has room
     sink.flush()        # at the end: everything stored, or (once stopping) counted in unsent_steps
+    sink.acknowledge_all()  # the replay may forget this producer
 
 Back-pressure, not backlog: an actor that went on stepping while the replay's rate limiter held
 its inserts back (the learner is behind) built a queue without bound, threw most of it away at the
@@ -111,6 +112,7 @@ class ReplaySink:
         self._backoff = 0.0
         self._replay_gone = False  # seen gone while stopping: nothing more is sent
         self._reported_unsent = 0
+        self._acknowledged = 0  # every number below it acknowledged to the replay
         self._log = Throttle(30.0)
 
     @property
@@ -150,6 +152,20 @@ class ReplaySink:
                 "%d collected steps (%d chunks) were not inserted (stopped while replay was busy)", unsent, chunks
             )
             self._reported_unsent = self.unsent_steps
+
+    def acknowledge_all(self) -> None:
+        """After the last :meth:`flush` (the actor stops): tell the replay that no chunk numbered so
+        far will be sent again (an Insert without chunks), so it can forget this producer and give
+        its place in its bounded ledger (``replay_config.max_producers``) to a new one. Best
+        effort, one try."""
+        if self._next_seq == 0 or self._replay_gone or self._acknowledged == self._next_seq:
+            return
+        try:
+            self.replay.insert_async([], ids=ChunkIds(self.producer, (), self._next_seq)).result()
+        except (InsertTimeout, ReplayRpcError) as e:
+            log.info("could not tell the replay that every chunk is answered (its ledger keeps this actor): %s", e)
+            return
+        self._acknowledged = self._next_seq
 
     def _send_queued(self) -> None:
         """Send the waiting chunks, as many per request as the limits allow."""

@@ -92,7 +92,9 @@ class ReplayServiceServicer:
         role's periodic snapshot), so a replay restarted from a snapshot recognises every chunk the
         snapshot holds. A chunk stored after the last snapshot is lost when the replay dies without
         saving (kill -9); if its reply had reached the actor the actor does not send it again.
-        Errors: INVALID_ARGUMENT (no chunks, a tensor breaks its spec, a chunk breaks the chunk rules,
+        With a producer and no chunks an Insert only acknowledges (acked_below): an actor that stops
+        sends one with acked_below past its last number, so its place is free for a new producer.
+        Errors: INVALID_ARGUMENT (no chunks without a producer, a tensor breaks its spec, a chunk breaks the chunk rules,
         a chunk is longer than capacity - 1 steps, timeout_s < 0, or sequence is not one distinct
         number per chunk with a producer, or not empty without one; nothing is stored), DEADLINE_EXCEEDED
         (the rate limiter held the insert back for timeout_s or until the call's deadline; nothing is
@@ -101,7 +103,8 @@ class ReplayServiceServicer:
         The ids of at most replay_config.max_producers producers are kept (default 1024; every actor
         process started over the replay's life takes a place, restarts included). A producer is never
         forgotten while a chunk it had stored may still be sent again, only once it has acknowledged
-        (acked_below) every stored chunk; so a new producer past the bound is refused, and a re-sent
+        (acked_below) every stored chunk (an actor that stops acknowledges all: see above; one that
+        is killed keeps its place); so a new producer past the bound is refused, and a re-sent
         chunk of a known producer is still answered as a duplicate, never stored twice.
         """
         context.set_code(grpc.StatusCode.UNIMPLEMENTED)

@@ -38,10 +38,11 @@ sent again; the least recently seen settled producer is forgotten (a chunk of it
 floor was never stored, so storing it later is its first time). What is not done is forgetting
 producers that have been quiet for a long time: an actor cut off from the replay keeps its
 unacknowledged chunks and sends them again whenever it gets through, however long that takes, so
-no idle time makes forgetting it safe. Note that an actor's sink acknowledges a request's chunks
-only in its next request, so a finished actor stays unsettled, and each actor process (a
-restarted actor is a new producer) holds a place for the life of the replay and its snapshots:
-``max_producers`` bounds the actor processes a replay serves. Residual: a stale copy of a settled
+no idle time makes forgetting it safe. An actor's sink acknowledges a request's chunks in its
+next request, and when it stops an Insert without chunks acknowledges the rest
+(``ReplaySink.acknowledge_all``), so a finished actor is settled; a killed one (a restarted actor is
+a new producer) holds its place for the life of the replay and its snapshots: ``max_producers``
+bounds the live and killed actor processes a replay serves. Residual: a stale copy of a settled
 producer's chunk below its floor that arrives after the producer was forgotten is stored again.
 """
 

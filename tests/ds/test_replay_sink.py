@@ -203,3 +203,18 @@ def test_once_stopping_a_replay_that_is_gone_is_not_retried() -> None:
     assert elapsed < 0.5  # no backoff
     assert (sink.inserted_steps, sink.unsent_steps, sink.unsent_chunks, sink.backlog()) == (0, 20, 5, 0)
     assert sink.unavailable >= 1
+
+
+def test_a_stopping_actor_acknowledges_everything_so_the_replay_can_forget_it(over_grpc: ServeOverGrpc) -> None:
+    # The replay keeps the ids of at most max_producers producers, forgetting only those whose
+    # every stored chunk is acknowledged. A sink acknowledged a request's chunks only in its next
+    # request, so every actor that ever ran kept a place and, past the bound, new actors were refused.
+    table = PrioritizedTable(1000, (VECTOR,), 2, 1, seed=0, max_producers=2)
+    client = over_grpc(table)
+    for actor in range(5):  # five actor processes, one after the other
+        sink = ReplaySink(client, lambda: False)
+        for i in range(3):
+            sink(make_chunk(4, 100 * actor + 4 * i))
+        sink.flush()
+        sink.acknowledge_all()
+    assert client.info()["inserted_steps"] == 5 * 12
