@@ -38,9 +38,9 @@ from algorithm.checkpoint import CheckpointError, list_checkpoints, load_for_res
 from algorithm.config import ConfigError, apply_overrides, config_from_file, load_config
 from algorithm.config_schema import Config
 from algorithm.evaluation import evaluate
-from algorithm.evolution import draw_for_run
 from algorithm.learner_core import last_evaluation
 from algorithm.nn.user import ModelBuilder, model_builder
+from algorithm.random_params import draw_for_run
 from algorithm.sac import SAC
 from algorithm.signals import stop_on_signals
 from algorithm.trainer import EmbeddedTrainer, RunDir, seed_everything

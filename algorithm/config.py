@@ -29,7 +29,7 @@ from pydantic import BaseModel, ValidationError
 
 from algorithm.config_port import Port, looks_like_original
 from algorithm.config_schema import Config
-from algorithm.evolution import ParamSpecError
+from algorithm.random_params import ParamSpecError
 
 DEFAULT_CONFIG_PATH = Path(__file__).with_name("default_config.yaml")
 

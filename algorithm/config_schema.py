@@ -12,7 +12,7 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
-from algorithm.evolution import parse_random_params
+from algorithm.random_params import parse_random_params
 
 
 class Section(BaseModel):
@@ -331,7 +331,7 @@ class Config(Section):
     random_params: dict[str, dict[str, dict[str, Any]]] = Field(
         default_factory=dict,
         description="Hyper-parameters the evolver samples per learner, as {section: {key: spec}} with spec "
-        "{in: [...]}, {truncated: [lo, hi]}, {std: s} or {std: s, truncated: [lo, hi]} (algorithm/evolution.py); "
+        "{in: [...]}, {truncated: [lo, hi]}, {std: s} or {std: s, truncated: [lo, hi]} (algorithm/random_params.py); "
         "main.py draws them once for a new run, from its seed, and records the values in the run's config.yaml.",
     )
 

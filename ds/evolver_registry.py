@@ -31,7 +31,8 @@ import numpy as np
 
 from algorithm.config import config_to_yaml
 from algorithm.config_schema import Config
-from algorithm.evolution import Population, RoundResult, apply_params
+from algorithm.evolution import Population, RoundResult
+from algorithm.random_params import apply_params
 from ds.evolver_assign import Assignments
 from ds.evolver_state import (
     Assignment,

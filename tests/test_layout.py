@@ -57,3 +57,53 @@ def test_only_roles_composes_the_network_with_the_envs() -> None:
             continue
         bad = {n for n in imported_packages(path) if n.startswith("envs") or n == "ds.roles"}
         assert not bad, f"{path.relative_to(ROOT)} imports {bad}"
+
+
+def module_imports(path: Path) -> set[str]:
+    """Our modules ``path`` depends on: its top-level imports, those under ``if TYPE_CHECKING:``
+    included (a type is a dependency too), not the lazy ones inside functions."""
+    names: set[str] = set()
+    body = ast.parse(path.read_text()).body
+    for node in list(body):
+        if isinstance(node, ast.If) and isinstance(node.test, ast.Name) and node.test.id == "TYPE_CHECKING":
+            body.extend(node.body)
+    for node in body:
+        if isinstance(node, ast.Import):
+            names.update(alias.name for alias in node.names)
+        elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+            names.add(node.module)
+            names.update(f"{node.module}.{alias.name}" for alias in node.names)
+    return {n for n in names if n.split(".")[0] in OURS}
+
+
+def test_no_import_circles() -> None:
+    """One direction between any two of our modules (a package's ``__init__`` re-exporting its own
+    submodules aside): a circle makes import order matter and hides which module is the lower one."""
+    modules = {}
+    for folder in ("algorithm", "envs", "ds", "protos"):
+        for path in (ROOT / folder).rglob("*.py"):
+            parts = path.relative_to(ROOT).with_suffix("").parts
+            modules[".".join(parts[:-1] if parts[-1] == "__init__" else parts)] = path
+    graph = {
+        name: {m for m in module_imports(path) if m in modules and m != name and not m.startswith(name + ".")}
+        for name, path in modules.items()
+    }
+    for name, deps in graph.items():  # a submodule importing its own package reaches its siblings through it
+        graph[name] = {d for d in deps if not (name.startswith(d + ".") and modules[d].name == "__init__.py")}
+    state: dict[str, int] = {}
+    stack: list[str] = []
+
+    def visit(name: str) -> None:
+        state[name] = 1
+        stack.append(name)
+        for dep in sorted(graph[name]):
+            if state.get(dep) == 1:
+                raise AssertionError("import circle: " + " -> ".join(stack[stack.index(dep) :] + [dep]))
+            if dep not in state:
+                visit(dep)
+        stack.pop()
+        state[name] = 2
+
+    for name in sorted(graph):
+        if name not in state:
+            visit(name)

@@ -19,17 +19,14 @@ from scipy import stats
 from algorithm.config import ConfigError, load_config
 from algorithm.config_schema import Config
 from algorithm.evolution import (
-    ParamSpecError,
     Population,
-    apply_params,
     cem_distribution,
     cem_due,
     elite_count,
     elite_indices,
-    parse_random_params,
-    sample_params,
     sample_weights,
 )
+from algorithm.random_params import ParamSpecError, apply_params, parse_random_params, sample_params
 
 
 def make_config(random_params: dict[str, Any] | None = None, **base: Any) -> Config:
