@@ -138,8 +138,8 @@ class DistributedActor:
         self._rejoin = threading.Event()  # set by the heartbeat thread: the learner forgot us, or restarted
         self._beats_done = threading.Event()
         self._beat_error: Exception | None = None
-        self._log_learner = Throttle(30.0)
-        self._log_params = Throttle(30.0)
+        self._log_learner = Throttle()
+        self._log_params = Throttle()
 
     # -- the loop ---------------------------------------------------------------------------
     def run(self) -> ActorSummary:

@@ -74,7 +74,7 @@ class EvolverLink:
         self._stop = threading.Event()
         self._wake = threading.Event()
         self._thread = threading.Thread(target=self._run, name="evolver-link", daemon=True)
-        self._log = Throttle(30.0)
+        self._log = Throttle()
 
     def start(self) -> None:
         if self.joined.fresh and self.rounds > 0:
@@ -242,7 +242,7 @@ class Membership:
 def wait_for_replay(link: EvolverLink, stop: threading.Event) -> str | None:
     """The replay address the evolver names for this learner, once it does (logging while it waits);
     None if the learner was stopped, retired or forgotten first."""
-    waiting, started = Throttle(30.0), time.monotonic()
+    waiting, started = Throttle(), time.monotonic()
     while not link.replay_address:
         if link.retired or link.lost or stop.wait(0.5):
             return None

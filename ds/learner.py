@@ -157,8 +157,8 @@ class Learner:
         )  # fmt: skip
         self.paths = self.core.paths
         self.env_steps = EnvSteps()
-        self._log_replay = Throttle(30.0)
-        self._log_skipped = Throttle(30.0)
+        self._log_replay = Throttle()
+        self._log_skipped = Throttle()
         if list_checkpoints(self.paths.model) or ckpt_step is not None:  # --ckpt on a new run: say so
             self.restore(ckpt_step)
         if member is not None and self.core.counters.weights_round:

@@ -347,7 +347,7 @@ def _wait_for_learners(
     """Wait until every learner child is registered with the evolver at ``evolver`` and has a replay,
     labelling each learner (and replay) with the id the evolver gave it (``learner_ids``: child name
     -> id): None; or the outcome when a child failed or a signal came first."""
-    count, waiting, answered_at = len(children.names("learner")), Throttle(30.0), None
+    count, waiting, answered_at = len(children.names("learner")), Throttle(), None
     with EvolverClient(evolver, rpc_timeout_s=2.0, retry=RetryPolicy(attempts=1), credentials=credentials) as client:
         while not stop.wait(1.0):
             if (failed := _failed(children)) is not None:

@@ -276,7 +276,7 @@ class AssignmentKeeper:
         self._gone_since: float | None = None
         self._closed = threading.Event()
         self._thread = threading.Thread(target=self._run, name="assignment", daemon=True)
-        self._log = Throttle(30.0)
+        self._log = Throttle()
 
     def start(self) -> None:
         self._thread.start()

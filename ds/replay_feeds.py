@@ -35,10 +35,13 @@ from ds.rpc import peer_unresponsive
 log = logging.getLogger("asac.learner")
 
 
+REPEAT_LOG_S = 30.0  # a line about a state that persists (waiting, unreachable) is repeated at most this often
+
+
 class Throttle:
     """True at most once every ``seconds`` (for log lines about a state that persists)."""
 
-    def __init__(self, seconds: float) -> None:
+    def __init__(self, seconds: float = REPEAT_LOG_S) -> None:
         self.seconds = seconds
         self._last = -math.inf
 
@@ -111,7 +114,7 @@ class BatchPrefetcher(_Worker):
         self.unavailable = 0
         self.full_waits = 0
         self.full_wait_seconds = 0.0
-        self._log_wait = Throttle(30.0)
+        self._log_wait = Throttle()
 
     def get(self, timeout: float) -> Batch | None:
         """The next batch, or None if none came within ``timeout`` seconds."""
@@ -193,7 +196,7 @@ class PriorityUpdater(_Worker):
         self.unavailable = 0
         self.unsent = 0
         self._closing = threading.Event()
-        self._log_wait = Throttle(30.0)
+        self._log_wait = Throttle()
 
     def put(self, keys: np.ndarray, priorities: np.ndarray) -> None:
         self.check()

@@ -113,7 +113,7 @@ class ReplaySink:
         self._replay_gone = False  # seen gone while stopping: nothing more is sent
         self._reported_unsent = 0
         self._acknowledged = 0  # every number below it acknowledged to the replay
-        self._log = Throttle(30.0)
+        self._log = Throttle()
 
     @property
     def max_backlog(self) -> int:
