@@ -1,6 +1,6 @@
 """Single-process ASAC: ``python main.py gym/pendulum`` trains; ``--run`` plays a checkpoint.
 
-Thin by design: parse flags, resolve the config, wire env factories into algorithm/ (ARCHITECTURE.md 1).
+Thin by design: parse flags, resolve the config, wire env factories into algorithm/ (docs/architecture.md section 1).
 
 Bad input (flags, task names, config files, overrides, checkpoints) ends the process with one line
 ``error: ...`` on stderr naming the problem, exit code 2, before anything starts; a run directory

@@ -1,7 +1,7 @@
 """Distributed ASAC: ``python main_ds.py gym/pendulum {replay,learner,actor,evolver,local} ...`` runs one role.
 
 Thin by design, like main.py (whose flags it shares): parse, resolve the config and the run
-directory, call ds/roles.py (ARCHITECTURE.md 1). Exit codes: 0 done, 2 bad usage or config,
+directory, call ds/roles.py (docs/architecture.md section 1). Exit codes: 0 done, 2 bad usage or config,
 130 stopped by Ctrl-C / SIGTERM (``local``: 130 SIGINT, 143 SIGTERM; ds/local.py), 1 a role failed.
 """
 

@@ -1,4 +1,5 @@
 """Everything that runs inside one process: models, losses, replay, actor and learner loops.
 
-Imports torch, numpy and gymnasium only; nothing here knows about sockets (ARCHITECTURE.md 1).
+Imports nothing of ours outside ``algorithm``, and nothing here knows about sockets
+(docs/architecture.md sections 1 and 2).
 """

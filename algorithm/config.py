@@ -1,6 +1,6 @@
 """Config loading: YAML layering, CLI overrides and validation against the typed schema.
 
-Layers, each overriding the previous (ARCHITECTURE.md 8):
+Layers, each overriding the previous (docs/architecture.md section 11):
 
 1. ``algorithm/default_config.yaml`` (the schema defaults, written out);
 2. the ``default`` section of the task's ``envs/<task>/config.yaml``;

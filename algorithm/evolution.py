@@ -1,6 +1,6 @@
 """The evolver's math: per-learner hyper-parameter sampling and the cross-entropy method (CEM).
 
-An evolver (ARCHITECTURE.md 7) keeps a population of SAC learners. Each learner runs with the
+An evolver (docs/architecture.md section 10) keeps a population of SAC learners. Each learner runs with the
 hyper-parameters ``random_params`` draws for it; learners post evaluation returns; when a round is
 due, learners are ranked by mean recent return and every non-elite learner gets a fresh draw of
 weights from a diagonal Gaussian fitted to the elites' weights. Everything here is pure: numpy

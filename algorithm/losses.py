@@ -6,7 +6,7 @@ Discrete Action Settings" (arXiv:1910.07207) for discrete ones, where expectatio
 policy are computed exactly instead of sampled. Metrics are *unreduced* detached tensors,
 reduced only when a caller asks for them, so the hot path never syncs per metric.
 
-Actions may be continuous, discrete with several branches, or both (ARCHITECTURE.md 3). Each
+Actions may be continuous, discrete with several branches, or both (docs/architecture.md section 3). Each
 discrete branch ``b`` has its own Q values ``Q_b(s, a_b[, a_c])``, trained toward the same
 target, and the value of a state averages the branches (the action-branching scheme of
 Tavakoli et al. 2018, arXiv:1711.08946, with SAC's soft values in place of the max):
@@ -153,7 +153,7 @@ def policy_loss(
 
 def alpha_loss(log_alpha: Tensor, log_prob: Tensor, target_entropy: float | Tensor) -> tuple[Tensor, Metrics]:
     """``J(alpha) = mean_b [-alpha (log pi(a_b|s_b) + H_target)]`` (eq. 18), written in ``log alpha``
-    as SB3 does (ARCHITECTURE.md 4): entropy above the target lowers alpha, below raises it.
+    as SB3 does (docs/architecture.md section 5): entropy above the target lowers alpha, below raises it.
 
     ``log_alpha`` is a scalar with ``log_prob [B]``, or one entry per discrete branch with the
     branches' expected log-probabilities ``sum_a pi_b log pi_b`` ``[B, K]`` and ``target_entropy [K]``.

@@ -7,7 +7,7 @@ observation after step ``t``; see :class:`algorithm.types.Batch`). The Q target 
 
 where ``m`` is the number of valid steps: the prefix of the window that is inside its chunk
 (``mask``) and not past an episode end. ``terminated`` stops bootstrapping; ``truncated`` and a
-masked tail bootstrap from the real next observation ``o_m`` (ARCHITECTURE.md 3-4).
+masked tail bootstrap from the real next observation ``o_m`` (docs/architecture.md sections 3 and 5).
 
 V-trace (``sac.use_n_step_is``) is :func:`vtrace_target`, a sibling of :func:`n_step_target` that
 takes per-step soft values ``v(o_1..o_m)`` and ``log pi - log mu`` of steps ``1..m-1`` instead of

@@ -2,7 +2,7 @@
 
 The losses are pure functions in :mod:`algorithm.losses`; targets over windows in
 :mod:`algorithm.returns`. Actions may be continuous, discrete (several branches, optional
-action masks, ``discrete_dqn_like``) or both (ARCHITECTURE.md 3-4).
+action masks, ``discrete_dqn_like``) or both (docs/architecture.md sections 3 and 5).
 
 Usage, in a learner loop::
 
@@ -208,9 +208,10 @@ class SAC:
         # Hidden layers in bfloat16 (sac.compute_dtype): 2.2x faster matmuls on this project's AVX512-BF16
         # CPUs, 1.4x faster updates (bench/learner.py); output layers stay float32 (nn.layers.in_float32).
         self._low_precision = uses_bfloat16(sac.compute_dtype, self.device)
-        # Extra exploration of one distributed actor (SPEC C: min(noise_increasing_rate * i, noise_max)):
-        # stochastic acting widens the pre-tanh Gaussian to std' = sqrt(std^2 + noise^2) and mixes each
-        # discrete branch with the uniform distribution over allowed actions (weight min(noise, 1)).
+        # Extra exploration of one distributed actor, min(noise_increasing_rate * i, noise_max)
+        # (docs/architecture.md section 9): stochastic acting widens the pre-tanh Gaussian to
+        # std' = sqrt(std^2 + noise^2) and mixes each discrete branch with the uniform distribution
+        # over allowed actions (weight min(noise, 1)).
         # The log-prob returned is the widened policy's, so the stored behaviour mu stays exact.
         self.exploration_noise = 0.0
         self.updates = 0  # applied (not skipped) updates
@@ -625,7 +626,7 @@ class SAC:
         return q_loss, pi_loss, a_loss, aux_loss, predictions, td_abs, metrics, fed_states
 
     def update(self, batch: Batch, with_metrics: bool = False) -> UpdateResult:
-        """One gradient step on every part from one batch (ARCHITECTURE.md 4).
+        """One gradient step on every part from one batch (docs/architecture.md section 5).
 
         All losses are computed from the same parameters (:meth:`_losses`) and applied together
         (as Acme's SAC learner does), which lets the whole step be skipped when anything is

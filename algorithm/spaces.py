@@ -1,4 +1,4 @@
-"""Observation and action specs derived from gymnasium spaces (ARCHITECTURE.md 3).
+"""Observation and action specs derived from gymnasium spaces (docs/architecture.md section 3).
 
 Observations are a list of sensors in a fixed order: a ``Dict`` space contributes its keys in
 sorted order, a ``Tuple`` space its items in order, any other ``Box`` one sensor. Vector sensors

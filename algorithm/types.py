@@ -1,7 +1,7 @@
 """Data that crosses part boundaries: trajectory chunks going into replay, batches coming out.
 
 Layouts are batch-major everywhere: ``[B, L, ...]`` for windows, ``[T, ...]`` for a chunk.
-See ARCHITECTURE.md section 3 for the contract these types implement.
+See docs/architecture.md section 3 for the contract these types implement.
 """
 
 from __future__ import annotations

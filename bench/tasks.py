@@ -8,7 +8,7 @@ Trains ``envs/TASK`` (a config section with ``-c``) for ``--steps`` env steps pe
 evaluating (10 deterministic episodes) every ``--every`` steps, and appends one row per seed to
 bench/results/tasks.csv: the first evaluation that reached ``--threshold`` (or none), the best and
 the last evaluation's mean return, and the wall time. ``--report`` prints every row so far as the
-README's table. Examples (the README lists the exact commands behind its numbers):
+table of BENCHMARKS.md section 8. Examples (BENCHMARKS.md lists the exact commands behind its numbers):
 
     python -m bench.tasks gym/cartpole --threshold 475 --steps 30000
     python -m bench.tasks gym/pendulum_novel -c feedforward --threshold -300 --steps 15000

@@ -61,7 +61,8 @@ ACTOR_SEED_STRIDE = 1000  # actor i's env j gets seed + 1000 * (i + 1) + j: neve
 
 
 def actor_noise(config: Config, index: int, override: float | None = None) -> float:
-    """SPEC C: ``min(noise_increasing_rate * index, noise_max)``, or ``override`` (``--noise``)."""
+    """``min(noise_increasing_rate * index, noise_max)``, or ``override`` (``--noise``); docs/architecture.md
+    section 9."""
     if override is not None:
         return float(override)
     actor = config.actor_config

@@ -1,4 +1,4 @@
-"""The evolver (ARCHITECTURE.md 7): one per experiment, it keeps the population of learners, runs CEM
+"""The evolver (docs/architecture.md section 10): one per experiment, it keeps the population of learners, runs CEM
 rounds over their weights on its own thread, and tells actors and replays where to work.
 
 Usage (``ds/evolver_service.py`` serves it over gRPC; protos/evolver.proto documents the calls)::

@@ -13,7 +13,7 @@
   Re-calling Assign with a live ``previous`` assignment (or, for a replay, from the same address)
   returns that assignment renewed, so a retry after a lost reply never takes two places. An
   assignment ends when its learner retires; it survives its learner's lease running out (the
-  actor waits for the learner to come back, ARCHITECTURE.md 6).
+  actor waits for the learner to come back, docs/architecture.md section 8).
 
 Usage (by :class:`ds.evolver.Evolver`, under its registry lock; not thread-safe on its own)::
 

@@ -12,7 +12,7 @@ One learner: a replay, the learner and the actors, told each other's ports. A po
 learners, ds/population.py), and, once every learner has registered with a replay, the actors, so
 that the evolver spreads them over all learners (it gives each actor the least-loaded learner there
 is when it asks). Every child gets the same flags, so with TLS they share one certificate, which must
-name every role (README Security); none opens a plaintext health port (``net_config.health_port`` is
+name every role (docs/security.md section 3); none opens a plaintext health port (``net_config.health_port`` is
 for Kubernetes probes, and the children's would collide).
 
 Names agree: actor k is started with ``--index k`` and asks its learner for index k (its seeds,

@@ -1,4 +1,4 @@
-"""How the roles take part in an evolver's population (ARCHITECTURE.md 7, protos/evolver.proto): a
+"""How the roles take part in an evolver's population (docs/architecture.md section 10, protos/evolver.proto): a
 learner's folder and identity, the config a learner's group runs with, and the assignments of actors
 and replays (a learner's live link with the evolver is ds/evolver_link.py).
 ``ds/roles.py`` composes these with the role loops; nothing here touches envs.

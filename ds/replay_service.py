@@ -284,8 +284,8 @@ def serve_replay(
     service reports NOT_SERVING until the server has started, then SERVING; pass ``ready=False``
     and your own ``health_servicer`` to flip it with :func:`set_serving` later (after loading a
     saved table, say). ``credentials`` and ``health_port``: see :func:`ds.security.listen` (TLS, the
-    token, who may call what); plaintext on loopback by default (ARCHITECTURE.md 6: without
-    credentials servers bind to loopback). ``interceptors`` wrap every call after those checks (tests inject
+    token, who may call what); plaintext on loopback by default (docs/security.md section 1:
+    without credentials servers bind to loopback). ``interceptors`` wrap every call after those checks (tests inject
     faults with them). ``snapshot_dir``: the folder whose files the Save and Load rpcs may name
     (a replay role's ``<run>/replay/``; ds/replay_files.py), None: Save and Load are refused. Stop
     it with ``server.stop(grace)``.

@@ -10,7 +10,7 @@ Usage::
     if not wait_until_serving(channel, "asac.ReplayService", "replay", address, stop):   # logs while waiting
         return  # stop was set
 
-A call always has a deadline (ARCHITECTURE.md 6); only a peer that went away is retried: UNAVAILABLE
+A call always has a deadline (docs/architecture.md section 8); only a peer that went away is retried: UNAVAILABLE
 (down, restarting, or not listening yet) and CANCELLED (a server shutting down cancels the calls it
 is still running; we never cancel our own calls). Every other status surfaces at once.
 

@@ -29,8 +29,8 @@ roles, not hosts, which move). So a learner loads CEM samples only from a proces
 evolver's credentials, and the evolver reads weights only from learners. One certificate may name
 several roles (``main_ds.py local`` runs every role with the same flags). The client's check is
 gRPC's own hostname check, which, for a certificate with no DNS SAN at all, accepts a subject CN
-equal to the role instead: the run's CA should sign no such certificate (README's commands give
-each a DNS SAN).
+equal to the role instead: the run's CA should sign no such certificate (the commands in
+docs/security.md section 3 give each a DNS SAN).
 """
 
 from __future__ import annotations
@@ -233,8 +233,8 @@ def is_loopback(host: str) -> bool:
 
 def warn_if_exposed(host: str, what: str, secured: bool, remedy: str = _REMEDY) -> bool:
     """Log a warning when ``what`` listens on a non-loopback ``host`` with nothing that keeps
-    strangers out (ARCHITECTURE.md 6: without credentials, loopback by default; ``bind_host`` says
-    otherwise). Returns whether it warned."""
+    strangers out (docs/security.md section 1: without credentials, loopback by default; ``bind_host``
+    says otherwise). Returns whether it warned."""
     if secured or is_loopback(host):
         return False
     log.warning(
@@ -307,7 +307,7 @@ def client_roles(auth: Mapping[str, Sequence[bytes]]) -> frozenset[str]:
 
     Only DNS SANs: gRPC's ``x509_subject_alternative_name`` lists every SAN type alike, so reading
     it let a certificate naming ``URI:evolver`` pass as the evolver (issue 17). Never the subject
-    CN either (the code never read it): roles are DNS SANs (README, Security), so a certificate
+    CN either (the code never read it): roles are DNS SANs (docs/security.md section 3), so a certificate
     without them names no role, whatever its CN says.
     """
     return frozenset(n.decode("utf-8", "replace") for n in auth.get("peer_dns", ())) & ROLES

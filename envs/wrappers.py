@@ -3,7 +3,7 @@
 Time limits: ``make_env(max_episode_steps=N)`` hands ``N`` to :func:`gymnasium.make`, which
 wraps the env in :class:`gymnasium.wrappers.TimeLimit` instead of the registered limit. That
 wrapper reports the limit as ``truncated=True`` and leaves ``terminated`` to the env, which is
-the distinction replay and targets rely on (ARCHITECTURE.md 3). :func:`check_max_episode_steps`
+the distinction replay and targets rely on (docs/architecture.md section 3). :func:`check_max_episode_steps`
 validates the override first, because gymnasium treats ``-1`` as "no limit" and does not reject
 other non-positive values.
 

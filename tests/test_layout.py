@@ -1,9 +1,12 @@
-"""The import direction of ARCHITECTURE.md 2: algorithm imports nothing of ours but itself, envs only
-algorithm.spaces, and nothing imports main*.py."""
+"""The import direction of docs/architecture.md section 2: algorithm imports nothing of ours but
+itself, envs only algorithm.spaces, and nothing imports main*.py; and every docs/*.md section the
+tree cites exists."""
 
 from __future__ import annotations
 
 import ast
+import re
+import subprocess
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -50,7 +53,7 @@ def test_protos_import_only_protos() -> None:
 
 
 def test_only_roles_composes_the_network_with_the_envs() -> None:
-    """ARCHITECTURE.md 2: only main*.py and ds/roles.py compose everything; the other ds/ modules are
+    """docs/architecture.md section 2: only main*.py and ds/roles.py compose everything; the other ds/ modules are
     transports and role loops over algorithm/ interfaces (envs arrive as factories)."""
     for path in (ROOT / "ds").rglob("*.py"):
         if path.name == "roles.py":
@@ -107,3 +110,64 @@ def test_no_import_circles() -> None:
     for name in sorted(graph):
         if name not in state:
             visit(name)
+
+
+# The founding design notes lived outside the repository; the repository's own are docs/*.md.
+# Spelled in pieces so that this file does not cite them itself.
+_GONE = tuple(name + ".md" for name in ("ARCHITECTURE", "SPEC", "STYLE")) + ("../" + "shared",)
+_SECTIONS = r"(?:,? sections? (\d+)(?:(?: and |-|, )(\d+))?)?"
+_DOC = re.compile(r"\b(docs/[\w/.-]+?\.md)\b" + _SECTIONS)  # from the root, anywhere
+_LINK = re.compile(r"\]\(([\w/.-]+?\.md)\)" + _SECTIONS)  # a Markdown link, from the linking file
+
+
+def tracked_text_files() -> dict[str, str]:
+    """Path -> text of every file git tracks (every file under the root but build and cache folders
+    when this is not a git checkout); files that are not UTF-8 text are left out."""
+    try:
+        listing = subprocess.run(["git", "ls-files", "-z"], cwd=ROOT, capture_output=True, check=True).stdout
+        paths = [p for p in listing.decode().split("\0") if p]
+    except (OSError, subprocess.CalledProcessError):
+        skip = {".git", ".venv", "models", "__pycache__", ".mypy_cache", ".pytest_cache", ".ruff_cache", ".hypothesis"}
+        paths = [
+            str(p.relative_to(ROOT))
+            for p in ROOT.rglob("*")
+            if p.is_file() and not skip & set(p.relative_to(ROOT).parts) and ".egg-info" not in str(p)
+        ]
+    texts = {}
+    for path in paths:
+        try:
+            data = (ROOT / path).read_bytes()
+        except OSError:  # listed but deleted in this working tree
+            continue
+        if b"\0" in data:
+            continue
+        try:
+            texts[path] = data.decode("utf-8")
+        except UnicodeDecodeError:
+            continue
+    return texts
+
+
+def test_docs_cited_in_the_tree_exist() -> None:
+    """No file cites the design notes that are not in the repository, and every ``docs/<file>.md``
+    cited (and every ``.md`` a Markdown file links to), with ``section N``, ``sections N and M`` or
+    ``N-M`` after it, names a file and numbered sections (``## N. Title``) that exist."""
+    headings: dict[Path, set[str]] = {}
+    problems = []
+    for path, text in sorted(tracked_text_files().items()):
+        for n, line in enumerate(text.splitlines(), 1):
+            where = f"{path}:{n}"
+            problems += [f"{where} cites {gone}, which is not in the repository" for gone in _GONE if gone in line]
+            cited = [(ROOT / m[1], m) for m in _DOC.finditer(line)]
+            if path.endswith(".md"):
+                cited += [((ROOT / path).parent / m[1], m) for m in _LINK.finditer(line)]
+            for doc, match in cited:
+                if not doc.is_file():
+                    problems.append(f"{where} cites {match[1]}, which does not exist")
+                    continue
+                doc = doc.resolve()
+                if doc not in headings:
+                    headings[doc] = set(re.findall(r"^#+ (\d+)\. ", doc.read_text(), re.M))
+                missing = [s for s in (match[2], match[3]) if s and s not in headings[doc]]
+                problems += [f"{where} cites {match[1]} section {s}, which it does not have" for s in missing]
+    assert not problems, "\n".join(problems)

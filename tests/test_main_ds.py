@@ -210,7 +210,7 @@ def test_replay_learner_and_two_actors_learn_pendulum(tmp_path: Path) -> None:
 @pytest.mark.grpc
 def test_local_run_with_a_token_and_mutual_tls_trains(tmp_path: Path) -> None:
     """Every role of a local run with the token and mutual TLS (one certificate naming every role, as
-    README Security says for local runs): the learner trains to the budget; each server says it
+    docs/security.md section 3 says for local runs): the learner trains to the budget; each server says it
     requires both; nothing warns of an open server. A server role given a CA but no certificate of
     its own stops before it starts; an actor (a client only) may run so."""
     pki = Pki(tmp_path / "pki")

@@ -1,4 +1,4 @@
-"""Nothing we load can run code (ARCHITECTURE.md 6: nothing received is unpickled): a scan of our
+"""Nothing we load can run code (docs/security.md section 5: nothing received is unpickled): a scan of our
 code (algorithm/, ds/, envs/, protos/, main*.py) for every way to deserialise executable objects,
 failing with file:line for each; and tests that the scan finds each of them when planted.
 

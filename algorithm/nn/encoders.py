@@ -1,4 +1,4 @@
-"""Image encoders and the mixed image + vector representation (ARCHITECTURE.md 3).
+"""Image encoders and the mixed image + vector representation (docs/architecture.md section 3).
 
 Images arrive as HWC ``uint8`` straight from replay (``algorithm/spaces.py``): a quarter of the
 bytes of float32 on the host-to-device copy. The conversion to float, the ``1/255`` scaling and the

@@ -1,6 +1,6 @@
 """The three SAC models: representation, batched Q ensemble, tanh-squashed Gaussian policy.
 
-Shapes: a *state* is ``[N, state_dim]``; actions are ``[N, A]`` in model space (ARCHITECTURE.md 3).
+Shapes: a *state* is ``[N, state_dim]``; actions are ``[N, A]`` in model space (docs/architecture.md section 3).
 Subclass :class:`Representation` for other encoders (conv for images, GRU/LSTM for ``use_rnn``):
 the rest of the learner only relies on ``state_dim`` and ``forward(obs) -> state``.
 """

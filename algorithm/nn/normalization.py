@@ -5,7 +5,7 @@ mapped to ``clip((x - mean) / sqrt(var + eps), -5, 5)`` before the representatio
 target alike and on the acting side. The statistics are not estimated here: the replay table
 keeps exact running mean/var over every inserted observation (:class:`algorithm.normalizer.
 RunningMeanStd`) and the learner copies them in with :meth:`ObservationNormalizer.load_stats`
-(ARCHITECTURE.md 4: in distributed mode the replay hands them to the learner). They live in
+(docs/architecture.md section 4: in distributed mode the replay hands them to the learner). They live in
 buffers, so checkpoints and the acting weights actors receive carry them.
 """
 

@@ -2,8 +2,8 @@
 
 At each step the cell reads the feature vector of the observation (from any non-recurrent
 :class:`~algorithm.nn.models.Representation`: concatenated vectors, conv encoders) together with
-the previous action (zeros at episode start; SPEC A stores it per step for this), and its output
-is the state every Q head and the policy see.
+the previous action (zeros at episode start; chunks store it per step for this, docs/architecture.md
+section 3), and its output is the state every Q head and the policy see.
 
 Acting steps one observation at a time with :meth:`RecurrentRepresentation.step`, carrying the
 flat recurrent state ``[N, rnn_state_size]`` (``h`` for a GRU, ``[h | c]`` for an LSTM) that the

@@ -71,8 +71,9 @@ class PrioritizedTable:
         burn_in: the first ``burn_in`` steps of a window look *back* from the sampled step: a
             window for key ``k`` covers steps ``k - burn_in .. k + n_step - 1`` of ``k``'s chunk,
             so step ``burn_in`` of the window is the sampled one. Look-back rows before the chunk's
-            first stored row are zeros with ``mask`` False (the zero rows prepended at episode
-            start, SPEC A), and ``rnn_state`` is the stored state at the window's first valid row.
+            first stored row are zeros with ``mask`` False (the zero rows the original system
+            prepended at episode start; docs/architecture.md section 5), and ``rnn_state`` is the
+            stored state at the window's first valid row.
         alpha, td_error_min, td_error_max: priority transform (``alpha == 0``: uniform).
         rnn_state_size: width of the stored recurrent state (0: none; chunks must then have
             ``rnn_state=None``).
