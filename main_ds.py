@@ -14,6 +14,7 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import argparse
+import json
 import logging
 import random
 import socket
@@ -117,6 +118,12 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--actors", type=positive, default=1, help="with local: how many actor processes")
     p.add_argument(
+        "--no_token",
+        action="store_true",
+        help="with local: do not generate the run's token (<run>/token, mode 0600) when net_config.token_file "
+        "names none; every local process may then call the roles",
+    )
+    p.add_argument(
         "--learners",
         type=positive,
         help="with local: run a population of N learners (each with its own replay) under an evolver",
@@ -212,7 +219,8 @@ def run(args: argparse.Namespace) -> int:
         return play(args)
     if args.repeat != 1:
         raise UsageError("--repeat is for main.py; start one distributed run per name")
-    for flag, given in (("--actors", args.actors != 1), ("--learners", args.learners is not None)):
+    for flag, given in (("--actors", args.actors != 1), ("--learners", args.learners is not None),
+                        ("--no_token", args.no_token)):  # fmt: skip
         if given and role != "local":
             raise UsageError(f"{flag} is for the local role")
     if args.index is not None and role != "actor":
@@ -243,6 +251,7 @@ def run(args: argparse.Namespace) -> int:
     if role == "local":
         return local(args, config, run_dir, context.credentials)
     log.info("%s of run %s (seed %s)", role, run_dir, config.sac_config.seed)
+    security.warn_without_token(role, context.credentials)
     code = run_role(role, context, args)
     stop = context.stop
     return stop.exit_code if code == 130 and isinstance(stop, StopRequest) else code  # 143 after SIGTERM
@@ -260,8 +269,17 @@ def run_role(role: str, context: roles.RoleContext, args: argparse.Namespace) ->
 
 def local(args: argparse.Namespace, config: Config, run_dir: Path, creds: security.Credentials) -> int:
     """All roles as subprocesses: a replay, a learner and the actors; or, with ``--learners N`` (or
-    ``base_config.evolver_enabled``: N defaults to 2), an evolver, N replays, N learners and the actors."""
+    ``base_config.evolver_enabled``: N defaults to 2), an evolver, N replays, N learners and the actors.
+    Without ``net_config.token_file`` (nor ``--no_token``) the run gets a fresh token in ``<run>/token``
+    (mode 0600), handed to every child as an explicit one is: ``--override net.token_file=<run>/token``."""
     learners = args.learners or (2 if config.base_config.evolver_enabled else None)
+    token_flags: list[str] = []
+    if config.net_config.token_file is None and not args.no_token:
+        security.write_token_file(run_dir / "token")
+        config.net_config.token_file = str(run_dir / "token")
+        creds = credentials(config, "local")
+        token_flags = ["--override", f"net.token_file={json.dumps(config.net_config.token_file)}"]  # a YAML string
+        log.info("every role of this run authenticates with the token in %s (mode 0600)", run_dir / "token")
     seed = config.sac_config.seed
     if learners is None:
         log.info("run %s (seed %s): replay, learner and %d actors", run_dir, seed, args.actors)
@@ -275,8 +293,8 @@ def local(args: argparse.Namespace, config: Config, run_dir: Path, creds: securi
     here = Path(__file__).resolve()
     command = [sys.executable, str(here), args.env]
     playable = PlayableRun(args.env, config.base_config.name, run_dir, args.model_root, here.with_name("main.py"))
-    return run_local(command, child_args(args, config), args.actors, extra, learners=learners, credentials=creds,
-                     run=playable)  # fmt: skip
+    return run_local(command, child_args(args, config) + token_flags, args.actors, extra, learners=learners,
+                     credentials=creds, run=playable)  # fmt: skip
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -26,7 +26,9 @@ rate limiter or retrying a replay that is gone; what was not stored is counted
 
 Nothing non-finite goes out or comes in: chunks with NaN/inf are dropped by the loop (counted:
 ``actor/nonfinite_steps``) and broadcast weights that fail :func:`~ds.params.decode_params` (NaN/inf
-values, a bad MAC, a wrong shape) are never loaded (counted: ``actor/params_rejected``, logged).
+values, a wrong shape, a MAC that does not verify under the key of the learner it registered with:
+another process on the learner's port, whatever version it claims) are never loaded (counted:
+``actor/params_rejected``, logged once per interval).
 """
 
 from __future__ import annotations
@@ -55,6 +57,7 @@ from ds.replay_feeds import Throttle, unavailable
 from ds.replay_service import ReplayClient, ReplayRpcError
 from ds.replay_sink import LAST_INSERTS_WAIT_S, ReplaySink
 from ds.rpc import peer_unresponsive, wait_until_serving
+from ds.stream_key import StreamKey
 
 log = logging.getLogger("asac.actor")
 ACTOR_SEED_STRIDE = 1000  # actor i's env j gets seed + 1000 * (i + 1) + j: never a training or eval seed
@@ -81,7 +84,8 @@ class DistributedActor:
     """One actor process; see the module docstring. ``make_env(num_envs, seed)`` builds its envs
     once its index (hence its seed) is known; ``sac`` is a model built from the same config as the
     learner's, which receives the published weights (unused with ``update_policy_mode: false``);
-    with ``token`` those weights must carry the learner's HMAC (ds/params.py), else they are dropped."""
+    those weights must carry the HMAC of the learner it registered with (its stream key, with
+    ``token`` when the run has one: ds/params.py), else they are dropped."""
 
     def __init__(
         self,
@@ -246,16 +250,30 @@ class DistributedActor:
             if self.subscriber is not None:
                 self.subscriber.close()  # a restarted learner's versions start over
             address = f"tcp://{self.learner_host}:{reg.params_port}"
-            self.subscriber = ParamsSubscriber(address, params_spec(self.sac.acting_state_dict()), token=self.token)
+            spec = params_spec(self.sac.acting_state_dict())
+            self.subscriber = ParamsSubscriber(address, spec, token=self.token, stream=self._stream(reg))
             self.params_version = -1
         self.registration = reg
         return reg
 
-    def _fetch_params(self) -> None:
-        """The latest weights over GetParams (a late joiner need not wait for the next broadcast)."""
-        version, frames = self.learner.get_params()
+    def _stream(self, reg: Registration) -> StreamKey:
+        """The key of ``reg``'s learner: only parameters it signed are taken."""
         try:
-            self._apply(*decode_params(frames, params_spec(self.sac.acting_state_dict()), token=self.token))
+            return StreamKey(reg.learner_id, reg.params_key)
+        except ValueError:
+            raise ParamsError(
+                f"the learner at {self.learner.address} hands out no parameter key "
+                "(RegisterActorReply.params_key): it runs an older ASAC than this actor"
+            ) from None
+
+    def _fetch_params(self) -> None:
+        """The latest weights over GetParams (a late joiner need not wait for the next broadcast), signed
+        by the learner this actor registered with."""
+        assert self.registration is not None
+        version, frames = self.learner.get_params()
+        spec, stream = params_spec(self.sac.acting_state_dict()), self._stream(self.registration)
+        try:
+            self._apply(*decode_params(frames, spec, token=self.token, stream=stream))
         except ParamsError as e:  # the same check the broadcast gets; here it is a setup error, not noise
             raise ParamsError(
                 f"parameters from the learner at {self.learner.address} are not usable: {e}. Do the learner and "
@@ -332,6 +350,9 @@ class DistributedActor:
                 self._rejoin.clear()
             except grpc.RpcError as e:
                 self._learner_unreachable(e)
+            except ParamsError as e:  # a learner that restarted again between RegisterActor and GetParams
+                if self._log_params():
+                    log.warning("%s; registering again", e)
         max_step = self.config.base_config.max_step
         if max_step < 0 or self.done:
             return

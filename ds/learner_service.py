@@ -7,7 +7,8 @@ Usage, the learner's side (ds/learner.py feeds the store and the acting copy)::
     registry, store = ActorRegistry(lease_s=15.0), ParamsStore()
     acting = ActingPolicy(SAC(...)) if not update_policy_mode else None
     servicer = LearnerServicer(spec, registry, store, params_port=publisher_port, acting=acting,
-                               weights=latest_full_weights)  # with an evolver: () -> (version, frames) | None
+                               weights=latest_full_weights,  # with an evolver: () -> (version, frames) | None
+                               stream=publisher.stream)      # the key actors check the parameters with
     server, port, health = serve_learner(servicer, "127.0.0.1:61001", max_message_bytes=limit, credentials=creds)
     store.put(version, publisher.frames); acting.load(version, sac.acting_state_dict())
     set_serving(health, True)                                  # after the first publication
@@ -15,7 +16,7 @@ Usage, the learner's side (ds/learner.py feeds the store and the acting copy)::
 and an actor's::
 
     learner = LearnerClient("learner:61001", spec, rnn_state_size, max_message_bytes=limit, credentials=creds)
-    me = learner.register("actor on host-3")                   # id, index, params port, lease
+    me = learner.register("actor on host-3")                   # id, index, params port and key, lease
     learner.heartbeat(me.actor_id, env_steps)                  # every few seconds; LeaseExpired: register again
     version, frames = learner.get_params()                     # decode with ds.params.decode_params
     actions, logp, next_state = learner.act(obs, noise=0.05)   # update_policy_mode: false
@@ -36,7 +37,7 @@ import time
 import uuid
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any, NamedTuple, TypeAlias
 
 import grpc
@@ -49,6 +50,7 @@ from algorithm.spaces import EnvSpec
 from ds import rpc, security
 from ds.replay_codec import GRPC_DEFAULT_MESSAGE_BYTES
 from ds.security import ACTOR, EVOLVER, NO_CREDENTIALS, Credentials
+from ds.stream_key import StreamKey
 from ds.wire import TensorSpec, WireError, from_tensor, to_tensor
 from protos import learner_pb2, learner_pb2_grpc
 
@@ -242,7 +244,9 @@ class LearnerServicer(learner_pb2_grpc.LearnerServiceServicer):
 
     ``weights`` serves GetWeights (the evolver's CEM round); it runs on an RPC thread while the
     learner trains, so it must return a consistent snapshot (frames built between updates, say),
-    never weights halfway through an optimizer step. Without it GetWeights is UNIMPLEMENTED."""
+    never weights halfway through an optimizer step. Without it GetWeights is UNIMPLEMENTED. ``stream``:
+    the publisher's :class:`~ds.stream_key.StreamKey` (its id is the learner's; its secret goes to each
+    actor); without it a fresh one (a learner whose parameters no actor subscribes to)."""
 
     def __init__(
         self,
@@ -253,6 +257,7 @@ class LearnerServicer(learner_pb2_grpc.LearnerServiceServicer):
         acting: ActingPolicy | None = None,
         rnn_state_size: int = 0,
         weights: WeightsSource | None = None,
+        stream: StreamKey | None = None,
     ) -> None:
         self.spec = spec
         self.weights = weights
@@ -261,7 +266,8 @@ class LearnerServicer(learner_pb2_grpc.LearnerServiceServicer):
         self.params_port = int(params_port)
         self.acting = acting
         self.rnn_state_size = int(rnn_state_size)
-        self.learner_id = uuid.uuid4().hex
+        self.stream = stream or StreamKey.fresh()
+        self.learner_id = self.stream.learner_id
         self.actions_served = 0
 
     def RegisterActor(
@@ -277,6 +283,7 @@ class LearnerServicer(learner_pb2_grpc.LearnerServiceServicer):
             learner_id=self.learner_id,
             params_port=self.params_port,
             lease_s=self.registry.lease_s,
+            params_key=self.stream.secret,
         )
 
     def Heartbeat(
@@ -420,6 +427,7 @@ class Registration:
     learner_id: str
     params_port: int
     lease_s: float
+    params_key: bytes = field(default=b"", repr=False)  # the learner's StreamKey secret (ds/stream_key.py)
 
 
 class LearnerClient:
@@ -463,7 +471,8 @@ class LearnerClient:
         if preferred_index is not None:
             request.preferred_index = int(preferred_index)
         reply = self._call(self._stub.RegisterActor, request)
-        return Registration(reply.actor_id, reply.index, reply.learner_id, reply.params_port, reply.lease_s)
+        return Registration(reply.actor_id, reply.index, reply.learner_id, reply.params_port, reply.lease_s,
+                            reply.params_key)  # fmt: skip
 
     def leave(self, actor_id: str, env_steps: int) -> bool:
         """Tell the learner this actor has sent its last inserts and stops (its lease ends now).

@@ -2,13 +2,15 @@
 
 Usage::
 
-    # learner: one serialisation per version, whatever the number of actors
-    publisher = ParamsPublisher("tcp://0.0.0.0:5555", token=token)
+    # learner: one serialisation per version, whatever the number of actors; one StreamKey per start
+    publisher = ParamsPublisher("tcp://0.0.0.0:5555", token=token, stream=StreamKey.fresh())
     publisher.publish(update, sac.acting_state_dict())           # every N updates; never blocks
     publisher.republish()                                         # now and then while no new version comes
 
-    # actor: connect before or after the learner binds (ZeroMQ reconnects on its own)
-    subscriber = ParamsSubscriber(learner_address, params_spec(sac.acting_state_dict()), token=token)
+    # actor: connect before or after the learner binds (ZeroMQ reconnects on its own); the stream key
+    # is the one of the learner it registered with (RegisterActorReply: learner_id, params_key)
+    stream = StreamKey(registration.learner_id, registration.params_key)
+    subscriber = ParamsSubscriber(learner_address, params_spec(sac.acting_state_dict()), token=token, stream=stream)
     version, params = subscriber.wait(timeout_s=60)               # the first weights
     sac.load_acting_state_dict({k: torch.from_numpy(v) for k, v in params.items()})
     while acting:
@@ -17,11 +19,12 @@ Usage::
             ...
 
 **Wire format** (never pickle): one multipart message per version, ``[header, tensor_0, ..., tensor_n-1]``
-plus ``[mac]`` when a token is set. The header is UTF-8 JSON ``{"format": FORMAT, "version": int,
-"tensors": [{"name", "dtype", "shape", "nbytes"}, ...]}`` listing the tensor frames in order; each tensor
-frame is the tensor's raw C-order little-endian bytes. :func:`decode_params` checks every field, every
-frame length, the names/dtypes/shapes against the registered spec and that floats are finite, and raises
-:class:`ParamsError` naming the tensor and the problem; nothing unchecked reaches the weights.
+plus ``[mac]`` when the message is signed (a stream key or a token). The header is UTF-8 JSON
+``{"format": FORMAT, "version": int, "tensors": [{"name", "dtype", "shape", "nbytes"}, ...]}`` listing
+the tensor frames in order; each tensor frame is the tensor's raw C-order little-endian bytes.
+:func:`decode_params` checks every field, every frame length, the names/dtypes/shapes against the
+registered spec and that floats are finite, and raises :class:`ParamsError` naming the tensor and the
+problem; nothing unchecked reaches the weights.
 
 **Latest-only.** ZeroMQ's ``ZMQ_CONFLATE`` keeps one message per queue but does not support multipart
 messages, so both ends keep short queues instead. The publisher's PUB socket has ``SNDHWM=2``: for a
@@ -37,11 +40,18 @@ again soon; one that goes quiet calls :meth:`ParamsPublisher.republish` now and 
 frames it already has (no serialisation) and also reaches subscribers that joined late. Without it a
 late joiner gets the next published version (``GetParams`` in the learner service is the fallback).
 
-**Signed frames.** With ``token`` set on both ends the publisher appends HMAC-SHA256(token) over the
-length-prefixed header and tensor frames; the subscriber verifies it (:func:`hmac.compare_digest`)
-before it parses anything and counts messages that fail. A replayed old message is ignored by a
-subscriber that has seen a newer version. The token authenticates; it does not encrypt (use CURVE or a
-private network for that).
+**Signed frames.** The publisher appends an HMAC-SHA256 over the length-prefixed header and tensor
+frames; the subscriber verifies it (:func:`hmac.compare_digest`) before it parses anything, whatever
+the version says, and counts messages that fail. The learner's stream (and ``GetParams``, the same
+frames) is signed under its :class:`StreamKey`: a fresh random secret per learner start, handed to
+each actor in its ``RegisterActorReply``, bound to the learner's id and, when the run has a token,
+to the token too (:meth:`StreamKey.mac_key`). So an actor takes parameters only from the learner it
+registered with: a process that takes the port of a learner that died, or a restarted learner before
+the actor registers again, is refused, however high its versions. With a token, forging still needs
+the token (a copy of the secret sniffed off plaintext gRPC is not enough). Without a stream key a
+``token`` alone signs (the evolver's weight frames). A replayed old message is ignored by a subscriber
+that has seen a newer version. Signing authenticates; it does not encrypt (use CURVE or a private
+network for that).
 
 One thread per publisher/subscriber: ZeroMQ sockets are not thread-safe.
 """
@@ -60,6 +70,8 @@ import numpy as np
 import torch
 import zmq
 from torch import Tensor
+
+from ds.stream_key import StreamKey
 
 FORMAT = "asac.params/1"
 MAC_BYTES = hashlib.sha256().digest_size
@@ -82,6 +94,20 @@ class ParamsError(ValueError):
     """A parameter message that must not be applied; the text names the tensor (or header) and the problem."""
 
 
+class _Signer(NamedTuple):
+    """The MAC key of a message (None: unsigned) and who holds it, for error messages."""
+
+    key: bytes | None
+    holder: str
+
+
+def _signer(token: bytes | None, stream: StreamKey | None) -> _Signer:
+    token = _check_token(token)
+    if stream is not None:
+        return _Signer(stream.mac_key(token), f"learner {stream.learner_id}" + (" and the token" if token else ""))
+    return _Signer(token, "the token")
+
+
 class _Entry(NamedTuple):
     name: str
     dtype: np.dtype
@@ -102,10 +128,13 @@ def params_spec(state_dict: Params) -> dict[str, tuple[np.dtype, tuple[int, ...]
     return _normalise_spec({name: (value.dtype, value.shape) for name, value in state_dict.items()})
 
 
-def encode_params(version: int, params: Params, token: bytes | None = None) -> list[bytes]:
+def encode_params(
+    version: int, params: Params, token: bytes | None = None, *, stream: StreamKey | None = None
+) -> list[bytes]:
     """Frames for one version: the JSON header, one raw little-endian frame per tensor, and an
-    HMAC-SHA256 frame when ``token`` is set. Tensors are copied (CPU, C order), so the caller may keep
-    updating its weights while ZeroMQ sends the frames. Unsupported dtypes raise :class:`ParamsError`."""
+    HMAC-SHA256 frame when ``stream`` or ``token`` is set (the stream's key when there is one, else the
+    token). Tensors are copied (CPU, C order), so the caller may keep updating its weights while ZeroMQ
+    sends the frames. Unsupported dtypes raise :class:`ParamsError`."""
     if isinstance(version, bool) or not isinstance(version, int) or version < 0:
         raise ValueError(f"version must be a non-negative int, got {version!r}")
     entries, blobs = [], []
@@ -116,7 +145,7 @@ def encode_params(version: int, params: Params, token: bytes | None = None) -> l
         blobs.append(array.astype(array.dtype.newbyteorder("<"), copy=False).tobytes())
         entries.append(_Entry(name, array.dtype, tuple(array.shape), len(blobs[-1])))
     frames = [_header(version, entries), *blobs]
-    if (key := _check_token(token)) is not None:
+    if (key := _signer(token, stream).key) is not None:
         frames.append(_mac(key, frames))
     return frames
 
@@ -156,27 +185,34 @@ def _check_token(token: bytes | None) -> bytes | None:
 
 # -- decoding --------------------------------------------------------------------------------------
 def decode_params(
-    frames: Sequence[bytes], expected: ParamsSpec | None = None, token: bytes | None = None
+    frames: Sequence[bytes],
+    expected: ParamsSpec | None = None,
+    token: bytes | None = None,
+    *,
+    stream: StreamKey | None = None,
 ) -> tuple[int, dict[str, np.ndarray]]:
     """``(version, name -> array)`` from the frames of one message, or :class:`ParamsError`.
 
-    Checked, in order: the MAC when ``token`` is set (a missing or wrong one fails), the header (JSON
+    Checked, in order: the MAC when ``stream`` or ``token`` is set (a missing or wrong one fails), the header (JSON
     object, format tag, version, well-formed tensor entries, unique names, allowed dtypes, ``nbytes ==
     prod(shape) * itemsize``), one frame per entry with exactly ``nbytes`` bytes, names equal to
     ``expected``'s with its dtypes and shapes, bools 0/1 and floats finite. Arrays are native-order,
     writable copies that do not keep the frames alive."""
-    message = _read_message(frames, _check_token(token))
+    message = _read_message(frames, _signer(token, stream))
     spec = None if expected is None else _normalise_spec(expected)
     return message.version, _read_tensors(message, spec)
 
 
-def _read_message(frames: Sequence[bytes], token: bytes | None) -> _Message:
+def _read_message(frames: Sequence[bytes], signer: _Signer) -> _Message:
     """The MAC, header and frame lengths: everything but the tensor values (cheap)."""
+    token = signer.key
     if token is not None:
         if len(frames) < 2 or len(frames[-1]) != MAC_BYTES:
-            raise ParamsError("message: no MAC frame, but this subscriber has a token (publisher without it?)")
+            raise ParamsError(f"message: no MAC frame, but messages must be signed by {signer.holder} "
+                              "(a publisher without the key?)")  # fmt: skip
         if not hmac.compare_digest(frames[-1], _mac(token, frames[:-1])):
-            raise ParamsError("message: MAC does not verify (wrong token or altered frames)")
+            raise ParamsError(f"message: MAC does not verify: not signed by {signer.holder} (another publisher on "
+                              "its port, a wrong token, or altered frames)")  # fmt: skip
         frames = frames[:-1]
     if not frames:
         raise ParamsError("message: no frames")
@@ -271,12 +307,20 @@ class ParamsPublisher:
     """The learner's end: binds a PUB socket and sends each version to every connected subscriber.
 
     ``address`` is a ZeroMQ endpoint to bind (``tcp://127.0.0.1:*`` picks a free port; the bound one is
-    :attr:`address`). :meth:`publish` never blocks on slow subscribers (see the module docstring)."""
+    :attr:`address`). :meth:`publish` never blocks on slow subscribers (see the module docstring).
+    ``stream`` (the learner's :class:`StreamKey`, with ``token`` when the run has one) signs every message."""
 
     def __init__(
-        self, address: str, *, token: bytes | None = None, sndhwm: int = 2, context: zmq.Context | None = None
+        self,
+        address: str,
+        *,
+        token: bytes | None = None,
+        stream: StreamKey | None = None,
+        sndhwm: int = 2,
+        context: zmq.Context | None = None,
     ) -> None:
         self._token = _check_token(token)
+        self.stream = stream
         self._socket = (context or zmq.Context.instance()).socket(zmq.PUB)
         self._socket.setsockopt(zmq.LINGER, 0)  # close() must not wait for subscribers that stopped reading
         self._socket.setsockopt(zmq.SNDHWM, sndhwm)
@@ -293,7 +337,7 @@ class ParamsPublisher:
         of one copy of the message."""
         if self.version is not None and version <= self.version:
             raise ValueError(f"version {version} after {self.version}: subscribers ignore versions that do not grow")
-        frames = encode_params(version, params, self._token)
+        frames = encode_params(version, params, self._token, stream=self.stream)
         self._send(frames)
         self.version, self._frames = version, frames
         self.published += 1
@@ -345,7 +389,9 @@ class ParamsSubscriber:
 
     Every message is checked against ``expected`` (see :func:`decode_params`). ``MAXMSGSIZE`` is left
     unset on purpose: ZeroMQ treats an oversized frame as a protocol error and drops the connection for
-    good (no reconnect), where a counted rejection naming the tensor is what an operator needs. Counters:
+    good (no reconnect), where a counted rejection naming the tensor is what an operator needs. With
+    ``stream`` (the key of the learner this actor registered with) only that learner's messages are
+    taken, whatever their version; anything else is counted as rejected. Counters:
     ``received`` = ``accepted`` + ``rejected`` (invalid; ``last_error`` says why) + ``skipped`` (not
     newer than what was returned, or superseded in the same drain)."""
 
@@ -355,12 +401,13 @@ class ParamsSubscriber:
         expected: ParamsSpec,
         *,
         token: bytes | None = None,
+        stream: StreamKey | None = None,
         rcvhwm: int = 2,
         context: zmq.Context | None = None,
     ) -> None:
         self.address = address
         self._spec = _normalise_spec(expected)
-        self._token = _check_token(token)
+        self._signer = _signer(token, stream)
         self._socket = (context or zmq.Context.instance()).socket(zmq.SUB)
         self._socket.setsockopt(zmq.LINGER, 0)
         self._socket.setsockopt(zmq.RCVHWM, rcvhwm)
@@ -383,7 +430,7 @@ class ParamsSubscriber:
                 break
             self.received += 1
             try:
-                message = _read_message(frames, self._token)
+                message = _read_message(frames, self._signer)
             except ParamsError as e:
                 self._reject(e)
                 continue

@@ -74,6 +74,7 @@ from ds.replay_service import ReplayClient, serve_replay
 from ds.role_context import RoleContext, RoleError, fixed_port, listen, process_name
 from ds.rpc import set_serving, wait_until_serving
 from ds.security import warn_if_exposed
+from ds.stream_key import StreamKey
 
 log = logging.getLogger("asac.roles")
 
@@ -239,9 +240,10 @@ def run_learner(role: RoleContext, ckpt_step: int | None = None, progress: bool 
     ``<run>/learner_<id>/``, and exits 0, checkpointed, when the evolver retires it."""
     net = role.config.net_config
     params_address = f"tcp://{net.bind_host}:{net.params_port or '*'}"
+    # Signed under this start's stream key (and the token: ds/stream_key.py), not encrypted (ZeroMQ carries
+    # no TLS here): actors take parameters only from the learner they registered with.
     publisher = listen("learner's parameter broadcast", params_address, "--override net.params_port=PORT",
-                        lambda: ParamsPublisher(params_address, token=role.token))  # fmt: skip
-    # The stream is signed with the token (not encrypted: ZeroMQ carries no TLS here); without one, say so.
+                       lambda: ParamsPublisher(params_address, token=role.token, stream=StreamKey.fresh()))  # fmt: skip
     warn_if_exposed(net.bind_host, f"learner's parameter broadcast on {publisher.address}", role.token is not None,
                     "net_config.token_file (actors then drop frames it did not sign)")  # fmt: skip
     client: EvolverClient | None = None
@@ -327,7 +329,7 @@ def _train(
         acting = None if cfg.actor_config.update_policy_mode else ActingPolicy(role.sac(spec))
         weights = None if member is None else member.snapshot
         servicer = LearnerServicer(spec, registry, store, publisher_port(publisher), acting, sac.rnn_state_size,
-                                   weights=weights)  # fmt: skip
+                                   weights=weights, stream=publisher.stream)  # fmt: skip
         address = f"{net.bind_host}:{net.learner_port}"
         server, port, health_ = listen("learner", address, "--learner_port", lambda: serve_learner(
             servicer, address, max_message_bytes=learner_message_limit(sac), credentials=role.credentials,

@@ -41,6 +41,8 @@ import hashlib
 import hmac
 import ipaddress
 import logging
+import os
+import secrets
 import ssl
 from collections.abc import Callable, Mapping, Sequence
 from concurrent import futures
@@ -64,6 +66,8 @@ HEALTH_PREFIX = "/grpc.health.v1.Health/"
 _BEARER_LABEL = b"asac grpc bearer"
 _TOKEN_HINT = "every role of a run must name the same secret in net_config.token_file"
 _REMEDY = "net_config.token_file and/or TLS (--tls_cert, --tls_key, --tls_ca)"
+_SET_TOKEN = ("set --override net.token_file=FILE on every role of the run (FILE: a secret only they can read, "
+              "e.g. `openssl rand -hex 32 > FILE; chmod 600 FILE`; docs/security.md section 2)")  # fmt: skip
 
 
 @dataclass(frozen=True)
@@ -139,6 +143,35 @@ def load_credentials(net: NetConfig) -> Credentials:
                 f"net_config.tls_key: {net.tls_key!r} is not the key of net_config.tls_cert {net.tls_cert!r} ({e})"
             ) from None
     return Credentials(token, cert, key, ca)
+
+
+def write_token_file(path: Path) -> bytes:
+    """A fresh random token (64 hex digits) in a new file ``path`` that only its owner may read or
+    write (mode 0600, whatever the umask; a file already there is replaced, not reused); returns it.
+    What ``main_ds.py local`` does when no ``net_config.token_file`` is given."""
+    token = secrets.token_hex(32).encode()
+    path.unlink(missing_ok=True)
+    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW, 0o600)
+    try:
+        os.write(fd, token + b"\n")
+    finally:
+        os.close(fd)
+    return token
+
+
+def warn_without_token(role: str, credentials: Credentials) -> bool:
+    """Log a warning when ``role``, started on its own, has no token (nor mutual TLS, which keeps
+    strangers out as well): on loopback too, where every local process can reach it. Returns whether
+    it warned."""
+    if credentials.token is not None or credentials.mutual:
+        return False
+    if role == "actor":
+        exposed = ("any process that can reach its learner's and replay's ports (on loopback: every local process) "
+                   "may call them too, or answer in their place once they stop")  # fmt: skip
+    else:
+        exposed = "any process that can reach its port (on loopback: every local process) may call any of its rpcs"
+    log.warning("this %s runs without a token: %s; %s", role, exposed, _SET_TOKEN)
+    return True
 
 
 def _read(name: str, path: str | None) -> bytes | None:
@@ -420,4 +453,6 @@ __all__ = [
     "new_server",
     "open_channel",
     "warn_if_exposed",
+    "warn_without_token",
+    "write_token_file",
 ]

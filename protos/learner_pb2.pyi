@@ -16,18 +16,20 @@ class RegisterActorRequest(_message.Message):
     def __init__(self, name: _Optional[str] = ..., preferred_index: _Optional[int] = ...) -> None: ...
 
 class RegisterActorReply(_message.Message):
-    __slots__ = ("actor_id", "index", "learner_id", "params_port", "lease_s")
+    __slots__ = ("actor_id", "index", "learner_id", "params_port", "lease_s", "params_key")
     ACTOR_ID_FIELD_NUMBER: _ClassVar[int]
     INDEX_FIELD_NUMBER: _ClassVar[int]
     LEARNER_ID_FIELD_NUMBER: _ClassVar[int]
     PARAMS_PORT_FIELD_NUMBER: _ClassVar[int]
     LEASE_S_FIELD_NUMBER: _ClassVar[int]
+    PARAMS_KEY_FIELD_NUMBER: _ClassVar[int]
     actor_id: str
     index: int
     learner_id: str
     params_port: int
     lease_s: float
-    def __init__(self, actor_id: _Optional[str] = ..., index: _Optional[int] = ..., learner_id: _Optional[str] = ..., params_port: _Optional[int] = ..., lease_s: _Optional[float] = ...) -> None: ...
+    params_key: bytes
+    def __init__(self, actor_id: _Optional[str] = ..., index: _Optional[int] = ..., learner_id: _Optional[str] = ..., params_port: _Optional[int] = ..., lease_s: _Optional[float] = ..., params_key: _Optional[bytes] = ...) -> None: ...
 
 class HeartbeatRequest(_message.Message):
     __slots__ = ("actor_id", "env_steps", "leaving")

@@ -33,6 +33,7 @@ from ds.learner_service import (
 from ds.params import ParamsPublisher, decode_params, params_spec
 from ds.replay_service import ReplayClient, serve_replay
 from ds.rpc import RetryPolicy, set_serving
+from ds.stream_key import StreamKey
 from envs.make import vector_env_factory
 
 pytestmark = pytest.mark.grpc
@@ -71,10 +72,10 @@ def learner_side(request: pytest.FixtureRequest) -> Iterator[LearnerSide]:
     cfg = config()
     sac = pendulum_sac(cfg, seed=1)
     acting = ActingPolicy(pendulum_sac(cfg, seed=1)) if getattr(request, "param", False) else None
-    publisher = ParamsPublisher("tcp://127.0.0.1:*")
+    publisher = ParamsPublisher("tcp://127.0.0.1:*", stream=StreamKey.fresh())
     store, registry = ParamsStore(), ActorRegistry(lease_s=30)
     port = int(publisher.address.rsplit(":", 1)[1])
-    servicer = LearnerServicer(sac.spec, registry, store, port, acting)
+    servicer = LearnerServicer(sac.spec, registry, store, port, acting, stream=publisher.stream)
     server, learner_port, health = serve_learner(servicer)
     set_serving(health, SERVICE_NAME, True)
     client = LearnerClient(f"127.0.0.1:{learner_port}", sac.spec)
@@ -154,7 +155,7 @@ def test_get_params_returns_the_latest_version(learner_side: LearnerSide) -> Non
             next(learner_side.sac.models.policy.parameters()).add_(1.0)  # type: ignore[union-attr]
         learner_side.publish(version)
     version, frames = learner_side.client.get_params()
-    decoded_version, params = decode_params(frames, spec)
+    decoded_version, params = decode_params(frames, spec, stream=learner_side.publisher.stream)
     assert version == decoded_version == 5
     for name, value in learner_side.sac.acting_state_dict().items():
         np.testing.assert_array_equal(params[name], value.numpy(), err_msg=name)

@@ -302,9 +302,9 @@ def test_a_subscriber_with_the_token_drops_unsigned_and_forged_frames_and_keeps_
 def test_eight_subscribers_end_on_the_newest_version(ctx: zmq.Context, monkeypatch: pytest.MonkeyPatch) -> None:
     encodes: list[int] = []
 
-    def counting_encode(version: int, *args: object) -> list[bytes]:
+    def counting_encode(version: int, *args: object, **kwargs: object) -> list[bytes]:
         encodes.append(version)
-        return encode_params(version, *args)  # type: ignore[arg-type]
+        return encode_params(version, *args, **kwargs)  # type: ignore[arg-type]
 
     monkeypatch.setattr(ds.params, "encode_params", counting_encode)
     sac = make_sac(seed=0)

@@ -22,6 +22,7 @@ from ds.learner_service import SERVICE_NAME, ActorRegistry, LearnerClient, Learn
 from ds.params import ParamsError, ParamsPublisher
 from ds.replay_service import ReplayClient, RetryPolicy, serve_replay
 from ds.rpc import set_serving
+from ds.stream_key import StreamKey
 from envs.make import vector_env_factory
 
 pytestmark = pytest.mark.grpc
@@ -55,11 +56,13 @@ class Learner:
         cfg = CONFIG.model_copy(deep=True)
         cfg.sac_config.seed = seed
         self.sac = SAC(SPEC, cfg.sac_config, cfg.nn_config, cfg.replay_config)
-        self.publisher = ParamsPublisher("tcp://127.0.0.1:*", token=token)
+        self.publisher = ParamsPublisher("tcp://127.0.0.1:*", token=token, stream=StreamKey.fresh())
         self.store = store = ParamsStore()
         self.publish(version)
         params_port = int(self.publisher.address.rsplit(":", 1)[1])
-        self.servicer = LearnerServicer(SPEC, ActorRegistry(lease_s=30), store, params_port)
+        self.servicer = LearnerServicer(
+            SPEC, ActorRegistry(lease_s=30), store, params_port, stream=self.publisher.stream
+        )
         self.server, bound, health = serve_learner(self.servicer, f"127.0.0.1:{port}")
         assert bound == port
         set_serving(health, SERVICE_NAME, True)
