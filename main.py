@@ -28,7 +28,7 @@ import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
-from typing import NoReturn
+from typing import Any, NoReturn
 
 import gymnasium
 import numpy as np
@@ -257,7 +257,7 @@ def train(args: argparse.Namespace) -> int:
     name_template = args.name or config.base_config.name
     stop = stop_on_signals()  # Ctrl-C and SIGTERM: finish the step, save, exit 130 / 143
     for repeat in range(args.repeat):
-        run_config, drawn = config.model_copy(deep=True), {}
+        run_config, drawn = config.model_copy(deep=True), dict[str, Any]()
         name = name_template.replace("{time}", time.strftime("%Y%m%d%H%M%S"))
         if args.repeat > 1:
             name = f"{name}_{repeat}"
