@@ -116,7 +116,7 @@ def relu_mlp(x: Tensor, params: Sequence[Tensor]) -> Tensor:
     result ``[E, N, out_L]``: ``layer_L(relu(... relu(layer_1(x))))`` as the layer-by-layer modules
     compute it, with the same precision (inside an autocast region the hidden layers run in its
     dtype, bfloat16 on CPU, and the output layer in the parameters' dtype, as :func:`in_float32`).
-    Values and gradients equal the layer-by-layer ones (tests/algorithm/test_nn.py).
+    Values and gradients equal the layer-by-layer ones (tests/algorithm/nn/test_nn.py).
 
     Why one node: outside its matmuls a SAC update at batch 256 on CPU is dispatch-bound. This saves
     the per-layer autograd, cast and transpose nodes, casts each weight once per call, applies ReLU in

@@ -18,7 +18,7 @@ The arrays are views of the torch parameters (``Tensor.numpy()`` shares memory),
 and ``load_state_dict`` (both in place) are seen without copying. The caller draws the noise
 (``SAC`` from its own seeded and checkpointed ``numpy.random.Generator``); given the same noise,
 both paths compute the same actions and log-probabilities up to float32 rounding
-(tests/algorithm/test_numpy_acting.py).
+(tests/algorithm/nn/test_numpy_acting.py).
 """
 
 from __future__ import annotations
