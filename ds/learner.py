@@ -250,11 +250,11 @@ class Learner:
         live actor has heard that the run is done, sent what it held (its last inserts wait in the
         rate limiter for these updates) and left, so nothing collected is thrown away and it is all
         trained on. Actors beat at least every third of a lease and their last inserts wait at most
-        :data:`LAST_INSERTS_WAIT_S` each; one that has not left by then has gone (its lease lingers)."""
+        :data:`LAST_INSERTS_WAIT_S` in all; one that has not left by then has gone (its lease lingers)."""
         registry = self.registry
         if registry is None:
             return
-        deadline = time.monotonic() + registry.lease_s / 3 + 1.0 + 2 * LAST_INSERTS_WAIT_S
+        deadline = time.monotonic() + registry.lease_s / 3 + 1.0 + LAST_INSERTS_WAIT_S + 2.0
         last_info = time.perf_counter()
         while registry.alive() and time.monotonic() < deadline and not self.stop.is_set():
             with self.core.timers.phase("wait"):

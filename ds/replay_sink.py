@@ -32,7 +32,7 @@ from ds.replay_feeds import Throttle
 from ds.replay_service import PendingInsert, ReplayClient, ReplayRpcError
 
 log = logging.getLogger("asac.actor")
-# How long an actor's last inserts at the end of a run may wait in the rate limiter: the learner
+# How long an actor's last inserts at the end of a run may wait in the rate limiter, all together: the learner
 # trains on until the actors have left (ds/learner.py), so they are let in within a few updates.
 LAST_INSERTS_WAIT_S = 2.0
 
@@ -58,10 +58,10 @@ class ReplaySink:
     again; meanwhile ``between()`` runs (heartbeats, done checks).
 
     Once ``stopping()`` is true (the run's budget is spent, or a signal came) calls return at once
-    and nothing is retried: each chunk still here gets one last try, which waits in the rate limiter
-    for at most ``last_try_wait_s()`` seconds (0 by default; at the end of a run the learner goes on
-    training until the actors have left, so their last inserts are let in: see ds/actor.py), and
-    after the first sign that the replay is gone no more are sent. What
+    and nothing is retried: each chunk still here gets one last try; the last tries wait in the rate
+    limiter until one deadline ``last_try_wait_s()`` seconds after the first (0 by default; at the
+    end of a run the learner goes on training until the actors have left, so their last inserts are
+    let in: see ds/actor.py), and after the first sign that the replay is gone no more are sent. What
     was not stored is counted in ``unsent_steps`` / ``unsent_chunks`` and logged once, by
     :meth:`flush`, which waits for everything on its way. Chunks may be stored out of order after a
     retry; each is self-contained (no window spans two chunks), so order does not matter.
@@ -96,6 +96,7 @@ class ReplaySink:
         self.max_chunks_per_insert = max_chunks_per_insert
         self.max_backoff_s = max_backoff_s
         self.last_try_wait_s = last_try_wait_s
+        self._last_tries_until: float | None = None  # the deadline all last tries share, once stopping
         self.inserted_steps = 0
         self.requests = 0
         self.insert_waits = 0
@@ -188,7 +189,12 @@ class ReplaySink:
         held += [seq for p in self._pending if p.ids is not None for seq in p.ids.seqs]
         ids = ChunkIds(self.producer, seqs, min(held, default=self._next_seq))
         final = self.stopping()
-        pending = self.replay.insert_async(chunks, timeout=self.last_try_wait_s() if final else self.timeout_s, ids=ids)
+        timeout = self.timeout_s
+        if final:  # the last tries share one deadline, however many there are
+            if self._last_tries_until is None:
+                self._last_tries_until = time.monotonic() + self.last_try_wait_s()
+            timeout = max(0.0, self._last_tries_until - time.monotonic())
+        pending = self.replay.insert_async(chunks, timeout=timeout, ids=ids)
         pending.final = final
         self._pending.append(pending)
         self.requests += 1
