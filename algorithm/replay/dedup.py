@@ -8,9 +8,9 @@ Usage (:meth:`PrioritizedTable.insert_once` does this under the table's lock)::
                                        # a new producer past max_producers: ProducerLimitReached
     known = ledger.lookup(ids)         # per chunk: None (new), a first key, or FORGOTTEN
     ...store the new chunks...
-    ledger.record(ids.producer, 12, first_key)
+    ledger.record(ids, 12, first_key)   # a new producer takes its place here
 
-Delivery from an actor to the replay is at least once: the actor's sink (ds/actor.py) keeps every
+Delivery from an actor to the replay is at least once: the actor's sink (ds/replay_sink.py) keeps every
 chunk until a reply says it is stored and sends it again, with the same producer id and sequence
 number, when the reply does not come (the replay was unreachable, or the reply was lost after the
 chunk was stored). The ledger turns the second case from a double insert into a duplicate answer.
@@ -126,13 +126,15 @@ class ChunkLedger:
         return len(self._producers)
 
     def settle(self, ids: ChunkIds) -> None:
-        """Raise the producer's floor to ``ids.acked_below`` and forget the chunks below it. A new
-        producer takes a place, forgetting the least recently seen settled producer when the ledger
-        is full; raises :class:`ProducerLimitReached`, changing nothing, when none is settled."""
+        """Raise a known producer's floor to ``ids.acked_below`` and forget its chunks below it. A new
+        producer takes no place yet (it does when :meth:`record` stores its first chunk, so a request
+        that stores nothing, refused, timed out or acknowledge-only, leaves the ledger as it was);
+        raises :class:`ProducerLimitReached`, changing nothing, when the ledger is full and none of
+        its producers is settled."""
         p = self._producers.get(ids.producer)
         if p is None:
-            self._make_room(ids.producer)
-            p = self._producers[ids.producer] = _Producer()
+            self._check_room(ids.producer)
+            return
         self._producers.move_to_end(ids.producer)
         if ids.acked_below > p.floor:
             p.floor = ids.acked_below
@@ -143,13 +145,13 @@ class ChunkLedger:
             self._settled[ids.producer] = None
             self._settled.move_to_end(ids.producer)
 
-    def _make_room(self, producer: int) -> None:
-        """Forget settled producers, least recently seen first, until a new one fits (a ledger
-        loaded from a table saved with a larger bound may hold more than ``max_producers``)."""
-        excess = len(self._producers) + 1 - self.max_producers
-        if excess <= 0:
-            return
-        if excess > len(self._settled):
+    def _excess(self) -> int:
+        """How many producers must be forgotten before a new one fits (a ledger loaded from a table
+        saved with a larger bound may hold more than ``max_producers``)."""
+        return max(0, len(self._producers) + 1 - self.max_producers)
+
+    def _check_room(self, producer: int) -> None:
+        if self._excess() > len(self._settled):
             raise ProducerLimitReached(
                 f"replay refuses a new producer (an actor process, id {producer:#x}): it keeps the chunk ids of "
                 f"{len(self._producers)} producers (replay_config.max_producers: {self.max_producers}) and each "
@@ -157,9 +159,6 @@ class ChunkLedger:
                 "replay_config.max_producers in the replay's config (every actor process started over the "
                 "replay's life takes a place, restarts included)"
             )
-        for _ in range(excess):
-            forgotten, _ = self._settled.popitem(last=False)
-            del self._producers[forgotten]
 
     def lookup(self, ids: ChunkIds) -> list[int | None]:
         """Per chunk: None if it is new, else the first key it was stored under (:data:`FORGOTTEN`
@@ -169,12 +168,20 @@ class ChunkLedger:
             return [None] * len(ids.seqs)
         return [FORGOTTEN if s < p.floor else p.stored.get(s) for s in ids.seqs]
 
-    def record(self, producer: int, seq: int, first_key: int) -> None:
-        """Remember that chunk ``seq`` of ``producer`` (admitted by :meth:`settle` since the table
-        last released its lock) is stored from key ``first_key`` on."""
-        p = self._producers[producer]
+    def record(self, ids: ChunkIds, seq: int, first_key: int) -> None:
+        """Remember that chunk ``seq`` of ``ids.producer`` (admitted by :meth:`settle` since the table
+        last released its lock) is stored from key ``first_key`` on. A new producer takes its place
+        here, with ``ids.acked_below`` as its floor, forgetting the least recently seen settled
+        producers when the ledger is full."""
+        p = self._producers.get(ids.producer)
+        if p is None:
+            self._check_room(ids.producer)
+            for _ in range(self._excess()):
+                forgotten, _ = self._settled.popitem(last=False)
+                del self._producers[forgotten]
+            p = self._producers[ids.producer] = _Producer(floor=ids.acked_below)
         p.stored[seq] = first_key
-        self._settled.pop(producer, None)
+        self._settled.pop(ids.producer, None)
         while len(p.stored) > MAX_OPEN_PER_PRODUCER:
             del p.stored[min(p.stored)]
 

@@ -294,7 +294,7 @@ class PrioritizedTable:
                 if first is None:
                     keys.append(self._store(chunk, t, new_p))
                     if ids is not None:
-                        self._ledger.record(ids.producer, ids.seqs[i], int(keys[-1][0]))
+                        self._ledger.record(ids, ids.seqs[i], int(keys[-1][0]))
                 else:  # the keys it was stored under; none if they are forgotten
                     known_keys = np.arange(first, first + t) if first != FORGOTTEN else np.empty(0)
                     keys.append(known_keys.astype(np.uint64))

@@ -231,14 +231,19 @@ def test_a_new_producer_forgotten_while_it_waits_in_the_rate_limiter_comes_back_
 # ---------------------------------------------------------------------- the ledger's bounds
 
 
+def store(ledger: ChunkLedger, ids: ChunkIds, first_key: int) -> None:
+    """What the table does for a request of one new chunk: settle, then record it."""
+    ledger.settle(ids)
+    ledger.record(ids, ids.seqs[0], first_key)
+
+
 def test_past_the_cap_the_oldest_numbers_are_forgotten_so_a_resend_is_stored_again_not_lost(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
     monkeypatch.setattr(dedup, "MAX_OPEN_PER_PRODUCER", 3)
     ledger = ChunkLedger()
     for seq in range(5):
-        ledger.settle(ChunkIds(PRODUCER, (seq,)))
-        ledger.record(PRODUCER, seq, 10 * seq)
+        store(ledger, ChunkIds(PRODUCER, (seq,)), 10 * seq)
     assert ledger.lookup(ChunkIds(PRODUCER, (0, 1, 2, 3, 4, 5))) == [None, None, 20, 30, 40, None]
 
 
@@ -247,33 +252,42 @@ def test_a_full_ledger_refuses_a_new_producer_rather_than_forget_one_that_may_se
     was stored twice; any client with Insert rights could make that happen to every actor."""
     ledger = ChunkLedger(max_producers=2)
     for producer in (1, 2, 1):
-        ledger.settle(ChunkIds(producer, (0,)))
-        ledger.record(producer, 0, 10 * producer)
-    with pytest.raises(ProducerLimitReached, match=r"replay_config\.max_producers: 2\)") as refused:
-        ledger.settle(ChunkIds(3, (0,)))
-    assert "raise replay_config.max_producers" in str(refused.value)
+        store(ledger, ChunkIds(producer, (0,)), 10 * producer)
+    for refused_call in (lambda: ledger.settle(ChunkIds(3, (0,))), lambda: ledger.record(ChunkIds(3, (0,)), 0, 30)):
+        with pytest.raises(ProducerLimitReached, match=r"replay_config\.max_producers: 2\)") as refused:
+            refused_call()
+        assert "raise replay_config.max_producers" in str(refused.value)
     assert len(ledger) == 2
     assert [ledger.lookup(ChunkIds(p, (0,)))[0] for p in (1, 2, 3)] == [10, 20, None]
+
+
+def test_a_producer_takes_a_place_only_when_a_chunk_of_it_is_stored() -> None:
+    """A request that stores nothing (refused, timed out in the rate limiter, or an acknowledgement
+    from a producer the table never stored anything of) leaves the ledger as it was: random bytes
+    that happen to decode as an acknowledge-only Insert must not fill the ledger (CI found this)."""
+    ledger = ChunkLedger(max_producers=2)
+    store(ledger, ChunkIds(1, (0,)), 10)
+    ledger.settle(ChunkIds(2, (), acked_below=7))  # an acknowledgement from an unknown producer
+    ledger.settle(ChunkIds(3, (0,)))  # admitted, then its wait timed out: nothing recorded
+    assert len(ledger) == 1 and ledger.state_dict() == [[1, 0, [(0, 10)]]]
+    store(ledger, ChunkIds(2, (7,), acked_below=7), 70)  # its floor is the acked_below it came with
+    assert ledger.lookup(ChunkIds(2, (6, 7))) == [dedup.FORGOTTEN, 70]
 
 
 def test_only_a_producer_with_every_stored_chunk_acknowledged_makes_room_least_recent_first() -> None:
     ledger = ChunkLedger(max_producers=3)
     for producer in (1, 2, 3):
-        ledger.settle(ChunkIds(producer, (0,)))
-        ledger.record(producer, 0, 10 * producer)
-    ledger.settle(ChunkIds(2, (1,), acked_below=1))  # 2 acknowledged its chunk 0 and sends 1
-    ledger.record(2, 1, 25)
+        store(ledger, ChunkIds(producer, (0,)), 10 * producer)
+    store(ledger, ChunkIds(2, (1,), acked_below=1), 25)  # 2 acknowledged its chunk 0 and sends 1
     with pytest.raises(ProducerLimitReached):
         ledger.settle(ChunkIds(4, (0,)))  # 2's chunk 1 is stored and not acknowledged: not settled
     ledger.settle(ChunkIds(2, (1,), acked_below=2))  # a stale copy of 1 acknowledging everything of 2
     ledger.settle(ChunkIds(1, (0,), acked_below=1))  # and everything of 1, after 2: 2 is the least recent
-    ledger.settle(ChunkIds(4, (0,)))
+    store(ledger, ChunkIds(4, (0,)), 40)
     assert len(ledger) == 3 and ledger.lookup(ChunkIds(2, (0, 1))) == [None, None]  # 2 is forgotten
     assert ledger.lookup(ChunkIds(1, (0,))) == [dedup.FORGOTTEN]  # 1 is known, its chunk 0 acknowledged
     assert ledger.lookup(ChunkIds(3, (0,))) == [30]
-    ledger.record(4, 0, 40)
-    ledger.settle(ChunkIds(5, (0,)))  # 1 is settled: it makes room
-    ledger.record(5, 0, 50)
+    store(ledger, ChunkIds(5, (0,)), 50)  # 1 is settled: it makes room
     with pytest.raises(ProducerLimitReached):
         ledger.settle(ChunkIds(6, (0,)))  # 3, 4 and 5 each hold a chunk they may send again
     assert [ledger.lookup(ChunkIds(p, (0,)))[0] for p in (1, 3, 4, 5, 6)] == [None, 30, 40, 50, None]
@@ -282,9 +296,8 @@ def test_only_a_producer_with_every_stored_chunk_acknowledged_makes_room_least_r
 def test_a_ledger_saved_under_a_larger_bound_keeps_every_producer(tmp_path: Path) -> None:
     big = ChunkLedger(max_producers=4)
     for producer in (1, 2, 3, 4):
-        big.settle(ChunkIds(producer, (0,), acked_below=1 if producer == 2 else 0))
-        if producer != 2:
-            big.record(producer, 0, producer)
+        store(big, ChunkIds(producer, (0,)), producer)
+    big.settle(ChunkIds(2, (1,), acked_below=1))  # 2 acknowledged its chunk: settled
     small = ChunkLedger.from_state(big.state_dict(), next_key=10, max_producers=2)
     assert len(small) == 4 and small.lookup(ChunkIds(3, (0,))) == [3]
     with pytest.raises(ProducerLimitReached):  # only 2 is settled: it cannot make room for 3 more
@@ -292,7 +305,7 @@ def test_a_ledger_saved_under_a_larger_bound_keeps_every_producer(tmp_path: Path
     assert len(small) == 4
     small.settle(ChunkIds(1, (1,), acked_below=1))  # acknowledged: 1 and 2 are settled, 2 the least recent
     small.settle(ChunkIds(3, (1,), acked_below=1))  # and 3
-    small.settle(ChunkIds(5, (0,)))  # 4 producers + 5 > 2: all three settled ones are forgotten
+    store(small, ChunkIds(5, (0,)), 5)  # 4 producers + 5 > 2: all three settled ones are forgotten
     assert len(small) == 2 and small.lookup(ChunkIds(4, (0,))) == [4]
     with pytest.raises(ValueError, match="max_producers must be >= 1"):
         ChunkLedger(max_producers=0)
