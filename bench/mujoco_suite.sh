@@ -1,0 +1,25 @@
+#!/usr/bin/env bash
+# Starts, or resumes, the MuJoCo comparison with SB3 (`python -m bench.vs_sb3 suite`) in the
+# background, from a snapshot of a commit exported with `git archive` to /tmp/asac_bench_<commit>,
+# so that edits in the working tree never reach a run that is going on. Results go to this
+# checkout's bench/results/mujoco/ (runs already in its summary.csv are skipped); every row records
+# the commit. One run at a time; the log is /tmp/mujoco_suite.log (LOG=...), the driver's pid
+# /tmp/mujoco_suite.pid. Killing the driver lets the run in progress finish and starts no other.
+#
+#   bash bench/mujoco_suite.sh [COMMIT] [suite arguments, e.g. --tasks hopper --seeds 0 1 2]
+set -euo pipefail
+repo=$(cd "$(dirname "$0")/.." && pwd)
+commit=$(git -C "$repo" rev-parse --short "${1:-HEAD}")
+shift || true
+snap=/tmp/asac_bench_$commit
+if [ ! -d "$snap" ]; then
+    rm -rf "$snap.tmp" && mkdir -p "$snap.tmp"
+    git -C "$repo" archive "$commit" | tar -x -C "$snap.tmp"
+    mv "$snap.tmp" "$snap"
+fi
+log=${LOG:-/tmp/mujoco_suite.log}
+cd "$snap"
+ASAC_BENCH_CODE=$commit nohup "$repo/.venv/bin/python" -m bench.vs_sb3 suite --out "$repo/bench/results/mujoco" "$@" \
+    >>"$log" 2>&1 &
+echo $! >/tmp/mujoco_suite.pid
+echo "suite driver pid $! running $snap (commit $commit), log $log"
