@@ -9,8 +9,9 @@
 #   bash bench/mujoco_suite.sh [COMMIT] [suite arguments, e.g. --tasks hopper --seeds 0 1 2]
 set -euo pipefail
 repo=$(cd "$(dirname "$0")/.." && pwd)
-commit=$(git -C "$repo" rev-parse --short "${1:-HEAD}")
-shift || true
+ref=HEAD
+if [ $# -gt 0 ] && [ "${1#-}" = "$1" ]; then ref=$1; shift; fi
+commit=$(git -C "$repo" rev-parse --short "$ref")
 snap=/tmp/asac_bench_$commit
 if [ ! -d "$snap" ]; then
     rm -rf "$snap.tmp" && mkdir -p "$snap.tmp"
