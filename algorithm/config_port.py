@@ -45,6 +45,12 @@ MOVED: dict[str, tuple[str, str]] = {
     # The original's random_params sat in sac_config and named sac_config keys; ASAC's is
     # {section: {key: spec}} at the top level.
     "sac_config.random_params": ("random_params.sac_config", ""),
+    # The original's learner computed the |TD| of an episode before adding it; ASAC's scores what
+    # actors stored, right after it is stored (sampled before that only at the maximum priority).
+    "sac_config.use_add_with_td": (
+        "sac_config.insert_td_priorities",
+        " (new data's priority is its |TD|, scored by the learner just after it is stored)",
+    ),
 }
 
 # old path -> why it has no counterpart (ignored)

@@ -191,6 +191,12 @@ class SacConfig(Section):
         "over each sampled window back into replay, so later windows start from fresher stored states "
         "(R2D2's stored-state staleness; Kapturowski et al. 2019).",
     )
+    insert_td_priorities: bool = Field(
+        False,
+        description="Prioritized replay: the learner scores data new in replay with its current networks and "
+        "sets each step's priority to its |TD| (the original's use_add_with_td), instead of leaving new data at "
+        "the table's maximum priority; one forward pass over the new windows per update.",
+    )
     compute_dtype: Literal["float32", "bfloat16", "auto"] = Field(
         "float32",
         description="dtype of the hidden layers' matmuls in updates (torch.autocast); output layers, "
@@ -343,4 +349,13 @@ class Config(Section):
     @model_validator(mode="after")
     def _check_random_params(self) -> Config:
         parse_random_params(self.random_params, self)  # raises ParamSpecError naming the key path
+        return self
+
+    @model_validator(mode="after")
+    def _check_insert_td_priorities(self) -> Config:
+        if self.sac_config.insert_td_priorities and self.replay_config.alpha == 0:
+            raise ValueError(
+                "sac_config.insert_td_priorities scores new data for prioritized replay, but replay_config.alpha "
+                "is 0 (uniform sampling ignores priorities): set replay_config.alpha > 0 or the option to false"
+            )
         return self

@@ -66,6 +66,7 @@ class RunCounters:
     owed_updates: float = 0.0
     replay_inserted_seen: int = 0
     weights_round: int = 0
+    scored_below: int = 0
 
     @classmethod
     def from_checkpoint(cls, saved: dict[str, Any], defaults: RunCounters) -> RunCounters:
@@ -124,11 +125,14 @@ def sample_age(keys: np.ndarray, newest_key: int, chunk_length: int) -> dict[str
 
 
 class TrainingSink(Protocol):
-    """Where the results of an update go: the table's priorities and refreshed recurrent states."""
+    """Where the results of an update go: the table's priorities and refreshed recurrent states; and
+    where new data to score comes from (``sac_config.insert_td_priorities``)."""
 
     def update_priorities(self, keys: np.ndarray, priorities: np.ndarray) -> None: ...
 
     def update_rnn_states(self, keys: np.ndarray, states: np.ndarray) -> None: ...
+
+    def windows_after(self, key: int, limit: int) -> Batch | None: ...
 
 
 class LearnerCore:
@@ -240,6 +244,9 @@ class LearnerCore:
         if cfg.replay_config.alpha > 0 and not result.skipped:
             with self.timers.phase("priorities"):
                 sink.update_priorities(batch.keys, result.td_abs)
+        if cfg.sac_config.insert_td_priorities:
+            with self.timers.phase("score_new"):
+                self._score_new_data(sink)
         if result.refreshed_rnn_states is not None:
             with self.timers.phase("rnn_refresh"):
                 sink.update_rnn_states(*result.refreshed_rnn_states)
@@ -251,6 +258,18 @@ class LearnerCore:
             age = {} if self.newest_key is None else sample_age(batch.keys, self.newest_key(), self._chunk_length)
             self.write_summary({**result.metrics, **age, **extra_metrics()})
         return result
+
+    def _score_new_data(self, sink: TrainingSink) -> None:
+        """``insert_td_priorities``: the steps stored since the last call (a batch at a time) get their
+        |TD| under the current networks as priority, in place of the maximum priority the table gave
+        them on insert (the original's ``use_add_with_td`` scored an episode before adding
+        it; here a step may be sampled once at the maximum before it is scored)."""
+        c, limit = self.counters, self.config.replay_config.batch_size
+        while (new := sink.windows_after(c.scored_below, limit)) is not None:  # each stored step once
+            sink.update_priorities(new.keys, self.sac.td_errors(new))
+            c.scored_below = int(new.keys.max()) + 1
+            if new.batch_size < limit:
+                break
 
     def write_summary(self, metrics: dict[str, float]) -> None:
         c = self.counters

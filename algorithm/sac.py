@@ -150,6 +150,8 @@ class SAC:
         self._act_np_rng = np.random.default_rng(act_seed)
         self._learn_rng = torch.Generator(device=self.device)
         self._learn_rng.manual_seed(learn_seed)
+        self._score_rng = torch.Generator(device=self.device)  # td_errors(): scoring new data
+        self._score_rng.manual_seed(learn_seed + 1)
 
         # One temperature for the continuous part, one per discrete branch (none when greedy).
         self.log_alpha = torch.nn.Parameter(
@@ -649,22 +651,9 @@ class SAC:
         noise = torch.randn(
             batch.batch_size, samples, self.spec.action.continuous_dim, generator=self._learn_rng, device=dev
         )
-        with torch.autocast(dev.type, dtype=torch.bfloat16, enabled=self._low_precision):
-            q_loss, pi_loss, a_loss, aux_loss, predictions, td_abs, metric_tensors, fed = self._compute_losses(
-                self._normalize([torch.from_numpy(o).to(dev) for o in batch.obs]),
-                torch.from_numpy(batch.actions).to(dev),
-                torch.from_numpy(batch.prev_actions).to(dev),
-                torch.from_numpy(batch.rewards).to(dev),
-                torch.from_numpy(batch.terminated).to(dev),
-                torch.from_numpy(batch.truncated).to(dev),
-                torch.from_numpy(batch.mask).to(dev),
-                torch.from_numpy(batch.behaviour_logp).to(dev),
-                torch.from_numpy(batch.rnn_state).to(dev) if self.rnn_state_size else None,
-                weights,
-                noise,
-                self._subset(),
-                self._subset(),
-            )
+        q_loss, pi_loss, a_loss, aux_loss, predictions, td_abs, metric_tensors, fed = self._batch_losses(
+            batch, weights, noise, self._subset(), self._subset()
+        )
 
         # 3. One backward: the losses touch disjoint parameters (policy_loss detaches the critic,
         #    alpha_loss detaches log_prob, the target is no-grad), so each gets exactly its own grads.
@@ -719,6 +708,43 @@ class SAC:
         if sac.refresh_rnn_states and fed is not None and not skipped:
             refreshed = self._window_rows(batch, fed)
         return UpdateResult(td_abs=td.cpu().numpy(), metrics=metrics, skipped=skipped, refreshed_rnn_states=refreshed)
+
+    def td_errors(self, batch: Batch) -> np.ndarray:
+        """``|TD| [B]`` float32 of each window's trained step under the current weights (mean over all
+        Q heads, as :meth:`update` reports it), without training: how the learner scores new data
+        for ``sac_config.insert_td_priorities``. Its noise comes from a generator of its own, so
+        scoring does not change the updates' random stream."""
+        self._check_batch(batch)
+        samples = self.sac.n_step + 2 if self.sac.use_n_step_is else 2
+        noise = torch.randn(
+            batch.batch_size, samples, self.spec.action.continuous_dim, generator=self._score_rng, device=self.device
+        )
+        with torch.no_grad():
+            td_abs = self._batch_losses(batch, None, noise, None, None)[5]
+        return torch.nan_to_num(td_abs.float(), nan=0.0, posinf=0.0, neginf=0.0).cpu().numpy()
+
+    def _batch_losses(
+        self, batch: Batch, weights: Tensor | None, noise: Tensor, target_heads: Tensor | None,
+        policy_heads: Tensor | None,
+    ) -> tuple[Tensor, Tensor, Tensor, Tensor, dict[str, Tensor], Tensor, Metrics, Tensor | None]:
+        """:meth:`_losses` of a sampled batch (its arrays moved to the device, observations normalized)."""
+        dev = self.device
+        with torch.autocast(dev.type, dtype=torch.bfloat16, enabled=self._low_precision):
+            return self._compute_losses(
+                self._normalize([torch.from_numpy(o).to(dev) for o in batch.obs]),
+                torch.from_numpy(batch.actions).to(dev),
+                torch.from_numpy(batch.prev_actions).to(dev),
+                torch.from_numpy(batch.rewards).to(dev),
+                torch.from_numpy(batch.terminated).to(dev),
+                torch.from_numpy(batch.truncated).to(dev),
+                torch.from_numpy(batch.mask).to(dev),
+                torch.from_numpy(batch.behaviour_logp).to(dev),
+                torch.from_numpy(batch.rnn_state).to(dev) if self.rnn_state_size else None,
+                weights,
+                noise,
+                target_heads,
+                policy_heads,
+            )
 
     def _window_rows(self, batch: Batch, fed_states: Tensor) -> tuple[np.ndarray, np.ndarray]:
         """Row keys and fed states of every valid window step: window step ``j`` of a window whose

@@ -104,6 +104,14 @@ class _RemoteTrainingSink:
                 raise
             self.learner.rnn_refreshes_skipped += 1
 
+    def windows_after(self, key: int, limit: int) -> Batch | None:
+        try:
+            return self.learner.replay.windows_after(key, limit)
+        except ReplayRpcError as e:
+            if not unavailable(e):
+                raise
+            return None  # scored at a later update, when the replay is back
+
 
 class Learner:
     """The learner loop; see the module docstring. ``stop`` ends it (then it checkpoints and closes).

@@ -90,6 +90,7 @@ CALLERS: security.Callers = {
     "Sample": frozenset({LEARNER}),
     "UpdatePriorities": frozenset({LEARNER}),
     "UpdateRnnStates": frozenset({LEARNER}),
+    "Windows": frozenset({LEARNER}),
     "Info": frozenset({ACTOR, LEARNER}),
     "Save": frozenset({LEARNER}),
     "Load": frozenset({LEARNER}),
@@ -164,6 +165,19 @@ class ReplayServicer(replay_pb2_grpc.ReplayServiceServicer):
         with _status_codes(context):
             batch = self.table.sample(b, _wait_seconds(request, context))
         return batch_to_proto(batch)
+
+    def Windows(self, request: replay_pb2.WindowsRequest, context: grpc.ServicerContext) -> replay_pb2.SampleReply:
+        spec, n = self.specs, request.max_windows
+        size = sample_reply_bytes(spec.sensors, spec.action_size, max(n, 1), self.table.window, spec.rnn_state_size)
+        if size > self.max_message_bytes:
+            context.abort(
+                grpc.StatusCode.RESOURCE_EXHAUSTED,
+                f"{n} windows of {self.table.window} steps are about {size} bytes, over this replay server's "
+                f"message limit of {self.max_message_bytes} bytes: ask for fewer (max_windows)",
+            )
+        with _status_codes(context):
+            batch = self.table.windows_after(request.from_key, n)
+        return replay_pb2.SampleReply() if batch is None else batch_to_proto(batch)
 
     def UpdatePriorities(
         self, request: replay_pb2.UpdatePrioritiesRequest, context: grpc.ServicerContext
@@ -444,6 +458,20 @@ class ReplayClient:
         request = replay_pb2.SampleRequest(batch_size=int(batch_size))
         reply = self._blocking("Sample", self._stub.Sample, request, timeout, SampleTimeout)
         return self.specs.batch_from_proto(reply, int(batch_size))
+
+    def windows_after(self, key: int, limit: int) -> Batch | None:
+        """The windows of the oldest ``limit`` stored steps with keys ``>= key`` (None: none); see
+        :meth:`PrioritizedTable.windows_after`."""
+        if int(key) < 0:  # uint64 on the wire: say it as the table does
+            raise ValueError(f"windows_after: key must be >= 0, got {key}")
+        request = replay_pb2.WindowsRequest(from_key=int(key), max_windows=int(limit))
+        reply = self._call("Windows", self._stub.Windows, request, self.rpc_timeout_s)
+        if not reply.HasField("keys"):
+            return None
+        n = reply.keys.shape[0] if reply.keys.shape else 0
+        if not 1 <= n <= int(limit):
+            raise WireError("keys", f"holds {n} windows, expected 1 to {limit}")
+        return self.specs.batch_from_proto(reply, n)
 
     def update_priorities(self, keys: np.ndarray, priorities: np.ndarray) -> None:
         """Set raw priorities of ``keys`` (any integer dtype; evicted keys are ignored)."""

@@ -24,7 +24,7 @@ _sym_db = _symbol_database.Default()
 
 
 
-DESCRIPTOR = _descriptor_pool.Default().AddSerializedFile(b'\n\x13protos/replay.proto\x12\x04\x61sac\"4\n\x06Tensor\x12\r\n\x05\x64type\x18\x01 \x01(\t\x12\r\n\x05shape\x18\x02 \x03(\x03\x12\x0c\n\x04\x64\x61ta\x18\x03 \x01(\x0c\"\xd7\x02\n\x05\x43hunk\x12\x19\n\x03obs\x18\x01 \x03(\x0b\x32\x0c.asac.Tensor\x12\x1d\n\x07\x61\x63tions\x18\x02 \x01(\x0b\x32\x0c.asac.Tensor\x12\"\n\x0cprev_actions\x18\x03 \x01(\x0b\x32\x0c.asac.Tensor\x12\x1d\n\x07rewards\x18\x04 \x01(\x0b\x32\x0c.asac.Tensor\x12 \n\nterminated\x18\x05 \x01(\x0b\x32\x0c.asac.Tensor\x12\x1f\n\ttruncated\x18\x06 \x01(\x0b\x32\x0c.asac.Tensor\x12$\n\x0e\x62\x65haviour_logp\x18\x07 \x01(\x0b\x32\x0c.asac.Tensor\x12$\n\trnn_state\x18\x08 \x01(\x0b\x32\x0c.asac.TensorH\x00\x88\x01\x01\x12%\n\npriorities\x18\t \x01(\x0b\x32\x0c.asac.TensorH\x01\x88\x01\x01\x42\x0c\n\n_rnn_stateB\r\n\x0b_priorities\"\x8b\x01\n\rInsertRequest\x12\x1b\n\x06\x63hunks\x18\x01 \x03(\x0b\x32\x0b.asac.Chunk\x12\x16\n\ttimeout_s\x18\x02 \x01(\x01H\x00\x88\x01\x01\x12\x10\n\x08producer\x18\x03 \x01(\x04\x12\x10\n\x08sequence\x18\x04 \x03(\x04\x12\x13\n\x0b\x61\x63ked_below\x18\x05 \x01(\x04\x42\x0c\n\n_timeout_s\"T\n\x0bInsertReply\x12\x1a\n\x04keys\x18\x01 \x03(\x0b\x32\x0c.asac.Tensor\x12\x11\n\tduplicate\x18\x02 \x03(\x08\x12\x16\n\x0einserted_steps\x18\x03 \x01(\x03\"I\n\rSampleRequest\x12\x12\n\nbatch_size\x18\x01 \x01(\x05\x12\x16\n\ttimeout_s\x18\x02 \x01(\x01H\x00\x88\x01\x01\x42\x0c\n\n_timeout_s\"\x98\x03\n\x0bSampleReply\x12\x1a\n\x04keys\x18\x01 \x01(\x0b\x32\x0c.asac.Tensor\x12#\n\rprobabilities\x18\x02 \x01(\x0b\x32\x0c.asac.Tensor\x12\x12\n\ntable_size\x18\x03 \x01(\x03\x12\x19\n\x03obs\x18\x04 \x03(\x0b\x32\x0c.asac.Tensor\x12\x1d\n\x07\x61\x63tions\x18\x05 \x01(\x0b\x32\x0c.asac.Tensor\x12\"\n\x0cprev_actions\x18\x06 \x01(\x0b\x32\x0c.asac.Tensor\x12\x1d\n\x07rewards\x18\x07 \x01(\x0b\x32\x0c.asac.Tensor\x12 \n\nterminated\x18\x08 \x01(\x0b\x32\x0c.asac.Tensor\x12\x1f\n\ttruncated\x18\t \x01(\x0b\x32\x0c.asac.Tensor\x12$\n\x0e\x62\x65haviour_logp\x18\n \x01(\x0b\x32\x0c.asac.Tensor\x12\x1a\n\x04mask\x18\x0b \x01(\x0b\x32\x0c.asac.Tensor\x12$\n\trnn_state\x18\x0c \x01(\x0b\x32\x0c.asac.TensorH\x00\x88\x01\x01\x42\x0c\n\n_rnn_state\"W\n\x17UpdatePrioritiesRequest\x12\x1a\n\x04keys\x18\x01 \x01(\x0b\x32\x0c.asac.Tensor\x12 \n\npriorities\x18\x02 \x01(\x0b\x32\x0c.asac.Tensor\"\x17\n\x15UpdatePrioritiesReply\"R\n\x16UpdateRnnStatesRequest\x12\x1a\n\x04keys\x18\x01 \x01(\x0b\x32\x0c.asac.Tensor\x12\x1c\n\x06states\x18\x02 \x01(\x0b\x32\x0c.asac.Tensor\"\x16\n\x14UpdateRnnStatesReply\"\r\n\x0bInfoRequest\"W\n\x0fNormalizerStats\x12\r\n\x05\x63ount\x18\x01 \x01(\x03\x12\x1a\n\x04mean\x18\x02 \x01(\x0b\x32\x0c.asac.Tensor\x12\x19\n\x03var\x18\x03 \x01(\x0b\x32\x0c.asac.Tensor\"\xc8\x02\n\tInfoReply\x12/\n\x08\x63ounters\x18\x01 \x03(\x0b\x32\x1d.asac.InfoReply.CountersEntry\x12+\n\x06values\x18\x02 \x03(\x0b\x32\x1b.asac.InfoReply.ValuesEntry\x12\x33\n\nnormalizer\x18\x03 \x03(\x0b\x32\x1f.asac.InfoReply.NormalizerEntry\x1a/\n\rCountersEntry\x12\x0b\n\x03key\x18\x01 \x01(\t\x12\r\n\x05value\x18\x02 \x01(\x03:\x02\x38\x01\x1a-\n\x0bValuesEntry\x12\x0b\n\x03key\x18\x01 \x01(\t\x12\r\n\x05value\x18\x02 \x01(\x01:\x02\x38\x01\x1aH\n\x0fNormalizerEntry\x12\x0b\n\x03key\x18\x01 \x01(\t\x12$\n\x05value\x18\x02 \x01(\x0b\x32\x15.asac.NormalizerStats:\x02\x38\x01\"\x1b\n\x0bSaveRequest\x12\x0c\n\x04path\x18\x01 \x01(\t\"\x0b\n\tSaveReply\"\x1b\n\x0bLoadRequest\x12\x0c\n\x04path\x18\x01 \x01(\t\"\x0b\n\tLoadReply2\x94\x03\n\rReplayService\x12\x30\n\x06Insert\x12\x13.asac.InsertRequest\x1a\x11.asac.InsertReply\x12\x30\n\x06Sample\x12\x13.asac.SampleRequest\x1a\x11.asac.SampleReply\x12N\n\x10UpdatePriorities\x12\x1d.asac.UpdatePrioritiesRequest\x1a\x1b.asac.UpdatePrioritiesReply\x12K\n\x0fUpdateRnnStates\x12\x1c.asac.UpdateRnnStatesRequest\x1a\x1a.asac.UpdateRnnStatesReply\x12*\n\x04Info\x12\x11.asac.InfoRequest\x1a\x0f.asac.InfoReply\x12*\n\x04Save\x12\x11.asac.SaveRequest\x1a\x0f.asac.SaveReply\x12*\n\x04Load\x12\x11.asac.LoadRequest\x1a\x0f.asac.LoadReplyb\x06proto3')
+DESCRIPTOR = _descriptor_pool.Default().AddSerializedFile(b'\n\x13protos/replay.proto\x12\x04\x61sac\"4\n\x06Tensor\x12\r\n\x05\x64type\x18\x01 \x01(\t\x12\r\n\x05shape\x18\x02 \x03(\x03\x12\x0c\n\x04\x64\x61ta\x18\x03 \x01(\x0c\"\xd7\x02\n\x05\x43hunk\x12\x19\n\x03obs\x18\x01 \x03(\x0b\x32\x0c.asac.Tensor\x12\x1d\n\x07\x61\x63tions\x18\x02 \x01(\x0b\x32\x0c.asac.Tensor\x12\"\n\x0cprev_actions\x18\x03 \x01(\x0b\x32\x0c.asac.Tensor\x12\x1d\n\x07rewards\x18\x04 \x01(\x0b\x32\x0c.asac.Tensor\x12 \n\nterminated\x18\x05 \x01(\x0b\x32\x0c.asac.Tensor\x12\x1f\n\ttruncated\x18\x06 \x01(\x0b\x32\x0c.asac.Tensor\x12$\n\x0e\x62\x65haviour_logp\x18\x07 \x01(\x0b\x32\x0c.asac.Tensor\x12$\n\trnn_state\x18\x08 \x01(\x0b\x32\x0c.asac.TensorH\x00\x88\x01\x01\x12%\n\npriorities\x18\t \x01(\x0b\x32\x0c.asac.TensorH\x01\x88\x01\x01\x42\x0c\n\n_rnn_stateB\r\n\x0b_priorities\"\x8b\x01\n\rInsertRequest\x12\x1b\n\x06\x63hunks\x18\x01 \x03(\x0b\x32\x0b.asac.Chunk\x12\x16\n\ttimeout_s\x18\x02 \x01(\x01H\x00\x88\x01\x01\x12\x10\n\x08producer\x18\x03 \x01(\x04\x12\x10\n\x08sequence\x18\x04 \x03(\x04\x12\x13\n\x0b\x61\x63ked_below\x18\x05 \x01(\x04\x42\x0c\n\n_timeout_s\"T\n\x0bInsertReply\x12\x1a\n\x04keys\x18\x01 \x03(\x0b\x32\x0c.asac.Tensor\x12\x11\n\tduplicate\x18\x02 \x03(\x08\x12\x16\n\x0einserted_steps\x18\x03 \x01(\x03\"I\n\rSampleRequest\x12\x12\n\nbatch_size\x18\x01 \x01(\x05\x12\x16\n\ttimeout_s\x18\x02 \x01(\x01H\x00\x88\x01\x01\x42\x0c\n\n_timeout_s\"\x98\x03\n\x0bSampleReply\x12\x1a\n\x04keys\x18\x01 \x01(\x0b\x32\x0c.asac.Tensor\x12#\n\rprobabilities\x18\x02 \x01(\x0b\x32\x0c.asac.Tensor\x12\x12\n\ntable_size\x18\x03 \x01(\x03\x12\x19\n\x03obs\x18\x04 \x03(\x0b\x32\x0c.asac.Tensor\x12\x1d\n\x07\x61\x63tions\x18\x05 \x01(\x0b\x32\x0c.asac.Tensor\x12\"\n\x0cprev_actions\x18\x06 \x01(\x0b\x32\x0c.asac.Tensor\x12\x1d\n\x07rewards\x18\x07 \x01(\x0b\x32\x0c.asac.Tensor\x12 \n\nterminated\x18\x08 \x01(\x0b\x32\x0c.asac.Tensor\x12\x1f\n\ttruncated\x18\t \x01(\x0b\x32\x0c.asac.Tensor\x12$\n\x0e\x62\x65haviour_logp\x18\n \x01(\x0b\x32\x0c.asac.Tensor\x12\x1a\n\x04mask\x18\x0b \x01(\x0b\x32\x0c.asac.Tensor\x12$\n\trnn_state\x18\x0c \x01(\x0b\x32\x0c.asac.TensorH\x00\x88\x01\x01\x42\x0c\n\n_rnn_state\"7\n\x0eWindowsRequest\x12\x10\n\x08\x66rom_key\x18\x01 \x01(\x04\x12\x13\n\x0bmax_windows\x18\x02 \x01(\x05\"W\n\x17UpdatePrioritiesRequest\x12\x1a\n\x04keys\x18\x01 \x01(\x0b\x32\x0c.asac.Tensor\x12 \n\npriorities\x18\x02 \x01(\x0b\x32\x0c.asac.Tensor\"\x17\n\x15UpdatePrioritiesReply\"R\n\x16UpdateRnnStatesRequest\x12\x1a\n\x04keys\x18\x01 \x01(\x0b\x32\x0c.asac.Tensor\x12\x1c\n\x06states\x18\x02 \x01(\x0b\x32\x0c.asac.Tensor\"\x16\n\x14UpdateRnnStatesReply\"\r\n\x0bInfoRequest\"W\n\x0fNormalizerStats\x12\r\n\x05\x63ount\x18\x01 \x01(\x03\x12\x1a\n\x04mean\x18\x02 \x01(\x0b\x32\x0c.asac.Tensor\x12\x19\n\x03var\x18\x03 \x01(\x0b\x32\x0c.asac.Tensor\"\xc8\x02\n\tInfoReply\x12/\n\x08\x63ounters\x18\x01 \x03(\x0b\x32\x1d.asac.InfoReply.CountersEntry\x12+\n\x06values\x18\x02 \x03(\x0b\x32\x1b.asac.InfoReply.ValuesEntry\x12\x33\n\nnormalizer\x18\x03 \x03(\x0b\x32\x1f.asac.InfoReply.NormalizerEntry\x1a/\n\rCountersEntry\x12\x0b\n\x03key\x18\x01 \x01(\t\x12\r\n\x05value\x18\x02 \x01(\x03:\x02\x38\x01\x1a-\n\x0bValuesEntry\x12\x0b\n\x03key\x18\x01 \x01(\t\x12\r\n\x05value\x18\x02 \x01(\x01:\x02\x38\x01\x1aH\n\x0fNormalizerEntry\x12\x0b\n\x03key\x18\x01 \x01(\t\x12$\n\x05value\x18\x02 \x01(\x0b\x32\x15.asac.NormalizerStats:\x02\x38\x01\"\x1b\n\x0bSaveRequest\x12\x0c\n\x04path\x18\x01 \x01(\t\"\x0b\n\tSaveReply\"\x1b\n\x0bLoadRequest\x12\x0c\n\x04path\x18\x01 \x01(\t\"\x0b\n\tLoadReply2\xc8\x03\n\rReplayService\x12\x30\n\x06Insert\x12\x13.asac.InsertRequest\x1a\x11.asac.InsertReply\x12\x30\n\x06Sample\x12\x13.asac.SampleRequest\x1a\x11.asac.SampleReply\x12N\n\x10UpdatePriorities\x12\x1d.asac.UpdatePrioritiesRequest\x1a\x1b.asac.UpdatePrioritiesReply\x12\x32\n\x07Windows\x12\x14.asac.WindowsRequest\x1a\x11.asac.SampleReply\x12K\n\x0fUpdateRnnStates\x12\x1c.asac.UpdateRnnStatesRequest\x1a\x1a.asac.UpdateRnnStatesReply\x12*\n\x04Info\x12\x11.asac.InfoRequest\x1a\x0f.asac.InfoReply\x12*\n\x04Save\x12\x11.asac.SaveRequest\x1a\x0f.asac.SaveReply\x12*\n\x04Load\x12\x11.asac.LoadRequest\x1a\x0f.asac.LoadReplyb\x06proto3')
 
 _globals = globals()
 _builder.BuildMessageAndEnumDescriptors(DESCRIPTOR, _globals)
@@ -49,34 +49,36 @@ if not _descriptor._USE_C_DESCRIPTORS:
   _globals['_SAMPLEREQUEST']._serialized_end=730
   _globals['_SAMPLEREPLY']._serialized_start=733
   _globals['_SAMPLEREPLY']._serialized_end=1141
-  _globals['_UPDATEPRIORITIESREQUEST']._serialized_start=1143
-  _globals['_UPDATEPRIORITIESREQUEST']._serialized_end=1230
-  _globals['_UPDATEPRIORITIESREPLY']._serialized_start=1232
-  _globals['_UPDATEPRIORITIESREPLY']._serialized_end=1255
-  _globals['_UPDATERNNSTATESREQUEST']._serialized_start=1257
-  _globals['_UPDATERNNSTATESREQUEST']._serialized_end=1339
-  _globals['_UPDATERNNSTATESREPLY']._serialized_start=1341
-  _globals['_UPDATERNNSTATESREPLY']._serialized_end=1363
-  _globals['_INFOREQUEST']._serialized_start=1365
-  _globals['_INFOREQUEST']._serialized_end=1378
-  _globals['_NORMALIZERSTATS']._serialized_start=1380
-  _globals['_NORMALIZERSTATS']._serialized_end=1467
-  _globals['_INFOREPLY']._serialized_start=1470
-  _globals['_INFOREPLY']._serialized_end=1798
-  _globals['_INFOREPLY_COUNTERSENTRY']._serialized_start=1630
-  _globals['_INFOREPLY_COUNTERSENTRY']._serialized_end=1677
-  _globals['_INFOREPLY_VALUESENTRY']._serialized_start=1679
-  _globals['_INFOREPLY_VALUESENTRY']._serialized_end=1724
-  _globals['_INFOREPLY_NORMALIZERENTRY']._serialized_start=1726
-  _globals['_INFOREPLY_NORMALIZERENTRY']._serialized_end=1798
-  _globals['_SAVEREQUEST']._serialized_start=1800
-  _globals['_SAVEREQUEST']._serialized_end=1827
-  _globals['_SAVEREPLY']._serialized_start=1829
-  _globals['_SAVEREPLY']._serialized_end=1840
-  _globals['_LOADREQUEST']._serialized_start=1842
-  _globals['_LOADREQUEST']._serialized_end=1869
-  _globals['_LOADREPLY']._serialized_start=1871
-  _globals['_LOADREPLY']._serialized_end=1882
-  _globals['_REPLAYSERVICE']._serialized_start=1885
-  _globals['_REPLAYSERVICE']._serialized_end=2289
+  _globals['_WINDOWSREQUEST']._serialized_start=1143
+  _globals['_WINDOWSREQUEST']._serialized_end=1198
+  _globals['_UPDATEPRIORITIESREQUEST']._serialized_start=1200
+  _globals['_UPDATEPRIORITIESREQUEST']._serialized_end=1287
+  _globals['_UPDATEPRIORITIESREPLY']._serialized_start=1289
+  _globals['_UPDATEPRIORITIESREPLY']._serialized_end=1312
+  _globals['_UPDATERNNSTATESREQUEST']._serialized_start=1314
+  _globals['_UPDATERNNSTATESREQUEST']._serialized_end=1396
+  _globals['_UPDATERNNSTATESREPLY']._serialized_start=1398
+  _globals['_UPDATERNNSTATESREPLY']._serialized_end=1420
+  _globals['_INFOREQUEST']._serialized_start=1422
+  _globals['_INFOREQUEST']._serialized_end=1435
+  _globals['_NORMALIZERSTATS']._serialized_start=1437
+  _globals['_NORMALIZERSTATS']._serialized_end=1524
+  _globals['_INFOREPLY']._serialized_start=1527
+  _globals['_INFOREPLY']._serialized_end=1855
+  _globals['_INFOREPLY_COUNTERSENTRY']._serialized_start=1687
+  _globals['_INFOREPLY_COUNTERSENTRY']._serialized_end=1734
+  _globals['_INFOREPLY_VALUESENTRY']._serialized_start=1736
+  _globals['_INFOREPLY_VALUESENTRY']._serialized_end=1781
+  _globals['_INFOREPLY_NORMALIZERENTRY']._serialized_start=1783
+  _globals['_INFOREPLY_NORMALIZERENTRY']._serialized_end=1855
+  _globals['_SAVEREQUEST']._serialized_start=1857
+  _globals['_SAVEREQUEST']._serialized_end=1884
+  _globals['_SAVEREPLY']._serialized_start=1886
+  _globals['_SAVEREPLY']._serialized_end=1897
+  _globals['_LOADREQUEST']._serialized_start=1899
+  _globals['_LOADREQUEST']._serialized_end=1926
+  _globals['_LOADREPLY']._serialized_start=1928
+  _globals['_LOADREPLY']._serialized_end=1939
+  _globals['_REPLAYSERVICE']._serialized_start=1942
+  _globals['_REPLAYSERVICE']._serialized_end=2398
 # @@protoc_insertion_point(module_scope)

@@ -98,6 +98,14 @@ class SampleReply(_message.Message):
     rnn_state: Tensor
     def __init__(self, keys: _Optional[_Union[Tensor, _Mapping]] = ..., probabilities: _Optional[_Union[Tensor, _Mapping]] = ..., table_size: _Optional[int] = ..., obs: _Optional[_Iterable[_Union[Tensor, _Mapping]]] = ..., actions: _Optional[_Union[Tensor, _Mapping]] = ..., prev_actions: _Optional[_Union[Tensor, _Mapping]] = ..., rewards: _Optional[_Union[Tensor, _Mapping]] = ..., terminated: _Optional[_Union[Tensor, _Mapping]] = ..., truncated: _Optional[_Union[Tensor, _Mapping]] = ..., behaviour_logp: _Optional[_Union[Tensor, _Mapping]] = ..., mask: _Optional[_Union[Tensor, _Mapping]] = ..., rnn_state: _Optional[_Union[Tensor, _Mapping]] = ...) -> None: ...
 
+class WindowsRequest(_message.Message):
+    __slots__ = ("from_key", "max_windows")
+    FROM_KEY_FIELD_NUMBER: _ClassVar[int]
+    MAX_WINDOWS_FIELD_NUMBER: _ClassVar[int]
+    from_key: int
+    max_windows: int
+    def __init__(self, from_key: _Optional[int] = ..., max_windows: _Optional[int] = ...) -> None: ...
+
 class UpdatePrioritiesRequest(_message.Message):
     __slots__ = ("keys", "priorities")
     KEYS_FIELD_NUMBER: _ClassVar[int]

@@ -52,6 +52,11 @@ class ReplayServiceStub:
                 request_serializer=protos_dot_replay__pb2.UpdatePrioritiesRequest.SerializeToString,
                 response_deserializer=protos_dot_replay__pb2.UpdatePrioritiesReply.FromString,
                 _registered_method=True)
+        self.Windows = channel.unary_unary(
+                '/asac.ReplayService/Windows',
+                request_serializer=protos_dot_replay__pb2.WindowsRequest.SerializeToString,
+                response_deserializer=protos_dot_replay__pb2.SampleReply.FromString,
+                _registered_method=True)
         self.UpdateRnnStates = channel.unary_unary(
                 '/asac.ReplayService/UpdateRnnStates',
                 request_serializer=protos_dot_replay__pb2.UpdateRnnStatesRequest.SerializeToString,
@@ -132,6 +137,17 @@ class ReplayServiceServicer:
         context.set_details('Method not implemented!')
         raise NotImplementedError('Method not implemented!')
 
+    def Windows(self, request, context):
+        """The windows starting at the oldest max_windows stored steps with keys >= from_key, in key
+        order, with their current sampling probabilities: what a learner scores to give new data its
+        |TD| as priority (sac_config.insert_td_priorities). Not a sample: the rate limiter does not
+        count it and it never waits; no such step: an empty reply (no keys). Errors: INVALID_ARGUMENT
+        (max_windows < 1), RESOURCE_EXHAUSTED (the windows would exceed the message limit).
+        """
+        context.set_code(grpc.StatusCode.UNIMPLEMENTED)
+        context.set_details('Method not implemented!')
+        raise NotImplementedError('Method not implemented!')
+
     def UpdateRnnStates(self, request, context):
         """Overwrites the stored recurrent state of each key still stored (sac_config.refresh_rnn_states:
         the learner recomputes the states over each window it trained on). Called by learners after an
@@ -194,6 +210,11 @@ def add_ReplayServiceServicer_to_server(servicer, server):
                     servicer.UpdatePriorities,
                     request_deserializer=protos_dot_replay__pb2.UpdatePrioritiesRequest.FromString,
                     response_serializer=protos_dot_replay__pb2.UpdatePrioritiesReply.SerializeToString,
+            ),
+            'Windows': grpc.unary_unary_rpc_method_handler(
+                    servicer.Windows,
+                    request_deserializer=protos_dot_replay__pb2.WindowsRequest.FromString,
+                    response_serializer=protos_dot_replay__pb2.SampleReply.SerializeToString,
             ),
             'UpdateRnnStates': grpc.unary_unary_rpc_method_handler(
                     servicer.UpdateRnnStates,
@@ -300,6 +321,33 @@ class ReplayService:
             '/asac.ReplayService/UpdatePriorities',
             protos_dot_replay__pb2.UpdatePrioritiesRequest.SerializeToString,
             protos_dot_replay__pb2.UpdatePrioritiesReply.FromString,
+            options,
+            channel_credentials,
+            insecure,
+            call_credentials,
+            compression,
+            wait_for_ready,
+            timeout,
+            metadata,
+            _registered_method=True)
+
+    @staticmethod
+    def Windows(request,
+            target,
+            options=(),
+            channel_credentials=None,
+            call_credentials=None,
+            insecure=False,
+            compression=None,
+            wait_for_ready=None,
+            timeout=None,
+            metadata=None):
+        return grpc.experimental.unary_unary(
+            request,
+            target,
+            '/asac.ReplayService/Windows',
+            protos_dot_replay__pb2.WindowsRequest.SerializeToString,
+            protos_dot_replay__pb2.SampleReply.FromString,
             options,
             channel_credentials,
             insecure,

@@ -6,6 +6,7 @@ Usage, from an actor and a learner sharing one table::
     table.insert_once(chunks, ChunkIds(producer, seqs, acked_below))   # actor: safe to send again
     batch = table.sample(batch_size, timeout=1.0)   # learner: B windows, with keys and probabilities
     table.update_priorities(batch.keys, td_abs)     # learner: |TD| per sampled key; evicted keys ignored
+    new = table.windows_after(cursor, 256)          # learner: new data to score (insert_td_priorities)
     stats = table.info()                            # anyone: sizes, counters, normalizer stats
 
 ``update_priorities`` and ``insert(..., priorities=...)`` take raw magnitudes (mean |TD| over Q
@@ -55,6 +56,11 @@ class ReplayTable(Protocol):
 
     def update_priorities(self, keys: np.ndarray, priorities: np.ndarray) -> None:
         """Set the priority of each key still stored; evicted or unknown keys are ignored."""
+        ...
+
+    def windows_after(self, key: int, limit: int) -> Batch | None:
+        """The windows starting at the oldest ``limit`` stored steps with keys ``>= key`` (None: no
+        such step), for scoring new data; not counted as sampling and never blocking."""
         ...
 
     def update_rnn_states(self, keys: np.ndarray, states: np.ndarray) -> None:

@@ -369,6 +369,28 @@ class PrioritizedTable:
             self.rate_limiter.record_sample(b)
         return batch
 
+    def windows_after(self, key: int, limit: int) -> Batch | None:
+        """The windows starting at the oldest ``limit`` stored steps whose keys are ``>= key``, in key
+        order, or None when there are none: what a learner scores to give new data its |TD| as
+        priority (``sac_config.insert_td_priorities``). Not a sample: the rate limiter does not count
+        it and it never waits. ``probabilities`` are the windows' current sampling probabilities."""
+        if int(limit) < 1:
+            raise ValueError(f"windows_after: limit must be >= 1, got {limit}")
+        if int(key) < 0:
+            raise ValueError(f"windows_after: key must be >= 0, got {key}")
+        with self._lock:
+            low = max(int(key), self._next_key - self.capacity)
+            # Bootstrap rows are at most one in two rows, so 2 * limit candidates hold limit steps.
+            candidates = np.arange(low, min(self._next_key, low + 2 * int(limit)), dtype=np.int64)
+            rows = candidates % self.capacity
+            rows = rows[self._live(candidates, rows)][: int(limit)]
+            if not rows.shape[0]:
+                return None
+            total = self._tree.total
+            size = self.rate_limiter.size
+            probabilities = self._tree.get(rows) / total if total > 0.0 else np.full(rows.shape[0], 1.0 / size)
+            return self._gather(rows, probabilities, size)
+
     def update_priorities(self, keys: np.ndarray, priorities: np.ndarray) -> None:
         """Set raw priorities (e.g. mean |TD| over heads) of ``keys``; keys that are evicted,
         bootstrap rows or never issued are ignored. Shapes must match; values finite and >= 0."""

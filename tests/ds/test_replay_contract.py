@@ -58,6 +58,7 @@ from tests.algorithm.replay.test_table_persistence import (  # noqa: F401
 )
 from tests.algorithm.replay.test_table_windows import (  # noqa: F401
     test_window_past_the_chunk_end_is_masked_and_repeats_the_final_observation,
+    test_windows_after_a_key_are_the_oldest_stored_steps_from_it_in_key_order,
     test_windows_never_span_two_chunks,
 )
 

@@ -331,7 +331,7 @@ def test_an_unknown_field_at_any_depth_is_refused_naming_where(
 
 @FUZZ
 @given(
-    method=st.sampled_from(["Sample", "UpdatePriorities", "UpdateRnnStates", "Info", "Save", "Load"]),
+    method=st.sampled_from(["Sample", "UpdatePriorities", "UpdateRnnStates", "Windows", "Info", "Save", "Load"]),
     field=unknown_field(),
 )
 def test_an_unknown_field_in_any_other_replay_request_is_refused(
@@ -345,6 +345,7 @@ def test_an_unknown_field_in_any_other_replay_request_is_refused(
         "UpdateRnnStates": replay_pb2.UpdateRnnStatesRequest(
             keys=keys, states=to_tensor(np.ones((2, RNN), np.float32))
         ),
+        "Windows": replay_pb2.WindowsRequest(from_key=0, max_windows=2),
         "Info": replay_pb2.InfoRequest(),
         "Save": replay_pb2.SaveRequest(path="unknown.npz"),
         "Load": replay_pb2.LoadRequest(path="good.npz"),

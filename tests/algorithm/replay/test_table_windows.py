@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
@@ -87,3 +88,25 @@ def test_windows_never_span_two_chunks(
         if alpha:  # perturb priorities, including of evicted keys, to exercise the tree
             some = rng.integers(0, next_key, 8).astype(np.uint64)
             tab.update_priorities(some, rng.uniform(0.0, 2.0, 8))
+
+
+def test_windows_after_a_key_are_the_oldest_stored_steps_from_it_in_key_order(connect: Connect) -> None:
+    """What a learner scores for sac_config.insert_td_priorities: the stored steps from a key on,
+    the same windows a sample would draw for them, without counting as sampling."""
+    tab = connect(PrioritizedTable(12, (VECTOR,), 2, window=2, alpha=1.0, seed=0))
+    tab.insert(make_chunk(3, 0))  # keys 0-2, bootstrap 3
+    tab.insert(make_chunk(4, 4, terminated=True))  # keys 4-7, bootstrap 8
+    first = tab.windows_after(0, 4)
+    assert first is not None and first.keys.tolist() == [0, 1, 2, 4]  # bootstrap rows never start a window
+    check_windows(first, {k: (3, False) for k in (0, 1, 2)} | {k: (8, True) for k in (4, 5, 6, 7)}, 0)
+    assert first.probabilities == pytest.approx(np.full(4, 1 / 7))  # all at the maximum priority
+    rest = tab.windows_after(5, 10)
+    assert rest is not None and rest.keys.tolist() == [5, 6, 7]
+    assert tab.windows_after(8, 10) is None and tab.windows_after(100, 1) is None
+    tab.insert(make_chunk(4, 9))  # keys 9-12 and bootstrap 13 take rows 9, 10, 11, 0, 1 (capacity 12)
+    after = tab.windows_after(0, 3)
+    assert after is not None and after.keys.tolist() == [2, 4, 5]  # keys 0, 1 are evicted: the oldest stored first
+    assert tab.info()["sampled_windows"] == 0  # not sampling
+    for bad, message in [((0, 0), "limit must be >= 1"), ((-1, 2), "key must be >= 0")]:
+        with pytest.raises((ValueError, RuntimeError), match=message):
+            tab.windows_after(*bad)
