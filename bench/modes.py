@@ -2,7 +2,7 @@
 
     python -m bench.modes TASK --threshold X [--seeds 0 1 2 3 4] [--steps N] [--every K] [--actors 2]
         [--modes main local] [--override KEY=VALUE ...] [--timeout S]
-    python -m bench.modes --report
+    python -m bench.modes --report [--results CSV]
 
 Each run is the user's command, a real subprocess in a temporary working directory (its own process
 group, ``OMP_NUM_THREADS=1``, ``OMP_WAIT_POLICY=PASSIVE``), with the task's default config and only
@@ -242,9 +242,11 @@ def main() -> None:
     p.add_argument("--override", action="append", default=[], metavar="KEY=VALUE")
     p.add_argument("--timeout", type=float, default=1800, help="seconds per run before it is stopped")
     p.add_argument("--report", action="store_true")
+    p.add_argument("--results", type=Path, default=RESULTS,
+                   help="the CSV to append rows to and report from (a variant's runs in a file of their own)")
     args = p.parse_args()
     if args.report or args.task is None:
-        print(report())
+        print(report(args.results))
         return
     if args.threshold is None:
         p.error("--threshold is required with a task")
@@ -253,7 +255,7 @@ def main() -> None:
         for mode in args.modes:
             row = run(args.task, mode, seed, args.steps, args.every, args.threshold, args.actors, args.override,
                       args.timeout, commit.strip())  # fmt: skip
-            append(row)
+            append(row, args.results)
             print(row, flush=True)
 
 
