@@ -90,9 +90,6 @@ class ResolvedConfig:
     config: Config
     sources: dict[str, str]
 
-    def to_yaml(self) -> str:
-        return config_to_yaml(self.config)
-
 
 def config_to_yaml(config: Config) -> str:
     return yaml.safe_dump(config.model_dump(mode="json"), sort_keys=False, default_flow_style=False)

@@ -207,10 +207,6 @@ class Population:
         self.learners[learner_id] = LearnerRecord(learner_id, params)
         return learner_id, copy.deepcopy(params)
 
-    def remove_learner(self, learner_id: int) -> None:
-        """Forget a learner that left for good (it is not counted as retired)."""
-        del self.learners[self._known(learner_id)]
-
     def learner_config(self, learner_id: int) -> Config:
         return apply_params(self.config, self.learners[self._known(learner_id)].params)
 

@@ -51,10 +51,6 @@ class RecurrentRepresentation(Representation):
         h, c = self.cell(x, tuple(state.chunk(2, dim=-1)))
         return h, torch.cat([h, c], dim=-1)
 
-    def initial_state(self, n: int, device: torch.device | str = "cpu") -> Tensor:
-        """The state an episode starts from: zeros ``[n, rnn_state_size]``."""
-        return torch.zeros(n, self.rnn_state_size, device=device)
-
     def step(self, obs: list[Tensor], prev_action: Tensor, state: Tensor) -> tuple[Tensor, Tensor]:
         """Acting: ``(state features [N, H], next recurrent state)`` for one observation per env."""
         x = torch.cat([self.features(obs), prev_action], dim=-1)
