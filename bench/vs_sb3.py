@@ -464,28 +464,12 @@ def suite(args: argparse.Namespace) -> None:
     for task in args.tasks:
         for seed in args.seeds:
             for which, system in (("ours", "asac"), ("sb3", "sb3")):
-                if finished(out, task, system, seed, args.steps, " ".join(overrides if system == "asac" else [])):
+                extra = overrides if system == "asac" else []
+                if finished(out, task, system, seed, args.steps, " ".join(extra)):
                     continue
-                cmd = [
-                    sys.executable,
-                    "-m",
-                    "bench.vs_sb3",
-                    "mujoco",
-                    task,
-                    "--seeds",
-                    str(seed),
-                    "--which",
-                    which,
-                    "--steps",
-                    str(args.steps),
-                    "--every",
-                    str(args.every),
-                    "--threads",
-                    str(args.threads),
-                    "--out",
-                    str(out),
-                    *[a for o in overrides for a in ("--override", o)],
-                ]
+                cmd = [sys.executable, "-m", "bench.vs_sb3", "mujoco", task, "--seeds", str(seed), "--which", which]
+                cmd += ["--steps", str(args.steps), "--every", str(args.every), "--threads", str(args.threads)]
+                cmd += ["--out", str(out), *[a for o in extra for a in ("--override", o)]]
                 print(time.strftime("%H:%M:%S"), " ".join(cmd[1:]), flush=True)
                 rc = subprocess.run(cmd, cwd=ROOT, check=False).returncode
                 print(time.strftime("%H:%M:%S"), f"{task} {system} seed {seed}: exit {rc}", flush=True)
