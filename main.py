@@ -48,6 +48,7 @@ from envs.make import VectorEnv, make_env, vector_env_factory
 
 ROOT = Path(__file__).resolve().parent
 ENVS_DIR = ROOT / "envs"
+MODEL_ROOT_ENV = "ASAC_MODEL_ROOT"  # --model_root's default when set (the Dockerfiles set it to their /data volume)
 log = logging.getLogger("asac")
 
 
@@ -138,7 +139,11 @@ def add_common_args(p: argparse.ArgumentParser) -> None:
         metavar="SECTION.KEY=VALUE",
         help="set any config key, e.g. sac.n_step=5 (repeatable)",
     )
-    p.add_argument("--model_root", default="models", help="where run folders go (default ./models)")
+    p.add_argument(
+        "--model_root",
+        default=os.environ.get(MODEL_ROOT_ENV) or "models",
+        help=f"where run folders go (default ${MODEL_ROOT_ENV}, else ./models; the images set /data/models)",
+    )
     p.add_argument("--episodes", type=positive, help="with --run: episodes to play (default eval_config.eval_episodes)")
     p.add_argument("--no_progress", action="store_true", help="no progress line")
 
@@ -158,6 +163,26 @@ def run_directory(model_root: str, task: str, name: str) -> Path:
     if not name.strip() or Path(name).is_absolute() or ".." in parts or "\0" in name:
         raise UsageError(f"run name {name!r} must be a relative path inside {model_root}/{task}/ (no '..')")
     return Path(model_root) / task / name
+
+
+def check_writable(run_dir: Path, model_root: str) -> None:
+    """The run folder can be written: it, or the nearest folder above it that exists, is a folder this
+    user may write. Otherwise a :class:`UsageError` naming the path and what to do, before anything
+    starts (a root-owned or read-only model root, a volume mounted for another user, a file in the
+    way), rather than a PermissionError traceback from a role that already runs."""
+    fix = f"pass --model_root a folder this user (uid {os.getuid()}) can write, or mount a writable volume there"
+    for path in (run_dir, *run_dir.parents):
+        try:
+            if not path.exists():
+                continue
+            folder = path.is_dir()
+        except OSError as e:
+            raise UsageError(f"cannot write run folders under {model_root}: {path}: {e.strerror}; {fix}") from None
+        if not folder:
+            raise UsageError(f"cannot write run folders under {model_root}: {path} is not a folder; {fix}")
+        if not os.access(path, os.W_OK | os.X_OK):
+            raise UsageError(f"cannot write run folders under {model_root}: {path} is not writable; {fix}")
+        return
 
 
 @contextmanager
@@ -262,6 +287,7 @@ def train(args: argparse.Namespace) -> int:
         if args.repeat > 1:
             name = f"{name}_{repeat}"
         run_dir = run_directory(args.model_root, args.env, name)
+        check_writable(run_dir, args.model_root)
         saved_config = RunDir(run_dir).config
         if saved_config.exists():
             # Resuming: the run's own resolved config (seed included) wins; command-line overrides still apply.

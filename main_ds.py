@@ -38,6 +38,7 @@ from main import (
     add_common_args,
     check_device,
     check_env,
+    check_writable,
     cli_overrides,
     copy_model_file,
     env_factory,
@@ -140,6 +141,7 @@ def resolve(args: argparse.Namespace) -> tuple[Config, Path]:
     config = load_config(task, args.config, overrides).config
     name = (args.name or config.base_config.name).replace("{time}", time.strftime("%Y%m%d%H%M%S"))
     run_dir = run_directory(args.model_root, args.env, name)
+    check_writable(run_dir, args.model_root)
     saved = RunDir(run_dir).config
     if saved.exists():
         config = apply_overrides(config_from_file(saved), overrides)
