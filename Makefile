@@ -5,14 +5,21 @@ PY := $(VENV)/bin/python
 TASK ?= gym/pendulum
 PYTEST_ARGS ?=
 
-.PHONY: install install-test train test lint bench
+.PHONY: install install-test train test lint bench image-test lock
 
-$(VENV)/.installed: pyproject.toml
+# Everything from the lock files of requirements/ (exact versions and hashes; requirements/update.sh
+# writes them), in the order of the Dockerfile's test target: torch's CPU build first, alone (the one
+# package from the PyTorch CPU index), the runtime set, the test extra, then this checkout as an
+# editable package without resolving anything.
+LOCKS := requirements/torch-cpu.txt requirements/runtime.txt requirements/test.txt
+
+$(VENV)/.installed: pyproject.toml $(LOCKS)
 	python3 -m venv $(VENV)
-	$(PY) -m pip install --quiet --upgrade pip
-	# torch first and pinned: any other resolution pulls CUDA wheels (see pyproject.toml).
-	$(PY) -m pip install --quiet torch==2.13.0
-	$(PY) -m pip install --quiet -e '.[test]'
+	$(PY) -m pip install --quiet --require-hashes --no-deps -r requirements/torch-cpu.txt
+	$(PY) -m pip install --quiet --require-hashes -r requirements/runtime.txt
+	$(PY) -m pip install --quiet --require-hashes -r requirements/test.txt
+	$(PY) -m pip install --quiet --no-deps --no-build-isolation -e .
+	$(PY) -m pip check
 	touch $@
 
 install: $(VENV)/.installed
@@ -32,3 +39,11 @@ bench: install
 	bash bench/torchrl_setup.sh $(VENV)
 	$(PY) -m bench.learner
 	$(PY) -m bench.replay
+
+# Builds the CPU image and runs it as docs/deploy.md documents (podman or docker; skips without either).
+image-test:
+	bash tests/image_smoke.sh
+
+# Rewrites the lock files of requirements/ from pyproject.toml (keeps locked versions; UPGRADE=--upgrade moves them).
+lock:
+	bash requirements/update.sh $(UPGRADE)

@@ -1,15 +1,12 @@
 """The deployment: the learner/replay pairing by pod ordinal (ds/k8s.py), the k8s/ manifests as
 ``kubectl kustomize`` renders them (valid against the Kubernetes schemas; commands that main_ds.py's
-parser accepts; ports, probes and mounts that agree with each role's resolved config) and the
-Dockerfiles (the Makefile's install steps, in order)."""
+parser accepts; ports, probes and mounts that agree with each role's resolved config, and with the
+image: its user, working directory and model root, tests/test_image.py)."""
 
 from __future__ import annotations
 
 import argparse
 import functools
-import json
-import re
-import shlex
 import shutil
 import subprocess
 from dataclasses import dataclass
@@ -27,6 +24,7 @@ from ds import evolver_service, learner_service, replay_service
 from ds.k8s import PodName, paired_hosts, parse_pod_name, stable_host
 from main import UsageError, cli_overrides, task_dir
 from main_ds import ROLES, build_parser
+from tests.test_image import image_env, image_uid, image_workdir
 
 ROOT = Path(__file__).resolve().parents[1]
 K8S = ROOT / "k8s"
@@ -39,7 +37,6 @@ HEALTH_SERVICE = {
 }
 SERVERS = tuple(HEALTH_SERVICE)  # roles that listen; actors only connect
 GRACE_FOR_SAVING = {"learner": 60, "replay": 60}  # they checkpoint / snapshot on SIGTERM
-CPU_INDEX = "https://download.pytorch.org/whl/cpu"
 
 
 # ---------------------------------------------------------------------- pairing by ordinal (pure)
@@ -304,6 +301,7 @@ def test_pods_run_as_non_root_with_writes_on_volumes(render: Any, name: str) -> 
         assert security["readOnlyRootFilesystem"] is True and security["allowPrivilegeEscalation"] is False
         writable = [m["mountPath"] for m in c.spec["volumeMounts"] if not m.get("readOnly")]
         model_root = c.argv[c.argv.index("--model_root") + 1]
+        assert model_root == image_env()["ASAC_MODEL_ROOT"], f"{c.where}: not the image's model root (its volume)"
         for path in [model_root, "/tmp", *env.values()]:  # asac-env holds the cache folders
             assert any(Path(path).is_relative_to(m) for m in writable), f"{c.where}: {path} is on the read-only root"
         threads = next((e["value"] for e in c.spec.get("env", []) if e["name"] == "OMP_NUM_THREADS"), None)
@@ -403,105 +401,3 @@ def test_tls_component_gives_each_role_its_own_secret_through_the_tls_flags(rend
 def cpus(quantity: str | int) -> int:
     text = str(quantity)
     return max(1, int(text[:-1]) // 1000) if text.endswith("m") else int(float(text))
-
-
-# ---------------------------------------------------------------------- images
-
-
-def dockerfiles() -> list[Path]:
-    return sorted(ROOT.glob("Dockerfile*"))
-
-
-def instructions(path: Path) -> list[tuple[str, str]]:
-    """(INSTRUCTION, rest) per Dockerfile instruction, line continuations joined, comments dropped."""
-    text = re.sub(r"\\\n", " ", "\n".join(line for line in path.read_text().splitlines() if not line.startswith("#")))
-    return [(m[1].upper(), m[2].strip()) for m in re.finditer(r"^\s*(\w+)\s+(.*)$", text, re.M)]
-
-
-def install_steps(commands: list[str]) -> list[tuple[tuple[str, ...], dict[str, str]]]:
-    """Each ``pip install`` in ``commands`` as (what it installs, its index options): options that only
-    change how pip talks (quiet, cache) are dropped, ``-e X`` and ``--upgrade`` are kept."""
-    steps = []
-    for command in commands:
-        for part in command.split("&&"):
-            words = shlex.split(part)
-            if "pip" not in words or "install" not in words[words.index("pip") :]:
-                continue
-            words = words[words.index("install", words.index("pip")) + 1 :]
-            what: list[str] = []
-            index: dict[str, str] = {}
-            while words:
-                word = words.pop(0)
-                if word in ("--index-url", "-i", "--extra-index-url"):
-                    index[word.lstrip("-")] = words.pop(0)
-                elif word in ("-e", "--editable"):
-                    what.append(f"-e {words.pop(0)}")
-                elif word in ("-U", "--upgrade"):
-                    what.append("--upgrade")
-                elif not word.startswith("-"):
-                    what.append(word)
-            steps.append((tuple(what), index))
-    return steps
-
-
-def makefile_steps() -> list[tuple[str, ...]]:
-    """The pip installs of the recipe that ``make install`` (hence ``make test`` and ``make train``) runs."""
-    text = (ROOT / "Makefile").read_text().replace("$(VENV)", ".venv")
-    (target,) = re.findall(r"^install:\s*(\S+)", text, re.M)
-    recipe = text.split(f"\n{target}:", 1)[1].split("\n\n", 1)[0]
-    lines = [line.strip() for line in recipe.splitlines() if line.startswith("\t")]
-    return [what for what, _ in install_steps(lines)]
-
-
-def image_uid() -> int:
-    users = {rest for path in dockerfiles() for op, rest in instructions(path) if op == "USER"}
-    assert len(users) == 1, f"the Dockerfiles run as different users: {users}"
-    return int(users.pop().split(":")[0])
-
-
-def image_workdir() -> str:
-    (workdir,) = {rest for path in dockerfiles() for op, rest in instructions(path) if op == "WORKDIR"}
-    return workdir
-
-
-def test_there_is_a_cpu_and_a_cuda_image() -> None:
-    bases = {path.name: next(rest for op, rest in instructions(path) if op == "FROM") for path in dockerfiles()}
-    assert bases.keys() == {"Dockerfile", "Dockerfile.cuda"}
-    assert bases["Dockerfile.cuda"].startswith("nvidia/cuda:") and "runtime" in bases["Dockerfile.cuda"]
-    assert (ROOT / ".dockerignore").is_file()
-    ignored = (ROOT / ".dockerignore").read_text().split()
-    assert {".git", ".venv", "models"} <= set(ignored)
-
-
-@pytest.mark.parametrize("path", dockerfiles(), ids=lambda p: p.name)
-def test_image_installs_what_the_makefile_installs_in_its_order(path: Path) -> None:
-    runs = [rest for op, rest in instructions(path) if op == "RUN"]
-    steps = install_steps(runs)
-    assert [what for what, _ in steps] == makefile_steps(), f"{path.name}: pip installs differ from the Makefile's"
-    (torch_index,) = [index for what, index in steps if any(w.startswith("torch==") for w in what)]
-    if path.name == "Dockerfile":
-        assert torch_index == {"index-url": CPU_INDEX}, "the CPU image takes torch from the CPU index"
-    else:
-        assert torch_index == {}, "the CUDA image takes the default (CUDA) torch wheel"
-
-
-@pytest.mark.parametrize("path", dockerfiles(), ids=lambda p: p.name)
-def test_image_runs_main_ds_as_a_non_root_user(path: Path) -> None:
-    ops = dict(instructions(path))  # the last of each
-    assert json.loads(ops["ENTRYPOINT"]) == ["python", "main_ds.py"], "exec form: python gets SIGTERM itself"
-    assert image_uid() > 0 and ops["USER"].split(":")[0].isdigit(), "numeric, so runAsNonRoot can check it"
-    assert ops["WORKDIR"] == image_workdir()
-
-
-def test_readme_describes_the_makefiles_install_steps() -> None:
-    """README's set-up section: torch pinned first, then the package (the Makefile runs exactly that)."""
-    setup = (ROOT / "README.md").read_text().split("## Set up", 1)[1].split("\n## ", 1)[0]
-    steps = makefile_steps()
-    (torch,) = [i for i, what in enumerate(steps) if any(w.startswith("torch==") for w in what)]
-    (package,) = [i for i, what in enumerate(steps) if any(w.startswith("-e ") for w in what)]
-    assert torch < package, "torch is installed first, so the package's dependencies keep its build"
-    pin = steps[torch][0].split("==")[1]
-    assert f"pinned to `{pin}`" in setup
-    assert f'"torch=={pin}"' in (ROOT / "pyproject.toml").read_text()
-    mentioned = [what for what, _ in install_steps(re.findall(r"`([^`]*pip install[^`]*)`", setup))]
-    assert mentioned == [steps[package]]
