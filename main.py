@@ -39,6 +39,7 @@ from algorithm.config import ConfigError, apply_overrides, config_from_file, loa
 from algorithm.config_schema import Config
 from algorithm.evaluation import evaluate
 from algorithm.learner_core import last_evaluation
+from algorithm.logging import LogFileHandler
 from algorithm.nn.user import ModelBuilder, model_builder
 from algorithm.random_params import draw_for_run
 from algorithm.sac import SAC
@@ -267,7 +268,7 @@ def setup_logging(run_dir: Path | None, in_file: bool) -> None:
     handlers: list[logging.Handler] = [logging.StreamHandler(sys.stderr)]
     if in_file and run_dir is not None:
         run_dir.mkdir(parents=True, exist_ok=True)
-        handlers.append(logging.FileHandler(run_dir / "log.txt"))
+        handlers.append(LogFileHandler(run_dir / "log.txt"))
     logging.basicConfig(
         level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s", handlers=handlers, force=True
     )

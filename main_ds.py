@@ -25,6 +25,7 @@ from pathlib import Path
 from algorithm.checkpoint import CheckpointError
 from algorithm.config import ConfigError, apply_overrides, config_from_file, config_to_yaml, load_config
 from algorithm.config_schema import Config
+from algorithm.logging import LogFileHandler
 from algorithm.sac import MAX_EXPLORATION_NOISE
 from algorithm.signals import StopRequest
 from algorithm.trainer import RunDir
@@ -193,7 +194,7 @@ def setup_logging(run_dir: Path, role: str, in_file: bool) -> None:
     handlers: list[logging.Handler] = [logging.StreamHandler(sys.stderr)]
     if in_file:
         run_dir.mkdir(parents=True, exist_ok=True)
-        handlers.append(logging.FileHandler(run_dir / f"log_{role}.txt"))
+        handlers.append(LogFileHandler(run_dir / f"log_{role}.txt"))
     logging.basicConfig(
         level=logging.INFO, format=f"%(asctime)s {role} %(levelname)s %(message)s", handlers=handlers, force=True
     )

@@ -1,18 +1,23 @@
 """Deterministic evaluation on envs separate from training, appended to ``evaluations.csv``.
 
 The CSV (``env_steps,updates,wall_seconds,return_mean,return_std``) is the interface scripts and
-our own learning checks read; TensorBoard gets the same numbers as ``eval/*``.
+our own learning checks read; TensorBoard gets the same numbers as ``eval/*``. Rows are appended
+by writing the whole file again atomically (:func:`algorithm.files.atomic_write`): a write that
+fails (a full disk) leaves the file as it was, never with half a row.
 """
 
 from __future__ import annotations
 
 import csv
+import io
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from algorithm.actor import Policy, VectorEnvLike
+from algorithm.files import atomic_write, open_regular
 
 CSV_FIELDS = ("env_steps", "updates", "wall_seconds", "return_mean", "return_std")
 
@@ -75,13 +80,33 @@ def evaluate(env: VectorEnvLike, policy: Policy, episodes: int, seed: int | None
     return EvalResult(np.asarray(returns), np.asarray(lengths))
 
 
+def evaluation_row(env_steps: int, updates: int, wall_seconds: float, result: EvalResult) -> list[str]:
+    """One row of ``evaluations.csv`` (:data:`CSV_FIELDS`)."""
+    return [str(env_steps), str(updates), f"{wall_seconds:.2f}", f"{result.mean:.4f}", f"{result.std:.4f}"]
+
+
+def append_evaluations(path: Path, rows: Sequence[Sequence[str]]) -> None:
+    """Append ``rows`` to the CSV at ``path`` (with the header when it is new), all or none: the file
+    is written again beside itself and renamed over (a few kB even for thousands of evaluations); an
+    ``OSError`` leaves it as it was."""
+    try:
+        with open_regular(path) as f:
+            old = f.read()
+    except FileNotFoundError:
+        old = b""
+    text = io.StringIO(newline="")
+    writer = csv.writer(text)
+    if not old:
+        writer.writerow(CSV_FIELDS)
+    elif not old.endswith(b"\n"):  # a row cut short by a crash of an older version: start a new line
+        text.write("\r\n")
+    writer.writerows(rows)
+    new = text.getvalue().encode()
+    atomic_write(path, lambda f: f.write(old + new))
+
+
 def append_evaluation(path: Path, env_steps: int, updates: int, wall_seconds: float, result: EvalResult) -> None:
-    new = not path.exists()
-    with path.open("a", newline="") as f:
-        writer = csv.writer(f)
-        if new:
-            writer.writerow(CSV_FIELDS)
-        writer.writerow([env_steps, updates, f"{wall_seconds:.2f}", f"{result.mean:.4f}", f"{result.std:.4f}"])
+    append_evaluations(path, [evaluation_row(env_steps, updates, wall_seconds, result)])
 
 
 def read_evaluations(path: Path) -> list[dict[str, float]]:

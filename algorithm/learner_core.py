@@ -19,6 +19,11 @@ limiter applies the same ratio to actors it cannot otherwise slow down.
 
 Checkpoints have one format for both (``model/<env_steps>.pt``: ``sac``, ``counters``, ``rng`` and
 the mode's extras), so ``main.py --run`` plays either and a finished run knows its last evaluation.
+
+A checkpoint, an ``evaluations.csv`` row or the run's ``config.yaml`` that cannot be written (a full
+disk, an I/O error) never stops training: it is logged once (:class:`~algorithm.files.WriteFailures`),
+the files before it stay as they were, and it is tried again at the next checkpoint (the rows at
+the next evaluation, all of them, in order); a final checkpoint that fails is logged as such.
 """
 
 from __future__ import annotations
@@ -34,10 +39,18 @@ from typing import Any, Protocol
 import numpy as np
 
 from algorithm.actor import VectorEnvLike
-from algorithm.checkpoint import capture_rng, load_for_resume, restore_rng, restoring, save_checkpoint
+from algorithm.checkpoint import (
+    capture_rng,
+    list_checkpoints,
+    load_for_resume,
+    restore_rng,
+    restoring,
+    save_checkpoint,
+)
 from algorithm.config import config_to_yaml
 from algorithm.config_schema import Config
-from algorithm.evaluation import EvalResult, append_evaluation, evaluate, read_evaluations
+from algorithm.evaluation import EvalResult, append_evaluations, evaluate, evaluation_row, read_evaluations
+from algorithm.files import WriteFailures, atomic_write
 from algorithm.logging import MetricsWriter, ProgressLine, RateMeter, Timers
 from algorithm.run_dir import EVAL_SEED_OFFSET, RunDir
 from algorithm.sac import SAC, UpdateResult
@@ -178,13 +191,23 @@ class LearnerCore:
         self.bar: ProgressLine | None = None
         self._started = time.perf_counter()
         self._last_save = time.perf_counter()
+        self.finishing = False  # in finish(): the saves now are the last ones
+        self.checkpoint_writes = WriteFailures("checkpoint", log, retry="trying again at the next checkpoint",
+                                               kept=self._checkpoints_kept)  # fmt: skip
+        self.evaluation_writes = WriteFailures(
+            "evaluations", log, retry="its row is held and written with the next evaluation's",
+            kept=lambda path: f"{path} keeps its rows" if path.exists() else f"{path} was not created",
+        )  # fmt: skip
+        self.config_writes = WriteFailures("run config", log, retry="trying again at the next checkpoint")
+        self._eval_rows: list[list[str]] = []  # evaluations.csv rows not written yet
+        self._config_written = False
 
     # -- lifecycle --------------------------------------------------------------------------
     def open(self) -> None:
         """Write the run's config and open its TensorBoard folder (after a restore that worked:
         a run whose checkpoint cannot be read keeps its files)."""
         self.paths.root.mkdir(parents=True, exist_ok=True)
-        self.paths.config.write_text(config_to_yaml(self.config))
+        self._write_config()
         self.writer = MetricsWriter(self.log_dir)
         self.writer.text("config", config_to_yaml(self.config), self.counters.env_steps)
 
@@ -213,7 +236,7 @@ class LearnerCore:
             shown = recent_return if recent_return is not None else c.last_eval_mean
             self.bar.update(c.env_steps, c.updates, self.update_rate.mark(c.updates), shown)
 
-    def finish(self) -> Path:
+    def finish(self) -> Path | None:
         """End of a run (budget spent, stop asked or interrupted): the final evaluation when the budget
         is spent and none was made at this step, a checkpoint, the writers closed."""
         c = self.counters
@@ -221,8 +244,11 @@ class LearnerCore:
         if self.bar is not None:
             self.bar.close()
             self.bar = None
+        self.finishing = True
         if self.done() and self.eval_env is not None and c.last_eval_step != c.env_steps:
             self.evaluate()
+        elif self._eval_rows:
+            self._write_evaluations()
         path = self.save()
         if self.writer is not None:
             self.writer.close()
@@ -306,7 +332,8 @@ class LearnerCore:
             result = evaluate(self.eval_env, self.sac, self.config.eval_config.eval_episodes, seed)
         c.evaluations += 1
         c.last_eval_mean, c.last_eval_step = result.mean, c.env_steps
-        append_evaluation(self.paths.evaluations, c.env_steps, c.updates, c.wall_seconds, result)
+        self._eval_rows.append(evaluation_row(c.env_steps, c.updates, c.wall_seconds, result))
+        self._write_evaluations()
         self.write(
             {
                 "eval/return_mean": result.mean,
@@ -321,19 +348,52 @@ class LearnerCore:
             c.next_eval += every * math.ceil((c.env_steps - c.next_eval + 1) / every)
         return result
 
+    def _write_evaluations(self) -> None:
+        """The rows not written yet, all or none (the next evaluation tries again)."""
+        path, rows = self.paths.evaluations, self._eval_rows
+        if self.evaluation_writes.attempt(path, lambda: append_evaluations(path, rows), final=self.finishing):
+            self._eval_rows = []
+        elif self.finishing:
+            log.error("%d evaluation rows are not in %s (they are in the log above and in TensorBoard's eval/*)",
+                      len(rows), path)  # fmt: skip
+
     # -- checkpoints ------------------------------------------------------------------------
-    def save(self) -> Path:
+    def save(self) -> Path | None:
         """Checkpoint the SAC state, counters, global RNGs and the mode's ``extra_state()`` as
-        ``model/<env_steps>.pt``."""
+        ``model/<env_steps>.pt``; None when it could not be written (logged; the checkpoints before
+        it are kept and the next one is due at the next interval, as if this one had been written)."""
         c, cfg = self.counters, self.config.sac_config
         while c.next_save <= c.env_steps:
             c.next_save += cfg.save_model_per_step
+        if not self._config_written:
+            self._write_config()
         extra = self.extra_state()  # first: it may bring counters up to date (the budget's balance)
         state = {"sac": self.sac.state_dict(), "counters": asdict(c), "rng": capture_rng(), **extra}
-        path = save_checkpoint(self.paths.model, c.env_steps, state, keep=cfg.keep_checkpoints)
+        path = self.paths.model / f"{c.env_steps}.pt"
+        written = self.checkpoint_writes.attempt(
+            path,
+            lambda: save_checkpoint(self.paths.model, c.env_steps, state, keep=cfg.keep_checkpoints),
+            final=self.finishing,
+        )
         self._last_save = time.perf_counter()
+        if not written:
+            return None
         log.info("checkpoint %s (%d updates)", path, c.updates)
         return path
+
+    def _checkpoints_kept(self, path: Path) -> str:
+        try:
+            steps = list_checkpoints(self.paths.model)
+        except OSError:
+            steps = []
+        if not steps:
+            return "no checkpoint of this run is on disk yet"
+        return f"the checkpoints before it are kept (the latest: {self.paths.model / f'{steps[-1]}.pt'})"
+
+    def _write_config(self) -> None:
+        """``config.yaml``, atomically: a resumed run whose disk is full keeps the file it has."""
+        path, text = self.paths.config, config_to_yaml(self.config).encode()
+        self._config_written = self.config_writes.attempt(path, lambda: atomic_write(path, lambda f: f.write(text)))
 
     def restore(self, step: int | None = None) -> tuple[Path, dict[str, Any]]:
         """Resume from checkpoint ``step`` (default: the latest): SAC state, counters, global RNGs.

@@ -33,9 +33,11 @@ import torch
 from algorithm.actor import ActorLoop, VectorEnvLike
 from algorithm.checkpoint import CheckpointError, list_checkpoints
 from algorithm.config_schema import Config
+from algorithm.files import WriteFailures
 from algorithm.learner_core import LearnerCore, UpdateBudget
 from algorithm.nn.user import model_builder
 from algorithm.replay import PrioritizedTable
+from algorithm.replay.persistence import snapshot_kept
 from algorithm.run_dir import EVAL_SEED_OFFSET, RunDir
 from algorithm.sac import SAC
 
@@ -136,6 +138,8 @@ class EmbeddedTrainer:
         self.budget = UpdateBudget(replay_cfg.updates_per_step, replay_cfg.min_size_to_sample)
         self.recent_returns: deque[float] = deque(maxlen=10)
         self._replay_saved_at: int | None = None  # inserted steps of the snapshot this run last wrote
+        self.replay_writes = WriteFailures("replay snapshot", log, retry="trying again with the next checkpoint",
+                                           kept=snapshot_kept)  # fmt: skip
         self._interrupted = False
 
         # Restored before anything is written: a run whose checkpoint cannot be read keeps its files.
@@ -211,8 +215,9 @@ class EmbeddedTrainer:
         return {**replay, "actor/nonfinite_steps": float(self.actor.nonfinite_steps)}  # dropped, logged by the loop
 
     # -- checkpoints ------------------------------------------------------------------------
-    def save(self) -> Path:
-        """Checkpoint learner state, counters and RNGs (and replay first, when save_replay is on)."""
+    def save(self) -> Path | None:
+        """Checkpoint learner state, counters and RNGs (and replay first, when save_replay is on);
+        None when the checkpoint could not be written (logged; the earlier ones are kept)."""
         return self.core.save()
 
     def _extra_state(self) -> dict[str, Any]:
@@ -220,8 +225,9 @@ class EmbeddedTrainer:
         ``save_replay`` every time, with ``save_replay_on_stop`` when the run is interrupted."""
         cfg = self.config.replay_config
         if cfg.save_replay or (self._interrupted and cfg.save_replay_on_stop):
-            self.table.save(self.paths.replay)
-            self._replay_saved_at = int(self.table.rate_limiter.inserted)
+            path, inserted = self.paths.replay, int(self.table.rate_limiter.inserted)
+            if self.replay_writes.attempt(path, lambda: self.table.save(path), final=self.core.finishing):
+                self._replay_saved_at = inserted  # else the checkpoint names the snapshot still on disk
         self.core.counters.owed_updates = self.budget.owed
         return {
             "actor_rng": self.actor.rng.bit_generator.state,

@@ -62,6 +62,7 @@ import yaml
 
 from algorithm.config_schema import Config
 from algorithm.evolution import Population, RoundResult, cem_due, sample_weights
+from algorithm.files import WriteFailures
 from algorithm.logging import MetricsWriter
 from ds.evolver_registry import LearnerRegistry, Return, check_address, check_host, check_port
 from ds.evolver_state import (
@@ -148,6 +149,9 @@ class Evolver:
         self._rng = np.random.default_rng(config.sac_config.seed if seed is None else seed)
         self._started_wall = self._last_round_wall = wall_clock()
         self._cem: CemDistribution | None = None  # the last round's Gaussian, for learners that join later
+        self.retry_save_s = 10.0  # after a failed save (a full disk), the round thread tries again this much later
+        self._save_failed_at = -math.inf
+        self.state_writes = WriteFailures("evolver state", log, retry=f"trying again in {self.retry_save_s:g} s")
         self._load()
 
     @property
@@ -352,7 +356,7 @@ class Evolver:
         if self._thread is not None:
             self._thread.join()
             self._thread = None
-        self.save()
+        self.save(final=True)
         self._write_metrics()
 
     def _loop(self) -> None:
@@ -362,14 +366,18 @@ class Evolver:
                 if self._clock() - last_check >= self.check_every_s:
                     last_check = self._clock()
                     self.run_round_if_due()
-                if self.registry.dirty:
-                    self.save()
+                failing_since = self._save_failed_at if self.state_writes.failing else -math.inf
+                due = self.registry.dirty and self._clock() - failing_since >= self.retry_save_s
+                if due and not self.save():
+                    self._save_failed_at = self._clock()
                 self._write_metrics()
             except Exception:  # the thread must outlive one bad round or a full disk; the log says why
                 log.exception("evolver round thread")
 
-    def save(self) -> None:
-        """Write new samples, then the state naming them, to ``state_dir``; then drop obsolete files."""
+    def save(self, final: bool = False) -> bool:
+        """Write new samples, then the state naming them, to ``state_dir``; then drop obsolete files.
+        False when a write failed (a full disk: logged once, the previous state and the files it names
+        kept, saved again when the round thread next looks, ``final``: at stop, the last try)."""
         with self._save_lock:
             with self._pop_lock:
                 self._drain()
@@ -384,12 +392,18 @@ class Evolver:
                     "registry": registry,
                     "cem_round": 0 if (cem := self._cem) is None else cem.round,
                 }
-            for sample in unsaved:
-                write_sample(self.state_dir, sample)
             new_cem = cem if cem is not None and not cem.saved else None
-            if new_cem is not None:
-                write_distribution(self.state_dir, new_cem)
-            save_state(self.state_dir, state)
+
+            def write() -> None:
+                for sample in unsaved:
+                    write_sample(self.state_dir, sample)
+                if new_cem is not None:
+                    write_distribution(self.state_dir, new_cem)
+                save_state(self.state_dir, state)
+
+            if not self.state_writes.attempt(self.state_dir / STATE_FILE, write, final=final):
+                self.registry.save_failed(obsolete)
+                return False
             self.registry.mark_saved(unsaved)
             for name in obsolete - {s.file_name for s in unsaved}:
                 (self.state_dir / SAMPLES_DIR / name).unlink(missing_ok=True)
@@ -398,6 +412,7 @@ class Evolver:
                 for path in self.state_dir.glob("cem.round_*.npz"):  # the previous round's
                     if path.name != new_cem.file_name:
                         path.unlink(missing_ok=True)
+            return True
 
     def _load(self) -> None:
         state = load_state(self.state_dir)

@@ -298,6 +298,13 @@ class LearnerRegistry:
             for sample in samples:
                 sample.saved = True
 
+    def save_failed(self, obsolete: set[str]) -> None:
+        """The state of the last :meth:`snapshot` was not written: save again at the next chance, and
+        its obsolete files go only once a later state without them is."""
+        with self._lock:
+            self._obsolete |= obsolete
+            self.dirty = True
+
     def load(self, state: Mapping[str, Any], read: Callable[[int, int], PendingSample]) -> None:
         """Restore :meth:`snapshot`'s state (``read(learner_id, round)`` loads a sample file); every
         learner and assignment gets a fresh lease."""

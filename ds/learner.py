@@ -351,8 +351,9 @@ class Learner:
         return metrics
 
     # -- checkpoints ------------------------------------------------------------------------
-    def save(self) -> Path:
-        """Checkpoint as ``model/<env_steps>.pt`` (the format of ``main.py``, so ``main.py --run`` plays it)."""
+    def save(self) -> Path | None:
+        """Checkpoint as ``model/<env_steps>.pt`` (the format of ``main.py``, so ``main.py --run`` plays it);
+        None when it could not be written (logged; the earlier ones are kept)."""
         return self.core.save()
 
     def restore(self, step: int | None = None) -> None:

@@ -41,7 +41,7 @@ import grpc
 
 from algorithm.config import apply_overrides, config_from_yaml
 from algorithm.config_schema import Config
-from algorithm.files import atomic_write
+from algorithm.files import WriteFailures, atomic_write
 from ds.evolver_service import EvolverClient
 from ds.evolver_state import (
     Assignment,
@@ -93,6 +93,9 @@ class LearnerSlot:
         self.path = path
         self.learner_id = learner_id
         self._lock = lock
+        self.status_writes = WriteFailures(
+            "learner status", log, retry="the folder may be claimed again, and the evolver then says what it is"
+        )
 
     @classmethod
     def claim(cls, run_dir: Path) -> LearnerSlot | None:
@@ -133,9 +136,11 @@ class LearnerSlot:
             return None
         return cls(path, learner_id, lock)
 
-    def set_status(self, status: str) -> None:
+    def set_status(self, status: str) -> bool:
+        """Write the status; False when it could not be (a full disk: logged, the file kept as it was)."""
         text = json.dumps({"learner_id": self.learner_id, "status": status}).encode()
-        atomic_write(self.path / SLOT_FILE, lambda f: f.write(text))
+        path = self.path / SLOT_FILE
+        return self.status_writes.attempt(path, lambda: atomic_write(path, lambda f: f.write(text)))
 
     def release(self) -> None:
         self._lock.close()  # closing the file drops the flock

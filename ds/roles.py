@@ -36,8 +36,10 @@ from grpc_health.v1 import health
 
 from algorithm.config import config_to_yaml
 from algorithm.config_schema import Config
+from algorithm.files import WriteFailures
 from algorithm.logging import MetricsWriter
 from algorithm.replay import PrioritizedTable
+from algorithm.replay.persistence import snapshot_kept
 from algorithm.sac import SAC
 from algorithm.signals import stop_on_signals
 from algorithm.trainer import EVAL_SEED_OFFSET, RunDir, load_replay_snapshot, seed_everything
@@ -121,7 +123,9 @@ def run_replay(role: RoleContext, metrics_every_s: float = 10.0) -> int:
     in it: actors send again what was not acknowledged, and what the snapshot holds is not stored
     twice. Its Save and Load rpcs may name files in ``<run>/replay/`` only (an empty name: the
     snapshot itself; ds/replay_files.py). With an evolver it first asks which learner it serves (announcing
-    ``replay_host:replay_port``) and builds its table from that learner's config."""
+    ``replay_host:replay_port``) and builds its table from that learner's config. A snapshot that
+    cannot be written (a full disk) is logged once and tried again at the next interval, the previous
+    one kept; the replay serves on, and a failed save at shutdown is logged, not raised."""
     client, keeper = None, None
     try:
         if role.uses_evolver:
@@ -196,6 +200,8 @@ def _serve_replay(role: RoleContext, keeper: AssignmentKeeper | None, metrics_ev
     ))  # fmt: skip
     log.info("replay serving on %s:%d (capacity %d steps)", cfg.net_config.bind_host, port, table.capacity)
     writer = MetricsWriter(role.run_dir / "log" / "replay")
+    snapshots = WriteFailures("replay snapshot", log, retry=f"trying again in {save_every_min:g} min",
+                              kept=snapshot_kept)  # fmt: skip
     halt = keeper.tenure()[1] if keeper is not None else threading.Event()
     last_metrics = last_save = time.monotonic()
     code = 130
@@ -218,13 +224,12 @@ def _serve_replay(role: RoleContext, keeper: AssignmentKeeper | None, metrics_ev
                 writer.write(metrics, info["inserted_steps"])
                 last_metrics = now
             if saving and (now - last_save) / 60 >= save_every_min:
-                table.save(path)
+                snapshots.attempt(path, lambda: table.save(path))
                 last_save = time.monotonic()
     finally:
         replay_service.set_serving(checker, False)
         server.stop(grace=2.0).wait()
-        if saving_at_stop:
-            table.save(path)
+        if saving_at_stop and snapshots.attempt(path, lambda: table.save(path), final=True):
             log.info("replay saved to %s", path)
         writer.close()
     return code

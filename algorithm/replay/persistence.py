@@ -34,6 +34,13 @@ def write_atomic(
     atomic_write(path, lambda f: np.savez(f, **contents), before_replace)
 
 
+def snapshot_kept(path: Path) -> str:
+    """What a failed save of the snapshot ``path`` leaves, for its log line."""
+    if path.exists():
+        return f"{path} keeps the previous snapshot"
+    return "there is no earlier snapshot: what the replay holds now is in memory only"
+
+
 def read_checked(
     path: Path,
     layout: dict[str, Any],
