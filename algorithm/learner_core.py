@@ -354,7 +354,7 @@ class LearnerCore:
         if self.evaluation_writes.attempt(path, lambda: append_evaluations(path, rows), final=self.finishing):
             self._eval_rows = []
         elif self.finishing:
-            log.error("%d evaluation rows are not in %s (they are in the log above and in TensorBoard's eval/*)",
+            log.error("%d evaluation rows are not in %s (each is in an \"eval at\" line of the log above)",
                       len(rows), path)  # fmt: skip
 
     # -- checkpoints ------------------------------------------------------------------------

@@ -132,7 +132,7 @@ class MetricsWriter:
             self._retry_at = self._clock() + self.retry_s
             self._failures.failed(self.path, e, final=final)
             if final and self._pending:
-                log.error("%d TensorBoard summaries held since then are lost", len(self._pending))
+                log.error("the %d TensorBoard summaries held in memory for %s are lost", len(self._pending), self.path)
             return
         self._size += len(data)
         self._pending.clear()

@@ -36,7 +36,7 @@ from grpc_health.v1 import health
 
 from algorithm.config import config_to_yaml
 from algorithm.config_schema import Config
-from algorithm.files import WriteFailures
+from algorithm.files import WriteFailures, atomic_write
 from algorithm.logging import MetricsWriter
 from algorithm.replay import PrioritizedTable
 from algorithm.replay.persistence import snapshot_kept
@@ -286,7 +286,8 @@ def _member_learner(role: RoleContext, joined: Joined) -> RoleContext:
     r = joined.registration
     config = member_config(r.config_yaml, r.learner_id, role.config, role.overrides)
     folder = joined.slot.path
-    RunDir(folder).config.write_text(config_to_yaml(config))
+    path, text = RunDir(folder).config, config_to_yaml(config).encode()  # atomic: a full disk keeps the old one
+    WriteFailures("run config", log).attempt(path, lambda: atomic_write(path, lambda f: f.write(text)))
     model_file = RunDir(role.run_dir).model_file
     if model_file.exists() and not RunDir(folder).model_file.exists():
         shutil.copyfile(model_file, RunDir(folder).model_file)  # main.py --run -n <run>/learner_<k> builds with it

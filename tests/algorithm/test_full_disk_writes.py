@@ -118,6 +118,34 @@ def test_the_trainer_keeps_its_files_on_a_full_disk_and_saves_again_once_space_i
         assert resumed.env_steps == 400 and resumed.table.info()["inserted_steps"] == 400
 
 
+def test_a_final_checkpoint_that_fails_is_logged_and_the_run_ends_as_usual(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    config = small_config("eval.eval_per_step=100", "base.max_step=300")
+    with small_disk(tmp_path / "disk", "8m") as disk, caplog.at_level(logging.INFO):
+        run = disk.path / "run"
+        trainer = make_trainer(config, run)
+        trainer.run(until_step=150)
+        assert trainer.save() == run / "model/150.pt"
+        before = files_of(run)
+        disk.fill()
+        summary = trainer.run()  # to max_step: the evaluations at 200 and 300 and the final checkpoint fail
+        assert summary.env_steps == 300 and not summary.interrupted and summary.last_eval_mean is not None
+        assert files_of(run) == before
+        finals = [m for m in errors(caplog, "at shutdown") if "TensorBoard" not in m]
+        assert finals == [
+            f"could not write the final evaluations {run}/evaluations.csv at shutdown: {NO_SPACE}; "
+            f"{run}/evaluations.csv keeps its rows",
+            f"could not write the final checkpoint {run}/model/300.pt at shutdown: {NO_SPACE}; the checkpoints "
+            f"before it are kept (the latest: {run}/model/150.pt)",
+        ], finals
+        assert f"2 evaluation rows are not in {run}/evaluations.csv" in " ".join(errors(caplog, "evaluation rows"))
+        (summaries,) = errors(caplog, "could not write the final TensorBoard summaries")
+        assert NO_SPACE in summaries and "keeps the summaries written before, readable" in summaries
+        (lost,) = errors(caplog, "TensorBoard summaries held in memory")
+        assert lost.endswith(" are lost")
+
+
 def whole_records(data: bytes) -> int:
     """The number of TFRecords ``data`` holds, asserting it ends at a record's end (none torn)."""
     offset, count = 0, 0
