@@ -49,9 +49,9 @@ USER 10001:10001
 ENTRYPOINT ["python", "main_ds.py"]
 CMD ["--help"]
 
-# The runtime image (the default target): what main.py and main_ds.py import, no test tooling.
+# The runtime image (the default target): what main.py and main_ds.py import (cli.py the code they share), no test tooling.
 FROM base AS runtime
-COPY pyproject.toml README.md main.py main_ds.py ./
+COPY pyproject.toml README.md main.py main_ds.py cli.py ./
 COPY algorithm algorithm/
 COPY ds ds/
 COPY envs envs/

@@ -32,7 +32,7 @@ test: install
 
 lint: install
 	$(PY) -m ruff check .
-	$(PY) -m mypy algorithm envs ds main.py main_ds.py
+	$(PY) -m mypy algorithm envs ds main.py main_ds.py cli.py
 
 bench: install
 	$(PY) -m pip install --quiet -e '.[test,bench]'

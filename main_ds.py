@@ -29,11 +29,7 @@ from algorithm.logging import LogFileHandler
 from algorithm.sac import MAX_EXPLORATION_NOISE
 from algorithm.signals import StopRequest
 from algorithm.trainer import RunDir
-from ds import k8s, roles, security
-from ds.evolver_state import EvolverStateError
-from ds.local import run_local
-from ds.local_summary import PlayableRun
-from main import (
+from cli import (
     ArgumentParser,
     UsageError,
     add_common_args,
@@ -50,7 +46,11 @@ from main import (
     run_directory,
     run_model_builder,
 )
-from main import task_dir as resolve_task
+from cli import task_dir as resolve_task
+from ds import k8s, roles, security
+from ds.evolver_state import EvolverStateError
+from ds.local import run_local
+from ds.local_summary import PlayableRun
 
 ROLES = {"replay": "replay", "r": "replay", "learner": "learner", "l": "learner", "actor": "actor", "a": "actor",
          "evolver": "evolver", "e": "evolver", "local": "local"}  # fmt: skip

@@ -283,10 +283,11 @@ def test_the_lock_files_satisfy_pyproject(name: str, groups: list[str]) -> None:
 def test_the_runtime_lock_provides_every_package_the_code_imports() -> None:
     """What algorithm/, ds/, envs/, protos/ and the launchers import is in the runtime image, not only in
     the test extra (scipy was, and the runtime image could not start)."""
-    ours = {"algorithm", "ds", "envs", "protos", "main", "main_ds"}
+    ours = {"algorithm", "ds", "envs", "protos", "main", "main_ds", "cli"}
     distributions = importlib.metadata.packages_distributions()
     runtime = lock("runtime")
-    files = [ROOT / "main.py", ROOT / "main_ds.py", *(p for d in sorted(ours) for p in (ROOT / d).rglob("*.py"))]
+    launchers = [ROOT / "main.py", ROOT / "main_ds.py", ROOT / "cli.py"]
+    files = [*launchers, *(p for d in sorted(ours) for p in (ROOT / d).rglob("*.py"))]
     for path in files:
         for node in ast.walk(ast.parse(path.read_text())):
             if isinstance(node, ast.Import):

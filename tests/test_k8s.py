@@ -22,7 +22,7 @@ from algorithm.config import ConfigError, load_config
 from algorithm.config_schema import Config
 from ds import evolver_service, learner_service, replay_service
 from ds.k8s import PodName, paired_hosts, parse_pod_name, stable_host
-from main import UsageError, cli_overrides, task_dir
+from cli import UsageError, cli_overrides, task_dir
 from main_ds import ROLES, build_parser
 from tests.test_image import image_env, image_uid, image_workdir
 

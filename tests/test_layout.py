@@ -1,6 +1,6 @@
 """The import direction of docs/architecture.md section 2: algorithm imports nothing of ours but
-itself, envs only algorithm.spaces, and nothing imports main*.py; and every docs/*.md section the
-tree cites exists."""
+itself, envs only algorithm.spaces, nothing imports main*.py, only they import cli.py (the command-line
+code they share); and every docs/*.md section the tree cites exists."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ import subprocess
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-OURS = ("algorithm", "envs", "ds", "protos", "main", "main_ds")
+OURS = ("algorithm", "envs", "ds", "protos", "cli", "main", "main_ds")
 
 
 def imported_packages(path: Path) -> set[str]:
@@ -42,8 +42,16 @@ def test_nothing_imports_the_launchers() -> None:
         for path in (ROOT / folder).rglob("*.py"):
             if path.name in ("test_main.py", "test_k8s.py", "test_bad_input.py"):  # they test the launchers
                 continue
-            bad = {n for n in imported_packages(path) if n.split(".")[0] in ("main", "main_ds")}
+            bad = {n for n in imported_packages(path) if n.split(".")[0] in ("main", "main_ds", "cli")}
             assert not bad, f"{path.relative_to(ROOT)} imports {bad}"
+
+
+def test_the_launchers_share_cli_and_not_each_other() -> None:
+    """Issue 16: main_ds.py imported 14 names from main.py, a script used as a library."""
+    for launcher in ("main.py", "main_ds.py"):
+        imported = {n.split(".")[0] for n in imported_packages(ROOT / launcher)}
+        assert "cli" in imported and not imported & {"main", "main_ds"} - {launcher[:-3]}, (launcher, imported)
+    assert not {n.split(".")[0] for n in imported_packages(ROOT / "cli.py")} & {"main", "main_ds"}
 
 
 def test_protos_import_only_protos() -> None:
