@@ -145,3 +145,10 @@ def test_default_config_file_documents_every_key() -> None:
                 for key in type(section_model).model_fields]  # fmt: skip
     assert [key for key in expected if key not in commented] == []
     assert [key for key in expected if not commented[key]] == []
+
+
+def test_strings_that_read_as_numbers_survive_the_run_folders_round_trip() -> None:
+    """CI's hypothesis found ``reset_config.0E0=null``: the key is the string "0E0", written
+    unquoted by PyYAML's dumper and read back by ours (which takes 3e-4 as a float) as 0.0."""
+    config = Config.model_validate({"reset_config": {"0E0": None, "1e5": "2E-3", "plain": 1e5}})
+    assert config_from_yaml(config_to_yaml(config)) == config
