@@ -25,6 +25,7 @@ from pathlib import Path
 from algorithm.checkpoint import CheckpointError
 from algorithm.config import ConfigError, apply_overrides, config_from_file, config_to_yaml, load_config
 from algorithm.config_schema import Config
+from algorithm.files import WriteFailures, atomic_write
 from algorithm.logging import LogFileHandler
 from algorithm.sac import MAX_EXPLORATION_NOISE
 from algorithm.signals import StopRequest
@@ -250,7 +251,8 @@ def run(args: argparse.Namespace) -> int:
             check_models(context)
         if role in ("local", "evolver") or (role == "learner" and not context.uses_evolver):
             run_dir.mkdir(parents=True, exist_ok=True)  # a population's learners write learner_<id>/config.yaml
-            RunDir(run_dir).config.write_text(config_to_yaml(config))
+            path, text = RunDir(run_dir).config, config_to_yaml(config).encode()  # a full disk keeps the old file
+            WriteFailures("run config", log).attempt(path, lambda: atomic_write(path, lambda f: f.write(text)))
     if role == "local":
         return local(args, config, run_dir, context.credentials)
     log.info("%s of run %s (seed %s)", role, run_dir, config.sac_config.seed)
