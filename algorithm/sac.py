@@ -367,7 +367,7 @@ class SAC:
     def _normalize(self, obs: list[Tensor]) -> list[Tensor]:
         return obs if self.models.normalizer is None else self.models.normalizer(obs)
 
-    def load_normalizer_stats(self, stats: dict[str, dict[str, Any]]) -> None:
+    def load_normalizer_stats(self, stats: Mapping[str, Mapping[str, Any]]) -> None:
         """With ``use_normalization``: take the replay's running statistics (``table.normalizer_stats()``)
         for acting and learning from now on; a no-op otherwise."""
         if self.models.normalizer is not None:

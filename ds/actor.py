@@ -33,6 +33,7 @@ another process on the learner's port, whatever version it claims) are never loa
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
 import socket
@@ -49,12 +50,13 @@ import torch
 from algorithm.actor import ActorLoop, VectorEnvLike
 from algorithm.config_schema import Config
 from algorithm.logging import MetricsWriter, RateMeter
+from algorithm.replay import ReplayUnavailable
 from algorithm.sac import SAC
 from ds import learner_service, replay_service
 from ds.learner_service import LearnerClient, LeaseExpired, Registration, RemotePolicy
 from ds.params import ParamsError, ParamsSubscriber, decode_params, params_spec
-from ds.replay_feeds import Throttle, unavailable
-from ds.replay_service import ReplayClient, ReplayRpcError
+from ds.replay_feeds import Throttle
+from ds.replay_service import ReplayClient
 from ds.replay_sink import LAST_INSERTS_WAIT_S, ReplaySink
 from ds.rpc import peer_unresponsive, wait_until_serving
 from ds.stream_key import StreamKey
@@ -362,11 +364,8 @@ class DistributedActor:
         inserted = self.sink.replay_inserted_steps
         if inserted < max_step and now - self._last_check >= self.heartbeat_s:
             self._last_check = now
-            try:
+            with contextlib.suppress(ReplayUnavailable):  # gone or not answering (stalled): the sink waits too
                 inserted = self.replay.info()["inserted_steps"]
-            except ReplayRpcError as e:
-                if not unavailable(e):  # gone or not answering (stalled): the sink waits for it too
-                    raise
         if inserted >= max_step:
             log.info("the replay has %d+ env steps (base_config.max_step): done", max_step)
             self.done = True  # the loop stops stepping; the sink sends what it holds

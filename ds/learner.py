@@ -45,14 +45,13 @@ from algorithm.actor import VectorEnvLike
 from algorithm.checkpoint import list_checkpoints
 from algorithm.config_schema import Config
 from algorithm.learner_core import LearnerCore
-from algorithm.replay import ReplayTable
+from algorithm.replay import ReplayTable, ReplayUnavailable
 from algorithm.sac import SAC
 from algorithm.types import Batch
 from ds.evolver_link import Membership
 from ds.learner_service import ActingPolicy, ActorRegistry, ParamsStore
 from ds.params import ParamsPublisher
-from ds.replay_feeds import BatchPrefetcher, PriorityUpdater, Throttle, unavailable
-from ds.replay_service import ReplayRpcError
+from ds.replay_feeds import BatchPrefetcher, PriorityUpdater, Throttle
 from ds.replay_sink import LAST_INSERTS_WAIT_S
 
 log = logging.getLogger("asac.learner")
@@ -99,17 +98,13 @@ class _RemoteTrainingSink:
     def update_rnn_states(self, keys: np.ndarray, states: np.ndarray) -> None:
         try:
             self.learner.replay.update_rnn_states(keys, states)
-        except ReplayRpcError as e:
-            if not unavailable(e):
-                raise
+        except ReplayUnavailable:
             self.learner.rnn_refreshes_skipped += 1
 
     def windows_after(self, key: int, limit: int) -> Batch | None:
         try:
             return self.learner.replay.windows_after(key, limit)
-        except ReplayRpcError as e:
-            if not unavailable(e):
-                raise
+        except ReplayUnavailable:
             return None  # scored at a later update, when the replay is back
 
 
@@ -324,9 +319,7 @@ class Learner:
         """Env steps from the replay's counters and, with use_normalization, its observation stats."""
         try:
             info = self.replay.info()
-        except ReplayRpcError as e:
-            if not unavailable(e):
-                raise
+        except ReplayUnavailable as e:
             if self._log_replay():
                 log.warning("replay unreachable, waiting for it: %s", e)
             return

@@ -13,10 +13,11 @@ from __future__ import annotations
 import functools
 import math
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 
+from algorithm.replay.base import NormalizerStats, ReplayInfo
 from algorithm.spaces import SensorSpec
 from algorithm.types import Batch, Chunk
 from ds.wire import TensorSpec, WireError, from_tensor, to_tensor
@@ -128,18 +129,18 @@ class ReplaySpecs:
 
     # ------------------------------------------------------------------ info (server -> anyone)
 
-    def info_from_proto(self, msg: replay_pb2.InfoReply) -> dict[str, Any]:
+    def info_from_proto(self, msg: replay_pb2.InfoReply) -> ReplayInfo:
         """The table's ``info()`` dict back: counters as ``int``, values as ``float``, and
         ``"normalizer"``: ``{sensor: {"count": int, "mean": float64 array, "var": float64 array}}``."""
         out: dict[str, Any] = {key: int(v) for key, v in msg.counters.items()}
         out.update((key, float(v)) for key, v in msg.values.items())
         out["normalizer"] = self.normalizer_from_proto(msg)
-        return out
+        return cast(ReplayInfo, out)
 
-    def normalizer_from_proto(self, msg: replay_pb2.InfoReply) -> dict[str, dict[str, Any]]:
+    def normalizer_from_proto(self, msg: replay_pb2.InfoReply) -> dict[str, NormalizerStats]:
         """``{sensor: {"count", "mean", "var"}}`` of an InfoReply; every sensor must be known."""
         shapes = {s.name: s.shape for s in self.sensors}
-        out = {}
+        out: dict[str, NormalizerStats] = {}
         for name, stats in msg.normalizer.items():
             if name not in shapes:
                 raise WireError(f"normalizer[{name!r}]", f"names no sensor of this replay ({sorted(shapes)})")
@@ -204,20 +205,20 @@ def batch_to_proto(batch: Batch) -> replay_pb2.SampleReply:
     return msg
 
 
-def info_to_proto(info: dict[str, Any]) -> replay_pb2.InfoReply:
+def info_to_proto(info: ReplayInfo) -> replay_pb2.InfoReply:
     """Encode a table's ``info()``: integers as counters, other numbers as values, plus normalizers."""
     msg = replay_pb2.InfoReply()
-    for key, value in info.items():
-        if key == "normalizer":
-            for name, stats in value.items():
-                msg.normalizer[name].CopyFrom(
-                    replay_pb2.NormalizerStats(
-                        count=int(stats["count"]),
-                        mean=to_tensor(np.asarray(stats["mean"], np.float64)),
-                        var=to_tensor(np.asarray(stats["var"], np.float64)),
-                    )
-                )
-        elif isinstance(value, int | np.integer):
+    for name, stats in info["normalizer"].items():
+        msg.normalizer[name].CopyFrom(
+            replay_pb2.NormalizerStats(
+                count=int(stats["count"]),
+                mean=to_tensor(np.asarray(stats["mean"], np.float64)),
+                var=to_tensor(np.asarray(stats["var"], np.float64)),
+            )
+        )
+    numbers: dict[str, Any] = {k: v for k, v in info.items() if k != "normalizer"}
+    for key, value in numbers.items():
+        if isinstance(value, int | np.integer):
             msg.counters[key] = int(value)
         else:
             msg.values[key] = float(value)

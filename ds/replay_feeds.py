@@ -27,10 +27,8 @@ import time
 
 import numpy as np
 
-from algorithm.replay import ReplayTable, SampleTimeout
+from algorithm.replay import ReplayTable, ReplayUnavailable, SampleTimeout
 from algorithm.types import Batch
-from ds.replay_service import ReplayRpcError
-from ds.rpc import peer_unresponsive
 
 log = logging.getLogger("asac.learner")
 
@@ -51,13 +49,6 @@ class Throttle:
             return False
         self._last = now
         return True
-
-
-def unavailable(error: Exception) -> bool:
-    """Whether a replay call failed because the replay is gone or did not answer within its deadline
-    (:func:`ds.rpc.peer_unresponsive`). Both are waited out; every call they guard here (Info,
-    Sample, UpdatePriorities, UpdateRnnStates) can be repeated without harm."""
-    return isinstance(error, ReplayRpcError) and peer_unresponsive(error.code)
 
 
 class _Worker:
@@ -135,9 +126,7 @@ class BatchPrefetcher(_Worker):
                 if self._log_wait():
                     log.info("waiting for data in replay: %s", e)
                 continue
-            except ReplayRpcError as e:
-                if not unavailable(e):
-                    raise
+            except ReplayUnavailable as e:
                 self.unavailable += 1
                 if self._log_wait():
                     log.warning("replay unreachable, retrying: %s", e)
@@ -260,9 +249,7 @@ class PriorityUpdater(_Worker):
                 self.sent_calls += 1
                 self.sent_keys += len(keys)
                 return
-            except ReplayRpcError as e:
-                if not unavailable(e):
-                    raise
+            except ReplayUnavailable as e:
                 self.unavailable += 1
                 if self._log_wait():
                     log.warning("replay unreachable for priority updates, retrying: %s", e)

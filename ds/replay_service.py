@@ -50,7 +50,17 @@ import grpc
 import numpy as np
 from grpc_health.v1 import health, health_pb2_grpc
 
-from algorithm.replay import ChunkIds, Inserted, InsertTimeout, PrioritizedTable, ProducerLimitReached, SampleTimeout
+from algorithm.replay import (
+    ChunkIds,
+    Inserted,
+    InsertTimeout,
+    NormalizerStats,
+    PrioritizedTable,
+    ProducerLimitReached,
+    ReplayInfo,
+    ReplayUnavailable,
+    SampleTimeout,
+)
 from algorithm.spaces import SensorSpec
 from algorithm.types import Batch, Chunk
 from ds import rpc, security
@@ -335,6 +345,13 @@ class ReplayRequestRejected(ReplayRpcError, ValueError):
     """The server refused the request's contents (INVALID_ARGUMENT); nothing was changed."""
 
 
+class ReplayUnreachable(ReplayRpcError, ReplayUnavailable):
+    """The replay went away (UNAVAILABLE after the retries) or did not answer within the call's
+    deadline (DEADLINE_EXCEEDED: a stopped or stalled process keeps its connections open): the
+    table protocol's :class:`~algorithm.replay.base.ReplayUnavailable`, so a caller waits it out
+    without knowing the transport."""
+
+
 class ReplayClient:
     """The replay table interface over gRPC: ``insert``, ``insert_many``, ``insert_once``, ``sample``,
     ``update_priorities``, ``info``, ``normalizer_stats``, ``save``, ``load``.
@@ -494,12 +511,12 @@ class ReplayClient:
         self._check_size(request, f"{len(keys)} recurrent states")
         self._call("UpdateRnnStates", self._stub.UpdateRnnStates, request, self.rpc_timeout_s)
 
-    def info(self) -> dict[str, Any]:
+    def info(self) -> ReplayInfo:
         """The server table's ``info()``: the same keys, ``int`` counters and ``float`` values."""
         reply = self._call("Info", self._stub.Info, replay_pb2.InfoRequest(), self.rpc_timeout_s)
         return self.specs.info_from_proto(reply)
 
-    def normalizer_stats(self) -> dict[str, dict[str, Any]]:
+    def normalizer_stats(self) -> dict[str, NormalizerStats]:
         """``{sensor name: {"count", "mean", "var"}}`` of every vector sensor, as in the table."""
         reply = self._call("Info", self._stub.Info, replay_pb2.InfoRequest(), self.rpc_timeout_s)
         return self.specs.normalizer_from_proto(reply)
@@ -606,5 +623,7 @@ def _client_error(code: grpc.StatusCode, message: str, attempts: int) -> ReplayR
     if code == grpc.StatusCode.INVALID_ARGUMENT:
         return ReplayRequestRejected(code, message)
     if peer_gone(code):  # callers handle one code for "the replay went away"
-        return ReplayRpcError(grpc.StatusCode.UNAVAILABLE, f"{message} (unavailable after {attempts} attempts)")
+        return ReplayUnreachable(grpc.StatusCode.UNAVAILABLE, f"{message} (unavailable after {attempts} attempts)")
+    if code == grpc.StatusCode.DEADLINE_EXCEEDED:
+        return ReplayUnreachable(code, f"{message} ({code.name})")
     return ReplayRpcError(code, f"{message} ({code.name})")

@@ -20,9 +20,9 @@ from hypothesis import strategies as st
 
 from algorithm.config import ConfigError, load_config
 from algorithm.config_schema import Config
+from cli import UsageError, cli_overrides, task_dir
 from ds import evolver_service, learner_service, replay_service
 from ds.k8s import PodName, paired_hosts, parse_pod_name, stable_host
-from cli import UsageError, cli_overrides, task_dir
 from main_ds import ROLES, build_parser
 from tests.test_image import image_env, image_uid, image_workdir
 

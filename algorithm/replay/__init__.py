@@ -1,6 +1,6 @@
 """Replay: the table interface, the prioritized in-process table, its sum tree and rate limiter."""
 
-from algorithm.replay.base import ReplayTable, SampleTimeout
+from algorithm.replay.base import NormalizerStats, ReplayInfo, ReplayTable, ReplayUnavailable, SampleTimeout
 from algorithm.replay.dedup import ChunkIds, Inserted, ProducerLimitReached
 from algorithm.replay.rate_limiter import InsertTimeout, RateLimiter
 from algorithm.replay.sum_tree import SumTree
@@ -10,10 +10,13 @@ __all__ = [
     "ChunkIds",
     "Inserted",
     "InsertTimeout",
+    "NormalizerStats",
     "PrioritizedTable",
     "ProducerLimitReached",
     "RateLimiter",
+    "ReplayInfo",
     "ReplayTable",
+    "ReplayUnavailable",
     "SampleTimeout",
     "SumTree",
 ]

@@ -29,12 +29,13 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import Any, Protocol
+from typing import Any, Protocol, cast
 
 import numpy as np
 
 from algorithm.normalizer import RunningMeanStd
 from algorithm.replay import persistence
+from algorithm.replay.base import NormalizerStats, ReplayInfo
 from algorithm.replay.dedup import FORGOTTEN, MAX_PRODUCERS, ChunkIds, ChunkLedger, Inserted
 from algorithm.replay.rate_limiter import RateLimiter
 from algorithm.replay.sum_tree import SumTree
@@ -431,7 +432,7 @@ class PrioritizedTable:
         """Which keys still name a stored step (not evicted, not a bootstrap row, issued). Under the lock."""
         return (k64 >= 0) & (self._row_key[rows] == k64) & (self._end_key[rows] != k64)
 
-    def info(self) -> dict[str, Any]:
+    def info(self) -> ReplayInfo:
         """Flat ``replay/*`` numbers plus ``"normalizer"``: ``{sensor name: {count, mean, var}}``."""
         with self._lock:
             lim = self.rate_limiter
@@ -451,9 +452,9 @@ class PrioritizedTable:
                 **lim.info(),
             }
             out["normalizer"] = self._normalizer_state()
-        return out
+        return cast(ReplayInfo, out)
 
-    def normalizer_stats(self) -> dict[str, dict[str, Any]]:
+    def normalizer_stats(self) -> dict[str, NormalizerStats]:
         """``{sensor name: {"count", "mean", "var"}}`` over every inserted observation of each vector
         sensor (rows ``0..T`` of every chunk); load into a :class:`RunningMeanStd` to normalize."""
         with self._lock:
@@ -608,8 +609,8 @@ class PrioritizedTable:
     def _transform(self, raw: np.ndarray) -> np.ndarray:
         return np.power(np.clip(raw, self.td_error_min, self.td_error_max), self.alpha)
 
-    def _normalizer_state(self) -> dict[str, dict[str, Any]]:
-        return {name: rms.state_dict() for name, rms in self._normalizers.items()}
+    def _normalizer_state(self) -> dict[str, NormalizerStats]:
+        return {name: cast(NormalizerStats, rms.state_dict()) for name, rms in self._normalizers.items()}
 
     def _uniform_rows(self, n: int) -> np.ndarray:
         """``n`` rows drawn uniformly among stored step rows (rejecting bootstrap rows; at most

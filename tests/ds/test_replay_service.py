@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 from grpc_health.v1 import health, health_pb2, health_pb2_grpc
 
-from algorithm.replay import InsertTimeout, PrioritizedTable, RateLimiter, SampleTimeout
+from algorithm.replay import InsertTimeout, PrioritizedTable, RateLimiter, ReplayUnavailable, SampleTimeout
 from algorithm.types import Batch
 from ds.replay_codec import chunk_to_proto, message_limit_bytes
 from ds.replay_service import (
@@ -361,6 +361,7 @@ def test_unavailable_is_retried_with_backoff_then_surfaces() -> None:
     with pytest.raises(ReplayRpcError, match="unavailable after 4 attempts") as e:
         client.info()
     assert e.value.code == grpc.StatusCode.UNAVAILABLE
+    assert isinstance(e.value, ReplayUnavailable)  # the table protocol's error: callers need not know gRPC
     assert time.monotonic() - start >= 0.5 * (0.05 + 0.1 + 0.1)  # three jittered sleeps
 
     # A server that comes up while the client backs off is reached.
