@@ -32,6 +32,7 @@ test: install
 
 lint: install
 	$(PY) -m ruff check .
+	$(PY) -m ruff format --check .
 	$(PY) -m mypy algorithm envs ds main.py main_ds.py cli.py
 
 bench: install

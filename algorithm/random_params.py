@@ -286,7 +286,6 @@ def draw_for_run(config: ConfigT, seed: int) -> tuple[ConfigT, dict[str, Any]]:
 _RUN_DRAW_STREAM = 0x72616E64  # keeps these draws apart from every other use of the seed
 
 
-
 def _section(config: ConfigT, name: str) -> BaseModel:
     """The config section ``name`` as a model. ``reset_config`` (the env's reset options, a free
     mapping) becomes a model with one field per configured option, typed as its value (an int

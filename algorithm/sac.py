@@ -724,7 +724,11 @@ class SAC:
         return torch.nan_to_num(td_abs.float(), nan=0.0, posinf=0.0, neginf=0.0).cpu().numpy()
 
     def _batch_losses(
-        self, batch: Batch, weights: Tensor | None, noise: Tensor, target_heads: Tensor | None,
+        self,
+        batch: Batch,
+        weights: Tensor | None,
+        noise: Tensor,
+        target_heads: Tensor | None,
         policy_heads: Tensor | None,
     ) -> tuple[Tensor, Tensor, Tensor, Tensor, dict[str, Tensor], Tensor, Metrics, Tensor | None]:
         """:meth:`_losses` of a sampled batch (its arrays moved to the device, observations normalized)."""

@@ -242,8 +242,12 @@ def main() -> None:
     p.add_argument("--override", action="append", default=[], metavar="KEY=VALUE")
     p.add_argument("--timeout", type=float, default=1800, help="seconds per run before it is stopped")
     p.add_argument("--report", action="store_true")
-    p.add_argument("--results", type=Path, default=RESULTS,
-                   help="the CSV to append rows to and report from (a variant's runs in a file of their own)")
+    p.add_argument(
+        "--results",
+        type=Path,
+        default=RESULTS,
+        help="the CSV to append rows to and report from (a variant's runs in a file of their own)",
+    )
     args = p.parse_args()
     if args.report or args.task is None:
         print(report(args.results))

@@ -150,9 +150,7 @@ class Learner:
         self.replay_surplus = 0.0  # windows the replay's rate limiter still lets this learner draw
         self.replay_next_key = 0  # the replay's next key at the last poll: how old sampled data is
         self.sink = _RemoteTrainingSink(self)
-        on_evaluation: Callable[[float, int], None] = (
-            (lambda mean, steps: None) if member is None else member.link.post
-        )
+        on_evaluation: Callable[[float, int], None] = (lambda mean, steps: None) if member is None else member.link.post
         self.core = LearnerCore(
             config, Path(run_dir), sac, log_dir=Path(run_dir) / "log" / "learner", eval_env=eval_env,
             progress=progress, publish=self.publish, on_evaluation=on_evaluation,

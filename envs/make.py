@@ -130,8 +130,14 @@ def vector_env_factory(
     takes to build its training and evaluation envs, ``factory(num_envs, seed)``."""
 
     def factory(num_envs: int, seed: int | None) -> VectorEnv:
-        return make_vector_env(build_path, num_envs, seed=seed, env_kwargs=env_kwargs,
-                               max_episode_steps=max_episode_steps, reset_options=reset_options)
+        return make_vector_env(
+            build_path,
+            num_envs,
+            seed=seed,
+            env_kwargs=env_kwargs,
+            max_episode_steps=max_episode_steps,
+            reset_options=reset_options,
+        )
 
     return factory
 
@@ -274,9 +280,7 @@ class VectorEnv:
         if not self._started:
             raise RuntimeError("VectorEnv.reset_env called before reset()")
         obs, _ = self.envs[i].reset(options=self.reset_options)
-        return [
-            np.array(x, dtype=s.dtype) for x, s in zip(self._sensors(obs), self.spec.sensors, strict=True)
-        ]
+        return [np.array(x, dtype=s.dtype) for x, s in zip(self._sensors(obs), self.spec.sensors, strict=True)]
 
     def step(self, actions: np.ndarray) -> StepResult:
         """Act with ``actions`` ``[N, spec.action.size]`` in model space (one-hot discrete

@@ -7,6 +7,7 @@ from __future__ import annotations
 import ast
 import re
 import subprocess
+import sys
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -179,3 +180,15 @@ def test_docs_cited_in_the_tree_exist() -> None:
                 missing = [s for s in (match[2], match[3]) if s and s not in headings[doc]]
                 problems += [f"{where} cites {match[1]} section {s}, which it does not have" for s in missing]
     assert not problems, "\n".join(problems)
+
+
+def test_the_tree_is_formatted() -> None:
+    """One formatter, ``ruff format`` (make lint runs it too); its ``# fmt: skip`` markers keep the few
+    hand-aligned tables and long literals as written."""
+    result = subprocess.run(
+        [sys.executable, "-m", "ruff", "format", "--check", "--output-format", "concise", "."],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+    )
+    assert result.returncode == 0, result.stdout + result.stderr

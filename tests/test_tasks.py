@@ -13,15 +13,34 @@ from envs.make import vector_env_factory
 
 ROOT = Path(__file__).resolve().parents[1]
 TASKS = sorted(str(p.parent.relative_to(ROOT / "envs")) for p in (ROOT / "envs").glob("*/*/config.yaml"))
-TINY = ["sac.seed=0", "nn.hidden_units=[8]", "replay.batch_size=8", "replay.samples_per_insert=null",
-        "replay.capacity=1000",
-        "replay.min_size_to_sample=20", "actor.random_steps=10", "actor.chunk_length=8", "base.max_step=40",
-        "eval.eval_per_step=40", "eval.eval_episodes=1", "eval.eval_envs=1", "base.max_step_each_iter=15"]
+TINY = [
+    "sac.seed=0",
+    "nn.hidden_units=[8]",
+    "replay.batch_size=8",
+    "replay.samples_per_insert=null",
+    "replay.capacity=1000",
+    "replay.min_size_to_sample=20",
+    "actor.random_steps=10",
+    "actor.chunk_length=8",
+    "base.max_step=40",
+    "eval.eval_per_step=40",
+    "eval.eval_episodes=1",
+    "eval.eval_envs=1",
+    "base.max_step_each_iter=15",
+]
 
 
 def test_the_documented_tasks_exist() -> None:
-    expected = {"gym/pendulum", "gym/mountain_car", "mujoco/half_cheetah", "mujoco/hopper", "mujoco/walker2d",
-                "mujoco/ant", "mujoco/humanoid", "mujoco/inverted_pendulum"}
+    expected = {
+        "gym/pendulum",
+        "gym/mountain_car",
+        "mujoco/half_cheetah",
+        "mujoco/hopper",
+        "mujoco/walker2d",
+        "mujoco/ant",
+        "mujoco/humanoid",
+        "mujoco/inverted_pendulum",
+    }
     assert expected <= set(TASKS)
 
 
@@ -42,6 +61,10 @@ def test_mujoco_tasks_use_the_published_sac_setup(task: str) -> None:
     c = load_config(ROOT / "envs" / task).config
     assert c.nn_config.hidden_units == [256, 256]
     assert (c.replay_config.batch_size, c.sac_config.learning_rate, c.sac_config.gamma, c.sac_config.tau) == (
-        256, 3e-4, 0.99, 0.005)
+        256,
+        3e-4,
+        0.99,
+        0.005,
+    )
     assert c.sac_config.use_auto_alpha and c.replay_config.updates_per_step == 1.0
     assert c.replay_config.alpha == 0.0 and not c.sac_config.use_priority  # uniform replay

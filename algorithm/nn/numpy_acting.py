@@ -143,7 +143,6 @@ class NumpyGaussianActor:
         action = np.tanh(mean + np.exp(log_std) * noise).astype(np.float32, copy=False)
         return action, stored_action_log_prob(mean, log_std, action)
 
-
     def _state(self, obs: list[np.ndarray]) -> np.ndarray:
         parts = []
         for i, o in enumerate(obs):

@@ -24,13 +24,24 @@ class RecordingPolicy:
         return actions, actions.sum(axis=1).astype(np.float32)
 
 
-def run_actor(num_envs: int, steps: int, chunk_length: int, env_kwargs: dict, max_episode_steps: int | None,
-              reset_on_iteration: bool = False) -> tuple[list[Chunk], ActorLoop]:
-    env = make_vector_env("asac/Chain-v0", num_envs, seed=3, env_kwargs=env_kwargs,
-                          max_episode_steps=max_episode_steps)
+def run_actor(
+    num_envs: int,
+    steps: int,
+    chunk_length: int,
+    env_kwargs: dict,
+    max_episode_steps: int | None,
+    reset_on_iteration: bool = False,
+) -> tuple[list[Chunk], ActorLoop]:
+    env = make_vector_env("asac/Chain-v0", num_envs, seed=3, env_kwargs=env_kwargs, max_episode_steps=max_episode_steps)
     chunks: list[Chunk] = []
-    actor = ActorLoop(env, RecordingPolicy(env.spec.action.size), chunks.append, chunk_length=chunk_length,
-                      reset_on_iteration=reset_on_iteration, seed=3)
+    actor = ActorLoop(
+        env,
+        RecordingPolicy(env.spec.action.size),
+        chunks.append,
+        chunk_length=chunk_length,
+        reset_on_iteration=reset_on_iteration,
+        seed=3,
+    )
     for _ in range(steps):
         actor.step()
     return chunks, actor

@@ -35,13 +35,16 @@ def test_default_file_matches_schema_defaults() -> None:
 
 
 def test_layers_apply_in_order_and_record_sources(tmp_path: Path) -> None:
-    task = write_task(tmp_path, """
+    task = write_task(
+        tmp_path,
+        """
 default:
   sac_config: {n_step: 3, gamma: 0.95}
   base_config: {build_path: HalfCheetah-v5}
 fast:
   sac_config: {n_step: 5}
-""")
+""",
+    )
     r = load_config(task, "fast", ["sac.gamma=0.9"])
     c = r.config
     assert (c.sac_config.n_step, c.sac_config.gamma, c.base_config.build_path) == (5, 0.9, "HalfCheetah-v5")

@@ -429,9 +429,13 @@ def test_loading_a_missing_foreign_or_empty_path_is_refused(replay: Replay) -> N
     foreign = replay.folder / "foreign.npz"
     other.save(foreign)
     (replay.folder / "sub").mkdir(exist_ok=True)
-    for name, message in [("foreign.npz", "saved sensors"), ("missing.npz", "not a readable replay file"),
-                          ("sub", "is a folder"), (".", "names the snapshot folder itself"),
-                          ("", "not a readable replay file")]:  # fmt: skip  (empty: the default replay.npz)
+    for name, message in [
+        ("foreign.npz", "saved sensors"),
+        ("missing.npz", "not a readable replay file"),
+        ("sub", "is a folder"),
+        (".", "names the snapshot folder itself"),
+        ("", "not a readable replay file"),
+    ]:  # fmt: skip  (empty: the default replay.npz)
         details = refused(replay.stub.Load, replay_pb2.LoadRequest(path=name))
         assert message in details and (name or "replay.npz") in details, details
     replay.assert_unchanged()

@@ -14,9 +14,7 @@ from envs.make import VectorEnv, make_env, make_vector_env
 
 
 def chain(n: int, seed: int | None = 0, max_episode_steps: int | None = None, **kwargs: Any) -> VectorEnv:
-    return make_vector_env(
-        "asac/Chain-v0", n, seed=seed, env_kwargs=kwargs, max_episode_steps=max_episode_steps
-    )
+    return make_vector_env("asac/Chain-v0", n, seed=seed, env_kwargs=kwargs, max_episode_steps=max_episode_steps)
 
 
 def counters(obs: list[np.ndarray]) -> list[list[float]]:

@@ -30,9 +30,7 @@ def make_chunk(
     obs = []
     for s in sensors:
         values = ids % 256 if s.is_image else ids  # images hold the key modulo 256
-        obs.append(
-            np.broadcast_to(values.reshape(-1, *[1] * len(s.shape)), (t + 1, *s.shape)).astype(s.dtype)
-        )
+        obs.append(np.broadcast_to(values.reshape(-1, *[1] * len(s.shape)), (t + 1, *s.shape)).astype(s.dtype))
     term = np.zeros(t, dtype=bool)
     trunc = np.zeros(t, dtype=bool)
     term[-1], trunc[-1] = terminated, truncated
@@ -44,7 +42,5 @@ def make_chunk(
         terminated=term,
         truncated=trunc,
         behaviour_logp=-(ids[:t] + 1).astype(np.float32),
-        rnn_state=np.repeat(ids[:t, None], rnn_state_size, axis=1).astype(np.float32)
-        if rnn_state_size
-        else None,
+        rnn_state=np.repeat(ids[:t, None], rnn_state_size, axis=1).astype(np.float32) if rnn_state_size else None,
     )

@@ -97,7 +97,5 @@ def test_concurrent_insert_sample_update_and_save(tmp_path: Path) -> None:
     steps = (row_key >= 0) & (row_key != end_key)
     assert info["size"] == int(steps.sum())
     assert (leaves[~steps] == 0).all() and (leaves[steps] > 0).all()
-    restored = PrioritizedTable(
-        500, (VECTOR,), 2, window=4, alpha=0.8, rate_limiter=RateLimiter(16.0, 32, 2000.0)
-    )
+    restored = PrioritizedTable(500, (VECTOR,), 2, window=4, alpha=0.8, rate_limiter=RateLimiter(16.0, 32, 2000.0))
     restored.load(tmp_path / "replay.npz")  # a save taken mid-storm is consistent
