@@ -26,7 +26,7 @@ Errors map to gRPC status codes on the server and back to exceptions on the clie
   (outside its snapshot folder, or not a regular file: ds/replay_files.py);
 - the rate limiter's ``SampleTimeout`` / ``InsertTimeout``: DEADLINE_EXCEEDED -> the same exception;
 - a file the server cannot write (``OSError``), a server without a snapshot folder: FAILED_PRECONDITION ->
-  :class:`ReplayRpcError`;
+  :class:`ReplayRpcError`; a full disk (ENOSPC, EDQUOT): RESOURCE_EXHAUSTED, the snapshot before it kept;
 - a Save or Load while another runs: ABORTED; one past its deadline is abandoned having changed
   nothing: DEADLINE_EXCEEDED -> :class:`ReplayRpcError`;
 - a message over the size limit: RESOURCE_EXHAUSTED -> :class:`ReplayRpcError` (the client refuses
@@ -40,6 +40,7 @@ Errors map to gRPC status codes on the server and back to exceptions on the clie
 
 from __future__ import annotations
 
+import errno
 import threading
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
@@ -279,7 +280,11 @@ def _status_codes(context: grpc.ServicerContext) -> Iterator[None]:
     except ProducerLimitReached as e:
         context.abort(grpc.StatusCode.RESOURCE_EXHAUSTED, str(e))
     except OSError as e:
-        context.abort(grpc.StatusCode.FAILED_PRECONDITION, f"{type(e).__name__}: {e}")
+        # gRPC's code for "the entire file system is out of space" (its status code guide); other
+        # I/O errors leave the server's state as the precondition that failed.
+        full = e.errno in (errno.ENOSPC, errno.EDQUOT)
+        code = grpc.StatusCode.RESOURCE_EXHAUSTED if full else grpc.StatusCode.FAILED_PRECONDITION
+        context.abort(code, f"{type(e).__name__}: {e}")
 
 
 def set_serving(health_servicer: health.HealthServicer, serving: bool) -> None:

@@ -173,8 +173,8 @@ class ReplayServiceServicer:
         Save and Load run one at a time on a thread of their own, never holding a worker past the
         call's deadline; the other rpcs are answered meanwhile.
         Errors: INVALID_ARGUMENT (a path the server does not own, see SaveRequest; nothing is written),
-        FAILED_PRECONDITION (the file cannot be written, or the server was started without a snapshot
-        folder), ABORTED (another Save or Load is running: try again once it has finished),
+        RESOURCE_EXHAUSTED (the disk is full; the old file is kept), FAILED_PRECONDITION (the file
+        cannot be written otherwise, or the server was started without a snapshot folder), ABORTED (another Save or Load is running: try again once it has finished),
         DEADLINE_EXCEEDED (not done by the call's deadline: abandoned, the old file is kept).
         """
         context.set_code(grpc.StatusCode.UNIMPLEMENTED)

@@ -27,6 +27,7 @@ from ds.replay_codec import chunk_to_proto
 from ds.replay_service import serve_replay
 from protos import replay_pb2, replay_pb2_grpc
 from tests.algorithm.replay.chunks import VECTOR, make_chunk
+from tests.small_disk import small_disk
 
 pytestmark = pytest.mark.grpc
 
@@ -284,3 +285,24 @@ def test_a_save_racing_a_slow_load_does_not_block_info(tmp_path: Path, monkeypat
         assert not list(folder.glob(".*.tmp"))
     finally:
         server.stop(None)
+
+
+def test_a_save_to_a_full_disk_is_resource_exhausted_and_keeps_the_snapshot(tmp_path: Path) -> None:
+    """gRPC's code for a file system out of space is RESOURCE_EXHAUSTED (it was FAILED_PRECONDITION,
+    as for a server without a snapshot folder); the snapshot saved before stays as it was."""
+    with small_disk(tmp_path / "disk", "4m") as disk:
+        server, port = serve_replay(table(), snapshot_dir=disk.path)
+        stub = replay_pb2_grpc.ReplayServiceStub(grpc.insecure_channel(f"127.0.0.1:{port}"))
+        try:
+            stub.Save(replay_pb2.SaveRequest(path="replay.npz"), timeout=10)
+            before = (disk.path / "replay.npz").read_bytes()
+            disk.fill()
+            with pytest.raises(grpc.RpcError) as e:
+                stub.Save(replay_pb2.SaveRequest(path="replay.npz"), timeout=10)
+            assert e.value.code() == grpc.StatusCode.RESOURCE_EXHAUSTED, e.value.details()
+            assert "No space left" in str(e.value.details())
+            assert (disk.path / "replay.npz").read_bytes() == before
+            disk.free()
+            stub.Save(replay_pb2.SaveRequest(path="replay.npz"), timeout=10)  # space is back: saved
+        finally:
+            server.stop(None)
