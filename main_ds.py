@@ -1,8 +1,8 @@
 """Distributed ASAC: ``python main_ds.py gym/pendulum {replay,learner,actor,evolver,local} ...`` runs one role.
 
 Thin by design, like main.py (whose flags it shares): parse, resolve the config and the run
-directory, call ds/roles.py (docs/architecture.md section 1). Exit codes: 0 done, 2 bad usage or config,
-130 stopped by Ctrl-C / SIGTERM (``local``: 130 SIGINT, 143 SIGTERM; ds/local.py), 1 a role failed.
+directory, call ds/launch/roles.py (docs/architecture.md section 1). Exit codes: 0 done, 2 bad usage or config,
+130 stopped by Ctrl-C / SIGTERM (``local``: 130 SIGINT, 143 SIGTERM; ds/launch/local.py), 1 a role failed.
 """
 
 from __future__ import annotations
@@ -48,10 +48,11 @@ from cli import (
     run_model_builder,
 )
 from cli import task_dir as resolve_task
-from ds import k8s, roles, security
-from ds.evolver_state import EvolverStateError
-from ds.local import run_local
-from ds.local_summary import PlayableRun
+from ds.evolver.state import EvolverStateError
+from ds.launch import k8s, roles
+from ds.launch.local import run_local
+from ds.launch.local_summary import PlayableRun
+from ds.net import security
 
 ROLES = {"replay": "replay", "r": "replay", "learner": "learner", "l": "learner", "actor": "actor", "a": "actor",
          "evolver": "evolver", "e": "evolver", "local": "local"}  # fmt: skip
@@ -117,7 +118,7 @@ def build_parser() -> argparse.ArgumentParser:
         "--in_k8s",
         action="store_true",
         help="servers listen on all interfaces (net_config.bind_host); learner k and replay k of the "
-        "StatefulSets pair by pod ordinal (ds/k8s.py)",
+        "StatefulSets pair by pod ordinal (ds/launch/k8s.py)",
     )
     p.add_argument("--actors", type=positive, default=1, help="with local: how many actor processes")
     p.add_argument(
@@ -158,7 +159,7 @@ def resolve(args: argparse.Namespace) -> tuple[Config, Path]:
             setattr(net, f"{peer}_port", number)
     if args.in_k8s:
         net.bind_host = "0.0.0.0"
-        # Learner k and replay k of the StatefulSets find each other by ordinal (ds/k8s.py); the pod
+        # Learner k and replay k of the StatefulSets find each other by ordinal (ds/launch/k8s.py); the pod
         # name is the hostname, or ASAC_POD_NAME (the Downward API's metadata.name) when set.
         pod = os.environ.get("ASAC_POD_NAME") or socket.gethostname()
         for key, value in k8s.paired_hosts(pod, ROLES[args.role]).items():
@@ -174,7 +175,7 @@ def resolve(args: argparse.Namespace) -> tuple[Config, Path]:
 
 
 def credentials(config: Config, role: str) -> security.Credentials:
-    """The role's token and TLS material (ds/security.py), checked: ConfigError naming the key and file."""
+    """The role's token and TLS material (ds/net/security.py), checked: ConfigError naming the key and file."""
     loaded = security.load_credentials(config.net_config)
     if role != "actor":  # every other role serves gRPC (local runs them all)
         security.check_server_credentials(loaded, role)

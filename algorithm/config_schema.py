@@ -299,7 +299,7 @@ class NetConfig(Section):
         description="File holding the run's shared secret (e.g. a mounted Kubernetes Secret); the learner "
         "signs its ZeroMQ parameter stream with it (HMAC-SHA256) and actors drop frames that do not verify. "
         "Every role of a run must name the same secret; null = unsigned. With it every gRPC call must carry a key "
-        "derived from it too (ds/security.py), except the health service.",
+        "derived from it too (ds/net/security.py), except the health service.",
     )
     tls_cert: str | None = Field(
         None,

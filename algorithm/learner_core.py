@@ -1,7 +1,7 @@
 """The learner's lifecycle, written once for both modes: counters, the update step, evaluation
 cadence, summaries, checkpoints, resume, the update-to-data budget and the stop at ``max_step``.
 
-Usage (``algorithm/trainer.py`` and ``ds/learner.py`` are the two drivers)::
+Usage (``algorithm/trainer.py`` and ``ds/learner/learner.py`` are the two drivers)::
 
     core = LearnerCore(config, run_dir, sac, eval_env=env, log_dir=run_dir / "log")
     state = core.restore()                      # None on a new run; else the checkpoint (extras inside)
@@ -14,7 +14,7 @@ Usage (``algorithm/trainer.py`` and ``ds/learner.py`` are the two drivers)::
 The two modes differ only in where batches come from and where priorities and weights go (as
 Acme's learner takes a data iterator): :class:`~algorithm.trainer.EmbeddedTrainer` steps its actor
 loop and trains on its in-process table as :class:`UpdateBudget` says; the distributed
-:class:`~ds.learner.Learner` trains on what a prefetcher brings from the replay server, whose rate
+:class:`~ds.learner.learner.Learner` trains on what a prefetcher brings from the replay server, whose rate
 limiter applies the same ratio to actors it cannot otherwise slow down.
 
 Checkpoints have one format for both (``model/<env_steps>.pt``: ``sac``, ``counters``, ``rng`` and
@@ -63,7 +63,7 @@ log = logging.getLogger("asac.learner")
 class RunCounters:
     """What a checkpoint records about the run's progress (``counters``). ``owed_updates`` is the
     in-process :class:`UpdateBudget`'s balance; ``replay_inserted_seen`` the replay server's own
-    count the distributed learner last saw (:class:`~ds.learner.EnvSteps`); ``weights_round`` the
+    count the distributed learner last saw (:class:`~ds.learner.learner.EnvSteps`); ``weights_round`` the
     CEM round whose sample the weights descend from (0: none)."""
 
     env_steps: int = 0

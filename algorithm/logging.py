@@ -314,3 +314,21 @@ def _fmt_seconds(seconds: float) -> str:
     h, rem = divmod(seconds, 3600)
     m, s = divmod(rem, 60)
     return f"{h}:{m:02d}:{s:02d}" if h else f"{m:02d}:{s:02d}"
+
+
+REPEAT_LOG_S = 30.0  # a line about a state that persists (waiting, unreachable) is repeated at most this often
+
+
+class Throttle:
+    """True at most once every ``seconds`` (for log lines about a state that persists)."""
+
+    def __init__(self, seconds: float = REPEAT_LOG_S) -> None:
+        self.seconds = seconds
+        self._last = -math.inf
+
+    def __call__(self) -> bool:
+        now = time.monotonic()
+        if now - self._last < self.seconds:
+            return False
+        self._last = now
+        return True

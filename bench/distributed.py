@@ -49,12 +49,12 @@ from algorithm.config_schema import Config
 from algorithm.replay import PrioritizedTable
 from algorithm.sac import SAC
 from bench.grpc_replay import CHUNK, PREFILL, random_chunk, replay_process
-from ds.actor import ReplaySink
-from ds.learner import Learner
-from ds.learner_service import ParamsStore
-from ds.params import ParamsPublisher
-from ds.replay_codec import message_limit_bytes
-from ds.replay_service import ReplayClient
+from ds.actor.actor import ReplaySink
+from ds.learner.learner import Learner
+from ds.learner.service import ParamsStore
+from ds.net.params import ParamsPublisher
+from ds.replay.codec import message_limit_bytes
+from ds.replay.service import ReplayClient
 from envs.make import make_vector_env
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -169,7 +169,7 @@ def actor_rate(config: Config, agents: int, seconds: float, replay: ReplayClient
     (None: dropped, to see the policy's share)."""
     env = make_vector_env("HalfCheetah-v5", agents, seed=0)
     sac = SAC(env.spec, config.sac_config, config.nn_config, config.replay_config)
-    actor_cfg = config.actor_config  # the sink as DistributedActor builds it (ds/actor.py)
+    actor_cfg = config.actor_config  # the sink as DistributedActor builds it (ds/actor/actor.py)
     sink = (lambda chunk: None) if replay is None else ReplaySink(
         replay, stopping=lambda: False, in_flight=actor_cfg.inserts_in_flight,
         max_chunks_per_insert=actor_cfg.chunks_per_insert or agents,
@@ -183,7 +183,7 @@ def actor_rate(config: Config, agents: int, seconds: float, replay: ReplayClient
 
 
 def bench_actor(args: argparse.Namespace) -> None:
-    torch.set_num_threads(1)  # as actors run (ds/roles.py)
+    torch.set_num_threads(1)  # as actors run (ds/launch/roles.py)
     config = half_cheetah_config()
     spec = make_vector_env("HalfCheetah-v5", 1, seed=0).spec
     sensors, action_size = spec.sensors, spec.action.size

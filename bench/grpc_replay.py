@@ -7,7 +7,7 @@ learner samples them, prefilled with 100k steps) and client processes, each runn
 call in a loop for ``--seconds``:
 
 - insert: 1, 2 and 4 actor processes, each handing 64-step chunks (``actor_config.chunk_length``)
-  to the actor's own sink (``ds.actor.ReplaySink``) as fast as it takes them: up to 4 inserts in
+  to the actor's own sink (``ds.actor.actor.ReplaySink``) as fast as it takes them: up to 4 inserts in
   flight, and chunks that arrive meanwhile go together in the next request (up to 16); stored
   steps/s summed over the actors. For reference, one actor sending one chunk per request and
   waiting for each answer (``in_flight=1``);
@@ -38,7 +38,7 @@ import numpy as np
 from algorithm.replay import PrioritizedTable
 from algorithm.spaces import SensorSpec
 from bench.replay import ACT, BATCH, OBS, random_chunk
-from ds.replay_codec import message_limit_bytes
+from ds.replay.codec import message_limit_bytes
 
 CAPACITY, PREFILL, CHUNK = 1_000_000, 100_000, 64
 SENSORS = (SensorSpec("obs", (OBS,)),)
@@ -57,7 +57,7 @@ def serve(
 ) -> None:
     """A replay process: a table prefilled with ``PREFILL`` random steps behind the gRPC servicer,
     its port put in ``port.value``, until ``stop`` is set."""
-    from ds.replay_service import serve_replay
+    from ds.replay.service import serve_replay
 
     table, rng = make_table(sensors, action_size), np.random.default_rng(1)
     for _ in range(PREFILL // CHUNK):
@@ -92,8 +92,8 @@ def client(kind: str, port: int, seconds: float, start: Barrier, results: Any) -
     """One actor (``insert``: the actor's own sink, with its inserts in flight while it would step
     its envs) or learner (``sample``, ``sample_update``) process: warms its channel up, waits for
     the others, then calls for ``seconds`` and reports ``(calls, steps stored, elapsed)``."""
-    from ds.actor import ReplaySink
-    from ds.replay_service import ReplayClient
+    from ds.actor.actor import ReplaySink
+    from ds.replay.service import ReplayClient
 
     rng = np.random.default_rng(os.getpid())
     chunks = [random_chunk(SENSORS, ACT, CHUNK, rng) for _ in range(8)]  # a few distinct payloads, as real actors send

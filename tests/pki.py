@@ -10,7 +10,7 @@ Usage::
     uri = pki.issue("uri", sans=[x509.UniformResourceIdentifier("evolver")], common_name="evolver")  # no DNS SAN
     learner.cert, learner.key, pki.ca          # paths, for --tls_cert / --tls_key / --tls_ca
 
-Role names travel as DNS subject alternative names: that is what ds/security.py checks (docs/security.md section 3).
+Role names travel as DNS subject alternative names: that is what ds/net/security.py checks (docs/security.md section 3).
 Keys are EC P-256: generated in milliseconds.
 """
 

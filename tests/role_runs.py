@@ -28,9 +28,9 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
-from ds.local import LOCAL_HOST, free_port
-from ds.replay_service import ReplayClient
-from ds.rpc import RetryPolicy
+from ds.launch.local import LOCAL_HOST, free_port
+from ds.net.rpc import RetryPolicy
+from ds.replay.service import ReplayClient
 
 ROOT = Path(__file__).resolve().parents[1]
 ENV = {**os.environ, "OMP_WAIT_POLICY": "PASSIVE", "OMP_NUM_THREADS": "1", "MUJOCO_GL": "egl"}

@@ -1,5 +1,5 @@
-"""An actor held back by the replay's rate limiter, end to end (ds/actor.py with its sink,
-ds/replay_sink.py): when the run's budget is spent while the learner is behind, the actor stops
+"""An actor held back by the replay's rate limiter, end to end (ds/actor/actor.py with its sink,
+ds/actor/sink.py): when the run's budget is spent while the learner is behind, the actor stops
 promptly; every step it collected is stored or counted (``unsent_steps``), at most its sink's
 bound plus one open chunk per env, and logged in one line; its heartbeat thread ends quietly
 when the channel closes under a heartbeat on its way."""
@@ -17,9 +17,9 @@ import pytest
 
 from algorithm.replay import PrioritizedTable, RateLimiter, SampleTimeout
 from algorithm.sac import SAC
-from ds.actor import DistributedActor
-from ds.learner_service import LearnerClient, Registration
-from ds.replay_service import ReplayClient, serve_replay
+from ds.actor.actor import DistributedActor
+from ds.learner.service import LearnerClient, Registration
+from ds.replay.service import ReplayClient, serve_replay
 from envs.make import vector_env_factory
 from tests.ds.test_reconnect import CONFIG, FAST_RETRY, SPEC, Learner, free_port
 

@@ -26,8 +26,8 @@ import numpy as np
 import pytest
 
 from algorithm.spaces import EnvSpec
-from ds.local import free_port
-from ds.replay_service import ReplayClient, ReplayRpcError
+from ds.launch.local import free_port
+from ds.replay.service import ReplayClient, ReplayRpcError
 from envs.make import vector_env_factory
 
 pytestmark = [pytest.mark.slow, pytest.mark.grpc, pytest.mark.fault]

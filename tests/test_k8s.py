@@ -1,4 +1,4 @@
-"""The deployment: the learner/replay pairing by pod ordinal (ds/k8s.py), the k8s/ manifests as
+"""The deployment: the learner/replay pairing by pod ordinal (ds/launch/k8s.py), the k8s/ manifests as
 ``kubectl kustomize`` renders them (valid against the Kubernetes schemas; commands that main_ds.py's
 parser accepts; ports, probes and mounts that agree with each role's resolved config, and with the
 image: its user, working directory and model root, tests/test_image.py)."""
@@ -21,8 +21,10 @@ from hypothesis import strategies as st
 from algorithm.config import ConfigError, load_config
 from algorithm.config_schema import Config
 from cli import UsageError, cli_overrides, task_dir
-from ds import evolver_service, learner_service, replay_service
-from ds.k8s import PodName, paired_hosts, parse_pod_name, stable_host
+from ds.evolver import service as evolver_service
+from ds.launch.k8s import PodName, paired_hosts, parse_pod_name, stable_host
+from ds.learner import service as learner_service
+from ds.replay import service as replay_service
 from main_ds import ROLES, build_parser
 from tests.test_image import image_env, image_uid, image_workdir
 
@@ -273,7 +275,7 @@ def test_service_ports_are_the_roles_configured_ports(render: Any, name: str) ->
 @pytest.mark.parametrize("name", RENDERS)
 def test_probes_ask_the_roles_health_service_on_a_port_that_serves_it(render: Any, name: str) -> None:
     """The role's gRPC port; under TLS, which Kubernetes gRPC probes cannot speak, the plaintext
-    health-only port (net_config.health_port, ds/security.py)."""
+    health-only port (net_config.health_port, ds/net/security.py)."""
     for c in asac_containers(render(name)):
         probes = [c.spec[k] for k in ("startupProbe", "readinessProbe", "livenessProbe") if k in c.spec]
         if c.role not in SERVERS:

@@ -62,12 +62,12 @@ def test_protos_import_only_protos() -> None:
 
 
 def test_only_roles_composes_the_network_with_the_envs() -> None:
-    """docs/architecture.md section 2: only main*.py and ds/roles.py compose everything; the other ds/ modules are
-    transports and role loops over algorithm/ interfaces (envs arrive as factories)."""
+    """docs/architecture.md section 2: only main*.py and ds/launch/roles.py compose everything; the other
+    ds/ modules are transports and role loops over algorithm/ interfaces (envs arrive as factories)."""
     for path in (ROOT / "ds").rglob("*.py"):
         if path.name == "roles.py":
             continue
-        bad = {n for n in imported_packages(path) if n.startswith("envs") or n == "ds.roles"}
+        bad = {n for n in imported_packages(path) if n.startswith("envs") or n == "ds.launch.roles"}
         assert not bad, f"{path.relative_to(ROOT)} imports {bad}"
 
 

@@ -1,6 +1,6 @@
 """``main_ds.py TASK local`` from start to end as a user lives it: how it stops (learners first, then
 actors, then replays, the evolver last; no kill in a normal finish), the summary it ends with (and
-that its play command works), and labels that agree with the ids the roles use (ds/local.py).
+that its play command works), and labels that agree with the ids the roles use (ds/launch/local.py).
 
 The first tests run the launcher over stand-in roles (a few lines of Python each, that say when they
 get a signal and when they are done), so the stop order is checked in seconds and exactly; the
@@ -21,10 +21,10 @@ from pathlib import Path
 import pytest
 import torch
 
-from ds.learner_service import LearnerClient
-from ds.local import plan
-from ds.local_summary import python_command
-from ds.roles import AsksForIndex
+from ds.launch.local import plan
+from ds.launch.local_summary import python_command
+from ds.launch.roles import AsksForIndex
+from ds.learner.service import LearnerClient
 from tests.role_runs import ENV, TINY, main_ds_command
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -57,8 +57,8 @@ LAUNCHER = textwrap.dedent(
     """
     import sys
     from pathlib import Path
-    from ds.local import run_local
-    from ds.local_summary import PlayableRun
+    from ds.launch.local import run_local
+    from ds.launch.local_summary import PlayableRun
     folder = Path(sys.argv[2])
     run = PlayableRun("gym/pendulum", "standin", folder, "models", Path("main.py"))
     finish = {"learner": ["--finish"]} if sys.argv[3] == "finish" else {}

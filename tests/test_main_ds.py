@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pytest
 
-from ds.security import ROLES
+from ds.net.security import ROLES
 from tests.pki import Pki
 from tests.role_runs import ENV, TINY, main_ds_command, running
 
@@ -225,7 +225,7 @@ def test_local_run_with_a_token_and_mutual_tls_trains(tmp_path: Path) -> None:
     for role in ("replay", "learner"):
         assert re.search(rf"\[{role}\].* {role} on 127.0.0.1:\d+: mutual TLS .*token required", output), role
     assert "open to anyone" not in output, output[-4000:]
-    assert "not reachable: " not in output, output[-4000:]  # the reason a TLS handshake failed (ds/rpc.py)
+    assert "not reachable: " not in output, output[-4000:]  # the reason a TLS handshake failed (ds/net/rpc.py)
     run = tmp_path / "models/gym/pendulum/secure"
     assert max(int(p.stem) for p in run.glob("model/*.pt")) >= 1200  # the learner trained to the budget
     for role in ("learner", "actor_0", "replay"):

@@ -19,10 +19,10 @@ from typing import Any
 import grpc
 import pytest
 
-from ds.evolver_service import EvolverClient
-from ds.evolver_state import EvolverInfo
-from ds.local import free_port
-from ds.rpc import RetryPolicy
+from ds.evolver.service import EvolverClient
+from ds.evolver.state import EvolverInfo
+from ds.launch.local import free_port
+from ds.net.rpc import RetryPolicy
 from tests.role_runs import TINY_OVERRIDES, running
 
 ROOT = Path(__file__).resolve().parents[1]

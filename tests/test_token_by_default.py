@@ -14,10 +14,10 @@ from pathlib import Path
 import grpc
 import pytest
 
-from ds.learner_service import LearnerClient
-from ds.replay_service import ReplayClient, ReplayRpcError
-from ds.rpc import RetryPolicy
-from ds.security import Credentials
+from ds.learner.service import LearnerClient
+from ds.net.rpc import RetryPolicy
+from ds.net.security import Credentials
+from ds.replay.service import ReplayClient, ReplayRpcError
 from tests.ds.test_reconnect import SPEC
 from tests.role_runs import ENV, TINY, RoleRun, main_ds_command
 

@@ -10,7 +10,7 @@ Usage (:meth:`PrioritizedTable.insert_once` does this under the table's lock)::
     ...store the new chunks...
     ledger.record(ids, 12, first_key)   # a new producer takes its place here
 
-Delivery from an actor to the replay is at least once: the actor's sink (ds/replay_sink.py) keeps every
+Delivery from an actor to the replay is at least once: the actor's sink (ds/actor/sink.py) keeps every
 chunk until a reply says it is stored and sends it again, with the same producer id and sequence
 number, when the reply does not come (the replay was unreachable, or the reply was lost after the
 chunk was stored). The ledger turns the second case from a double insert into a duplicate answer.

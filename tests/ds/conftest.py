@@ -10,7 +10,7 @@ from typing import Any
 import pytest
 
 from algorithm.replay import PrioritizedTable
-from ds.replay_service import ReplayClient, serve_replay
+from ds.replay.service import ReplayClient, serve_replay
 
 ServeOverGrpc = Callable[..., ReplayClient]
 

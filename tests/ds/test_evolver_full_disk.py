@@ -9,8 +9,8 @@ from pathlib import Path
 
 import pytest
 
-from ds.evolver import Evolver
-from ds.evolver_state import SAMPLES_DIR, STATE_FILE, PendingSample, Role
+from ds.evolver.evolver import Evolver
+from ds.evolver.state import SAMPLES_DIR, STATE_FILE, PendingSample, Role
 from tests.small_disk import small_disk
 
 from .test_evolver_service import evolver_config, weights_of

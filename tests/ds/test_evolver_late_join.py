@@ -19,14 +19,14 @@ from algorithm.config import load_config
 from algorithm.config_schema import Config
 from algorithm.replay import PrioritizedTable
 from algorithm.sac import SAC
-from ds.evolver import Evolver
-from ds.evolver_link import EvolverLink, Membership, WeightsSnapshot
-from ds.evolver_service import EvolverClient
-from ds.evolver_state import STATE_FILE, EvolverStateError, Instruction, save_state
-from ds.learner import Learner
-from ds.learner_service import ActorRegistry, LearnerServicer, ParamsStore, serve_learner
-from ds.params import ParamsPublisher, encode_params, params_spec
-from ds.population import LearnerAddress, join_population
+from ds.evolver.evolver import Evolver
+from ds.evolver.link import EvolverLink, Membership, WeightsSnapshot
+from ds.evolver.population import LearnerAddress, join_population
+from ds.evolver.service import EvolverClient
+from ds.evolver.state import STATE_FILE, EvolverStateError, Instruction, save_state
+from ds.learner.learner import Learner
+from ds.learner.service import ActorRegistry, LearnerServicer, ParamsStore, serve_learner
+from ds.net.params import ParamsPublisher, encode_params, params_spec
 from envs.make import make_vector_env
 
 from .conftest import ServeOverGrpc
@@ -166,7 +166,7 @@ def servers() -> Iterator[list[SacServer]]:
 def start_learner(
     client: EvolverClient, tmp_path: Path, over_grpc: ServeOverGrpc, seed: int
 ) -> tuple[Learner, EvolverLink, dict[str, np.ndarray]]:
-    """A new learner joined as ``join_population`` and ds/roles.py join it, its link started; its
+    """A new learner joined as ``join_population`` and ds/launch/roles.py join it, its link started; its
     own initial weights. Its stop is set: :meth:`Learner.run` does everything before the first update."""
     config, sac, table = pendulum_sac(seed)
     own = weights(sac)

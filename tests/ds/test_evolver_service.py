@@ -21,9 +21,9 @@ from hypothesis import strategies as st
 from algorithm.config import config_from_yaml
 from algorithm.config_schema import Config
 from algorithm.spaces import ActionSpec, EnvSpec, SensorSpec
-from ds.evolver import Evolver
-from ds.evolver_service import EvolverClient, EvolverRequestRejected, serve_evolver
-from ds.evolver_state import (
+from ds.evolver.evolver import Evolver
+from ds.evolver.service import EvolverClient, EvolverRequestRejected, serve_evolver
+from ds.evolver.state import (
     SAMPLES_DIR,
     STATE_FILE,
     EvolverInfo,
@@ -36,9 +36,9 @@ from ds.evolver_state import (
     UnknownAssignment,
     UnknownLearner,
 )
-from ds.learner_service import ActorRegistry, LearnerClient, LearnerServicer, ParamsStore, serve_learner
-from ds.params import decode_params, encode_params, params_spec
-from ds.rpc import RetryPolicy
+from ds.learner.service import ActorRegistry, LearnerClient, LearnerServicer, ParamsStore, serve_learner
+from ds.net.params import decode_params, encode_params, params_spec
+from ds.net.rpc import RetryPolicy
 from protos import evolver_pb2, evolver_pb2_grpc
 
 pytestmark = pytest.mark.grpc

@@ -21,11 +21,11 @@ from algorithm.checkpoint import CheckpointError, load_checkpoint, save_checkpoi
 from algorithm.config import load_config
 from algorithm.replay import PrioritizedTable
 from algorithm.sac import SAC
-from ds.learner import EnvSteps, Learner
-from ds.learner_service import ParamsStore
-from ds.params import ParamsPublisher, decode_params, params_spec
-from ds.replay_feeds import BatchPrefetcher, PriorityUpdater, merge_priorities
-from ds.replay_service import ReplayClient, RetryPolicy, serve_replay
+from ds.learner.feeds import BatchPrefetcher, PriorityUpdater, merge_priorities
+from ds.learner.learner import EnvSteps, Learner
+from ds.learner.service import ParamsStore
+from ds.net.params import ParamsPublisher, decode_params, params_spec
+from ds.replay.service import ReplayClient, RetryPolicy, serve_replay
 from envs.make import make_vector_env
 from tests.algorithm.replay.chunks import VECTOR, make_chunk
 from tests.damage import flip_in_largest_record, tree_digest

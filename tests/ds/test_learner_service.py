@@ -18,8 +18,8 @@ from algorithm.config import load_config
 from algorithm.config_schema import Config
 from algorithm.replay import PrioritizedTable
 from algorithm.sac import SAC
-from ds.actor import DistributedActor, actor_noise
-from ds.learner_service import (
+from ds.actor.actor import DistributedActor, actor_noise
+from ds.learner.service import (
     SERVICE_NAME,
     ActingPolicy,
     ActorRegistry,
@@ -30,10 +30,10 @@ from ds.learner_service import (
     RemotePolicy,
     serve_learner,
 )
-from ds.params import ParamsPublisher, decode_params, params_spec
-from ds.replay_service import ReplayClient, serve_replay
-from ds.rpc import RetryPolicy, set_serving
-from ds.stream_key import StreamKey
+from ds.net.params import ParamsPublisher, decode_params, params_spec
+from ds.net.rpc import RetryPolicy, set_serving
+from ds.net.stream_key import StreamKey
+from ds.replay.service import ReplayClient, serve_replay
 from envs.make import vector_env_factory
 
 pytestmark = pytest.mark.grpc

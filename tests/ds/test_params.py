@@ -17,11 +17,11 @@ from hypothesis import given
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
-import ds.params
+import ds.net.params
 from algorithm.config_schema import NNConfig, ReplayConfig, SacConfig
 from algorithm.sac import SAC
 from algorithm.spaces import ActionSpec, EnvSpec, SensorSpec
-from ds.params import (
+from ds.net.params import (
     DTYPES,
     ParamsError,
     ParamsPublisher,
@@ -306,7 +306,7 @@ def test_eight_subscribers_end_on_the_newest_version(ctx: zmq.Context, monkeypat
         encodes.append(version)
         return encode_params(version, *args, **kwargs)  # type: ignore[arg-type]
 
-    monkeypatch.setattr(ds.params, "encode_params", counting_encode)
+    monkeypatch.setattr(ds.net.params, "encode_params", counting_encode)
     sac = make_sac(seed=0)
     spec = params_spec(sac.acting_state_dict())
     with ParamsPublisher("tcp://127.0.0.1:*", context=ctx) as pub:

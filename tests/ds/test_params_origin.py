@@ -18,8 +18,8 @@ import pytest
 import zmq
 
 from algorithm.sac import SAC
-from ds.params import ParamsError, ParamsPublisher, ParamsSubscriber, decode_params, encode_params
-from ds.stream_key import StreamKey
+from ds.net.params import ParamsError, ParamsPublisher, ParamsSubscriber, decode_params, encode_params
+from ds.net.stream_key import StreamKey
 from tests.ds.test_params import SPEC, counts, ctx, reaches, small_params, until
 from tests.ds.test_reconnect import CONFIG, Learner, Replay, free_port, running_actor, same_weights
 from tests.ds.test_reconnect import SPEC as PENDULUM

@@ -17,12 +17,12 @@ import torch
 from algorithm.config import load_config
 from algorithm.replay import PrioritizedTable
 from algorithm.sac import SAC
-from ds.actor import DistributedActor
-from ds.learner_service import SERVICE_NAME, ActorRegistry, LearnerClient, LearnerServicer, ParamsStore, serve_learner
-from ds.params import ParamsError, ParamsPublisher
-from ds.replay_service import ReplayClient, RetryPolicy, serve_replay
-from ds.rpc import set_serving
-from ds.stream_key import StreamKey
+from ds.actor.actor import DistributedActor
+from ds.learner.service import SERVICE_NAME, ActorRegistry, LearnerClient, LearnerServicer, ParamsStore, serve_learner
+from ds.net.params import ParamsError, ParamsPublisher
+from ds.net.rpc import set_serving
+from ds.net.stream_key import StreamKey
+from ds.replay.service import ReplayClient, RetryPolicy, serve_replay
 from envs.make import vector_env_factory
 
 pytestmark = pytest.mark.grpc

@@ -1,4 +1,4 @@
-"""The files a replay server's Save and Load rpcs may touch (ds/replay_files.py): only regular files
+"""The files a replay server's Save and Load rpcs may touch (ds/replay/files.py): only regular files
 inside its snapshot folder, never a FIFO, device or socket, and never holding the workers the other
 rpcs need. Real servers on loopback, real files, a real FIFO (``os.mkfifo``) and socket.
 
@@ -23,8 +23,8 @@ import grpc
 import pytest
 
 from algorithm.replay import PrioritizedTable
-from ds.replay_codec import chunk_to_proto
-from ds.replay_service import serve_replay
+from ds.replay.codec import chunk_to_proto
+from ds.replay.service import serve_replay
 from protos import replay_pb2, replay_pb2_grpc
 from tests.algorithm.replay.chunks import VECTOR, make_chunk
 from tests.small_disk import small_disk

@@ -20,8 +20,9 @@ from grpc_health.v1 import health, health_pb2, health_pb2_grpc
 
 from algorithm.replay import InsertTimeout, PrioritizedTable, RateLimiter, ReplayUnavailable, SampleTimeout
 from algorithm.types import Batch
-from ds.replay_codec import chunk_to_proto, message_limit_bytes
-from ds.replay_service import (
+from ds.net.wire import WireError, to_tensor
+from ds.replay.codec import chunk_to_proto, message_limit_bytes
+from ds.replay.service import (
     ReplayClient,
     ReplayRequestRejected,
     ReplayRpcError,
@@ -29,7 +30,6 @@ from ds.replay_service import (
     serve_replay,
     set_serving,
 )
-from ds.wire import WireError, to_tensor
 from protos import replay_pb2, replay_pb2_grpc
 from tests.algorithm.replay.chunks import IMAGE, VECTOR, make_chunk
 

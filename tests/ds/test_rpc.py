@@ -6,7 +6,7 @@ from __future__ import annotations
 import grpc
 import pytest
 
-from ds.rpc import RetryPolicy, call_with_retry, peer_gone, peer_unresponsive
+from ds.net.rpc import RetryPolicy, call_with_retry, peer_gone, peer_unresponsive
 
 NO_WAIT = RetryPolicy(attempts=3, initial_backoff_s=0.0, max_backoff_s=0.0)
 

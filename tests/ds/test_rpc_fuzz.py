@@ -32,12 +32,12 @@ from algorithm.config_schema import Config
 from algorithm.replay import PrioritizedTable
 from algorithm.sac import SAC
 from algorithm.spaces import ActionSpec, EnvSpec, SensorSpec
-from ds.evolver import Evolver
-from ds.evolver_service import serve_evolver
-from ds.learner_service import ActingPolicy, ActorRegistry, LearnerServicer, ParamsStore, serve_learner
-from ds.replay_codec import chunk_to_proto
-from ds.replay_service import serve_replay
-from ds.wire import WIRE_DTYPES, to_tensor
+from ds.evolver.evolver import Evolver
+from ds.evolver.service import serve_evolver
+from ds.learner.service import ActingPolicy, ActorRegistry, LearnerServicer, ParamsStore, serve_learner
+from ds.net.wire import WIRE_DTYPES, to_tensor
+from ds.replay.codec import chunk_to_proto
+from ds.replay.service import serve_replay
 from protos import evolver_pb2, evolver_pb2_grpc, learner_pb2, learner_pb2_grpc, replay_pb2, replay_pb2_grpc
 from tests.algorithm.replay.chunks import IMAGE, VECTOR, make_chunk
 

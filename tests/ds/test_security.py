@@ -1,4 +1,4 @@
-"""Security of the three gRPC services on loopback (ds/security.py): the token on every rpc, TLS and
+"""Security of the three gRPC services on loopback (ds/net/security.py): the token on every rpc, TLS and
 mutual TLS with certificates made at test time (tests/pki.py), which role may call which rpc, clients
 that accept only a server holding the role's certificate (a learner loads CEM samples from the
 evolver only), the plaintext health-only port, the checks of the credential files, and the warning
@@ -27,15 +27,18 @@ from algorithm.config import ConfigError
 from algorithm.config_schema import Config, NetConfig
 from algorithm.replay import PrioritizedTable
 from algorithm.spaces import ActionSpec, EnvSpec
-from ds import evolver_service, learner_service, replay_service, security
-from ds.evolver import Evolver
-from ds.evolver_service import EvolverClient, serve_evolver
-from ds.learner_service import ActorRegistry, LearnerClient, LearnerServicer, ParamsStore, serve_learner
-from ds.local import free_port
-from ds.params import encode_params, params_spec
-from ds.replay_service import ReplayClient, ReplayRpcError, serve_replay
-from ds.rpc import RetryPolicy, set_serving, wait_until_serving
-from ds.security import ROLES, Credentials, load_credentials
+from ds.evolver import service as evolver_service
+from ds.evolver.evolver import Evolver
+from ds.evolver.service import EvolverClient, serve_evolver
+from ds.launch.local import free_port
+from ds.learner import service as learner_service
+from ds.learner.service import ActorRegistry, LearnerClient, LearnerServicer, ParamsStore, serve_learner
+from ds.net import security
+from ds.net.params import encode_params, params_spec
+from ds.net.rpc import RetryPolicy, set_serving, wait_until_serving
+from ds.net.security import ROLES, Credentials, load_credentials
+from ds.replay import service as replay_service
+from ds.replay.service import ReplayClient, ReplayRpcError, serve_replay
 from protos import evolver_pb2, evolver_pb2_grpc, learner_pb2, replay_pb2
 from tests.algorithm.replay.chunks import VECTOR, make_chunk
 from tests.pki import Pki
@@ -372,7 +375,7 @@ def test_the_clients_carry_tls_and_the_token_on_blocking_and_future_calls(
     actor, learner = material.creds("actor"), material.creds("learner")
     with ReplayClient(served.address, (VECTOR,), 2, credentials=actor, retry=ONCE) as replay:
         assert len(replay.insert(make_chunk(5, 0))) == 5
-        pending = replay.insert_async([make_chunk(5, 6)])  # a .future() call: ds/actor.py pipelines these
+        pending = replay.insert_async([make_chunk(5, 6)])  # a .future() call: ds/actor/actor.py pipelines these
         assert [len(keys) for keys in pending.result().keys] == [5]
         assert replay.info()["inserted_steps"] == 10
         with pytest.raises(ReplayRpcError) as denied:

@@ -1,4 +1,4 @@
-"""ds.wire: exact round trips for every wire dtype and shape, and named errors for every violation."""
+"""ds.net.wire: exact round trips for every wire dtype and shape, and named errors for every violation."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import array_shapes, arrays
 
-from ds.wire import WIRE_DTYPES, TensorSpec, WireError, from_tensor, to_tensor
+from ds.net.wire import WIRE_DTYPES, TensorSpec, WireError, from_tensor, to_tensor
 from protos import replay_pb2
 
 DTYPES = ["float32", "float64", "uint8", "bool", "uint64", "int64", "int32"]

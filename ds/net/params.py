@@ -71,7 +71,7 @@ import torch
 import zmq
 from torch import Tensor
 
-from ds.stream_key import StreamKey
+from ds.net.stream_key import StreamKey
 
 FORMAT = "asac.params/1"
 MAC_BYTES = hashlib.sha256().digest_size

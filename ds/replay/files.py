@@ -2,7 +2,7 @@
 
 A replay server owns one folder, its snapshot folder (the replay role's ``<run>/replay/``, where it
 keeps ``replay.npz``). :class:`SnapshotFolder` turns the name a client sends into a path in it, or
-refuses it (a :class:`~ds.wire.WireError`, INVALID_ARGUMENT, naming the problem):
+refuses it (a :class:`~ds.net.wire.WireError`, INVALID_ARGUMENT, naming the problem):
 
 - an empty name is the default snapshot, ``replay.npz`` (the file the replay role loads when it
   starts and saves when it stops);
@@ -34,7 +34,7 @@ from pathlib import Path, PurePosixPath
 
 from algorithm.files import file_kind
 from algorithm.run_dir import RunDir
-from ds.wire import WireError
+from ds.net.wire import WireError
 
 __all__ = ["DEFAULT_SNAPSHOT", "FileWork", "FileWorkAbandoned", "FileWorkBusy", "SnapshotFolder"]
 

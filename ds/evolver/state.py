@@ -13,7 +13,7 @@ a different population without a word). A state or sample that cannot be read, o
 contents do not match its digest, raises :class:`EvolverStateError` naming the file, and nothing
 is overwritten.
 
-Usage of the files (by ds/evolver.py only)::
+Usage of the files (by ds/evolver/evolver.py only)::
 
     saved = load_state(state_dir)                    # None for a fresh directory
     write_sample(state_dir, pending)                 # a CEM round's sample for one learner

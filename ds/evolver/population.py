@@ -1,14 +1,14 @@
 """How the roles take part in an evolver's population (docs/architecture.md section 10, protos/evolver.proto): a
 learner's folder and identity, the config a learner's group runs with, and the assignments of actors
-and replays (a learner's live link with the evolver is ds/evolver_link.py).
-``ds/roles.py`` composes these with the role loops; nothing here touches envs.
+and replays (a learner's live link with the evolver is ds/evolver/link.py).
+``ds/launch/roles.py`` composes these with the role loops; nothing here touches envs.
 
 Usage, a learner's (``run_learner``)::
 
-    client = EvolverClient("evolver:61000", token=token, credentials=creds)  # creds: ds/security.py
+    client = EvolverClient("evolver:61000", token=token, credentials=creds)  # creds: ds/net/security.py
     joined = join_population(client, run_dir, LearnerAddress(name, "", 61001, params_port, ""), stop)
     config = member_config(joined.registration.config_yaml, joined.learner_id, own_config, overrides)
-    ...                                    # ds/evolver_link.py: heartbeats, returns, samples, retirement
+    ...                                    # ds/evolver/link.py: heartbeats, returns, samples, retirement
 
 an actor's or replay's::
 
@@ -42,8 +42,9 @@ import grpc
 from algorithm.config import apply_overrides, config_from_yaml
 from algorithm.config_schema import Config
 from algorithm.files import WriteFailures, atomic_write
-from ds.evolver_service import EvolverClient
-from ds.evolver_state import (
+from algorithm.logging import Throttle
+from ds.evolver.service import EvolverClient
+from ds.evolver.state import (
     Assignment,
     LearnerRegistration,
     LearnerRetired,
@@ -51,8 +52,7 @@ from ds.evolver_state import (
     UnknownAssignment,
     UnknownLearner,
 )
-from ds.replay_feeds import Throttle
-from ds.rpc import peer_unresponsive
+from ds.net.rpc import peer_unresponsive
 
 log = logging.getLogger("asac.population")
 SLOT_FILE = "learner.json"

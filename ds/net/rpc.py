@@ -3,7 +3,7 @@ of UNAVAILABLE with exponential backoff, the health service, and waiting for a p
 
 Usage::
 
-    server = security.new_server("replay", SERVICE_NAME, CALLERS, credentials, max_workers, options)   # ds/security.py
+    server = security.new_server("replay", SERVICE_NAME, CALLERS, credentials, max_workers, options)  # security.py
     add_servicer(server, servicer, replay_pb2.DESCRIPTOR.services_by_name["ReplayService"])   # strict parsing
     channel = security.open_channel(address, "replay", credentials, channel_options(limit))
     reply = call_with_retry(stub.Info, request, deadline_s=30.0, retry=RetryPolicy())   # or grpc.RpcError

@@ -13,7 +13,7 @@ probes call with neither TLS nor metadata; it says SERVING or NOT_SERVING and no
 
 1. **Token** (``net_config.token_file``): the call must carry ``authorization: Bearer <key>``,
    where the key is derived from the token (HMAC-SHA256(token, "asac grpc bearer")), so the secret
-   that signs parameters (ds/params.py) never travels itself. Missing or wrong: UNAUTHENTICATED.
+   that signs parameters (ds/net/params.py) never travels itself. Missing or wrong: UNAUTHENTICATED.
 2. **TLS** (``tls_cert`` + ``tls_key``): the server speaks only TLS on its port; a call that came
    in over the plaintext health port (``health_port``) is PERMISSION_DENIED.
 3. **Mutual TLS and roles** (``tls_ca`` too): the handshake fails for a client without a

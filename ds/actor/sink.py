@@ -1,7 +1,7 @@
 """The actor's sink (:class:`ReplaySink`): hands the actor loop's chunks to the replay, and holds the
 actor back while the replay holds inserts back.
 
-Usage (``ds/actor.py`` wires it into :class:`~algorithm.actor.ActorLoop`)::
+Usage (``ds/actor/actor.py`` wires it into :class:`~algorithm.actor.ActorLoop`)::
 
     sink = ReplaySink(replay_client, stopping=lambda: stop.is_set(), between=check_heartbeats)
     loop = ActorLoop(env, policy, sink, chunk_length=64)
@@ -25,15 +25,15 @@ from collections.abc import Callable
 
 import grpc
 
+from algorithm.logging import Throttle
 from algorithm.replay import ChunkIds, InsertTimeout
 from algorithm.types import Chunk
-from ds.replay_codec import chunk_payload_bytes
-from ds.replay_feeds import Throttle
-from ds.replay_service import PendingInsert, ReplayClient, ReplayRpcError
+from ds.replay.codec import chunk_payload_bytes
+from ds.replay.service import PendingInsert, ReplayClient, ReplayRpcError
 
 log = logging.getLogger("asac.actor")
 # How long an actor's last inserts at the end of a run may wait in the rate limiter, all together: the learner
-# trains on until the actors have left (ds/learner.py), so they are let in within a few updates.
+# trains on until the actors have left (ds/learner/learner.py), so they are let in within a few updates.
 LAST_INSERTS_WAIT_S = 2.0
 
 
@@ -61,7 +61,7 @@ class ReplaySink:
     and nothing is retried: each chunk still here gets one last try; the last tries wait in the rate
     limiter until one deadline ``last_try_wait_s()`` seconds after the first (0 by default; at the
     end of a run the learner goes on training until the actors have left, so their last inserts are
-    let in: see ds/actor.py), and after the first sign that the replay is gone no more are sent. What
+    let in: see ds/actor/actor.py), and after the first sign that the replay is gone no more are sent. What
     was not stored is counted in ``unsent_steps`` / ``unsent_chunks`` and logged once, by
     :meth:`flush`, which waits for everything on its way. Chunks may be stored out of order after a
     retry; each is self-contained (no window spans two chunks), so order does not matter.

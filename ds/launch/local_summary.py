@@ -2,7 +2,7 @@
 return, where it lies and the command that plays it (``main.py --run``, which finds a run as
 ``<model_root>/<task>/<name>/``, a population's learner k as ``-n <name>/learner_<k>``).
 
-Usage (ds/local.py, once every child has stopped)::
+Usage (ds/launch/local.py, once every child has stopped)::
 
     run = PlayableRun("gym/pendulum", "base", Path("models/gym/pendulum/base"), "models", main_py)
     print("\\n".join(summary(run, "finished", learner_ids=None)))   # learner_ids=[0, 1]: a population

@@ -1,7 +1,7 @@
 """The learner's background traffic with the replay: batches prefetched into a bounded queue,
 priority updates sent back in merged batches. Neither ever drops data silently.
 
-Usage (ds/learner.py)::
+Usage (ds/learner/learner.py)::
 
     prefetcher, priorities = BatchPrefetcher(replay, batch_size=256), PriorityUpdater(replay)
     prefetcher.start(); priorities.start()
@@ -20,35 +20,17 @@ any other replay error stops the thread and is raised in the learner's thread by
 from __future__ import annotations
 
 import logging
-import math
 import queue
 import threading
 import time
 
 import numpy as np
 
+from algorithm.logging import Throttle
 from algorithm.replay import ReplayTable, ReplayUnavailable, SampleTimeout
 from algorithm.types import Batch
 
 log = logging.getLogger("asac.learner")
-
-
-REPEAT_LOG_S = 30.0  # a line about a state that persists (waiting, unreachable) is repeated at most this often
-
-
-class Throttle:
-    """True at most once every ``seconds`` (for log lines about a state that persists)."""
-
-    def __init__(self, seconds: float = REPEAT_LOG_S) -> None:
-        self.seconds = seconds
-        self._last = -math.inf
-
-    def __call__(self) -> bool:
-        now = time.monotonic()
-        if now - self._last < self.seconds:
-            return False
-        self._last = now
-        return True
 
 
 class _Worker:

@@ -1,6 +1,6 @@
 """The evolver's registry: learners' addresses and leases, samples waiting to be loaded, returns in
 flight, and the assignments of actors and replays. It is what the rpcs of protos/evolver.proto
-touch; the population and its CEM rounds live in :class:`ds.evolver.Evolver`.
+touch; the population and its CEM rounds live in :class:`ds.evolver.evolver.Evolver`.
 
 Every method takes the registry's own lock, held for a few dictionary operations: nothing here waits
 for the population, the disk or the network, so heartbeats, PostReward, GetSample and Assign answer
@@ -33,8 +33,8 @@ from algorithm.config import config_to_yaml
 from algorithm.config_schema import Config
 from algorithm.evolution import Population, RoundResult
 from algorithm.random_params import apply_params
-from ds.evolver_assign import Assignments
-from ds.evolver_state import (
+from ds.evolver.assign import Assignments
+from ds.evolver.state import (
     Assignment,
     AssignmentEntry,
     EvolverInfo,
@@ -48,7 +48,7 @@ from ds.evolver_state import (
     Role,
     UnknownLearner,
 )
-from ds.params import encode_params
+from ds.net.params import encode_params
 
 
 @dataclass(frozen=True)
@@ -187,7 +187,7 @@ class LearnerRegistry:
     # ------------------------------------------------------------------ actors and replays
 
     def assign(self, role: Role, name: str, address: str, previous: str) -> tuple[Assignment, bool]:
-        """An assignment (ds/evolver_assign.py) and whether it is new or moved (then save)."""
+        """An assignment (ds/evolver/assign.py) and whether it is new or moved (then save)."""
         if not isinstance(role, Role):
             raise ValueError(f"role: must be ACTOR or REPLAY, got {role!r}")
         if role is Role.REPLAY:

@@ -1,7 +1,7 @@
 """Who may send an actor parameters: :class:`StreamKey`, one learner start's id and random secret.
 
 The learner draws one at start (:meth:`StreamKey.fresh`), signs every parameter message with
-:meth:`StreamKey.mac_key` (ds/params.py) and hands the secret to each actor in its
+:meth:`StreamKey.mac_key` (ds/net/params.py) and hands the secret to each actor in its
 ``RegisterActorReply.params_key`` (protos/learner.proto); an actor verifies what it receives under the
 key of the learner it registered with, so a process that takes a dead learner's port, or a learner
 that restarted before the actor registered again, is refused whatever version it claims

@@ -5,11 +5,11 @@ Usage (``main_ds.py`` builds the command and the flags each child gets)::
 
     code = run_local([python, "main_ds.py", "gym/pendulum"], child_args, actors=2, run=playable)   # one learner
     code = run_local([python, "main_ds.py", "gym/pendulum"], child_args, actors=6, learners=3,     # a population
-                     credentials=creds, run=playable)  # creds: the launcher's own, to ask the evolver (ds/security.py)
+                     credentials=creds, run=playable)  # creds: the launcher's own (ds/net/security.py)
 
 One learner: a replay, the learner and the actors, told each other's ports. A population: an evolver,
 ``learners`` replays and learners, told only the evolver's port (the evolver pairs replays with
-learners, ds/population.py), and, once every learner has registered with a replay, the actors, so
+learners, ds/evolver/population.py), and, once every learner has registered with a replay, the actors, so
 that the evolver spreads them over all learners (it gives each actor the least-loaded learner there
 is when it asks). Every child gets the same flags, so with TLS they share one certificate, which must
 name every role (docs/security.md section 3); none opens a plaintext health port (``net_config.health_port`` is
@@ -26,7 +26,7 @@ or retired) and on the launcher's first SIGINT/SIGTERM alike: the learners are t
 they checkpoint), then the actors (they flush what they hold into the replays, still running), then
 the replays (``save_replay``: they save) and the evolver last; each stage is waited for, and only a
 child still running after ``grace_s`` gets SIGTERM, then SIGKILL. A second Ctrl-C forces: SIGKILL to
-every child now. Last, the launcher prints a summary (ds/local_summary.py): how the run ended, the
+every child now. Last, the launcher prints a summary (ds/launch/local_summary.py): how the run ended, the
 final evaluation return, the run folder and the ``main.py --run`` command that plays it.
 
 Exit codes: 0 a normal finish, 130 stopped by SIGINT, 143 stopped by SIGTERM, 1 a child failed (or a
@@ -48,13 +48,13 @@ from dataclasses import dataclass
 
 import grpc
 
+from algorithm.logging import Throttle
 from algorithm.signals import StopRequest, stop_on_signals
-from ds.evolver_service import EvolverClient
-from ds.evolver_state import LearnerInfo
-from ds.local_summary import PlayableRun, summary
-from ds.replay_feeds import Throttle
-from ds.rpc import RetryPolicy
-from ds.security import NO_CREDENTIALS, Credentials
+from ds.evolver.service import EvolverClient
+from ds.evolver.state import LearnerInfo
+from ds.launch.local_summary import PlayableRun, summary
+from ds.net.rpc import RetryPolicy
+from ds.net.security import NO_CREDENTIALS, Credentials
 
 log = logging.getLogger("asac.local")
 LOCAL_HOST = "127.0.0.1"
@@ -65,7 +65,7 @@ HOLD_LINES_S = 60.0
 """How long after the evolver first answers a population learner's or replay's lines wait for its id
 (then they show unnumbered): long enough for a slow start on a loaded machine, short enough that a
 learner stuck before registering still shows why."""
-_PID = re.compile(r"\(pid (\d+)\)")  # how a learner names itself to the evolver (ds/role_context.py)
+_PID = re.compile(r"\(pid (\d+)\)")  # how a learner names itself to the evolver (ds/launch/role_context.py)
 
 
 def free_port() -> int:

@@ -1,8 +1,8 @@
 """What every role process is given (:class:`RoleContext`) and the small helpers the role loops of
-ds/roles.py share: how a server that cannot listen fails (:class:`RoleError`), and how a role names
+ds/launch/roles.py share: how a server that cannot listen fails (:class:`RoleError`), and how a role names
 itself to its peers.
 
-Split out of ds/roles.py so that the role loops can live in modules of their own; like ds/roles.py
+Split out of ds/launch/roles.py so that the role loops can live in modules of their own; like ds/launch/roles.py
 it touches no envs itself (they arrive as the ``make_env`` factory).
 """
 
@@ -24,13 +24,13 @@ from algorithm.config_schema import Config
 from algorithm.nn.user import ModelBuilder
 from algorithm.sac import SAC
 from algorithm.spaces import EnvSpec
-from ds import evolver_service
-from ds.evolver_service import EvolverClient
-from ds.local import LOCAL_HOST
-from ds.replay_codec import message_limit_bytes
-from ds.replay_service import ReplayClient
-from ds.rpc import wait_until_serving
-from ds.security import NO_CREDENTIALS, Credentials
+from ds.evolver import service as evolver_service
+from ds.evolver.service import EvolverClient
+from ds.launch.local import LOCAL_HOST
+from ds.net.rpc import wait_until_serving
+from ds.net.security import NO_CREDENTIALS, Credentials
+from ds.replay.codec import message_limit_bytes
+from ds.replay.service import ReplayClient
 
 _T = TypeVar("_T")
 
@@ -52,7 +52,7 @@ def listen(what: str, address: str, flag: str, start: Callable[[], _T]) -> _T:
 class RoleContext:
     """What every role needs: the resolved config, its run directory, an env factory
     ``make_env(num_envs, seed)``, the model builder of the run, the torch device, a stop event, the
-    role's credentials (ds/security.py: the run's shared secret of ``net_config.token_file``, which
+    role's credentials (ds/net/security.py: the run's shared secret of ``net_config.token_file``, which
     signs parameters and authenticates rpcs, and its TLS certificates; none: plaintext, unsigned) and
     this process's ``--override`` flags (applied again on top of the config an evolver gives)."""
 

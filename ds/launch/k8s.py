@@ -12,7 +12,7 @@ named after it, so pod k of ``<app>-<role>`` is ``<app>-<role>-<k>`` and is reac
 
 The keys are ``net_config`` fields. A role's own entry is the address it gives the evolver: replay k
 announces exactly the string learner k was started with, which is how the evolver pairs the two
-(ds/evolver_assign.py), and a learner's stable name outlives its pod IP. Any other pod (an actor,
+(ds/evolver/assign.py), and a learner's stable name outlives its pod IP. Any other pod (an actor,
 the evolver, a StatefulSet of another name) derives nothing and keeps its flags and config.
 """
 

@@ -2,7 +2,7 @@
 parameters for late joiners, actions for actors that hold no weights, and the full model weights
 for the evolver.
 
-Usage, the learner's side (ds/learner.py feeds the store and the acting copy)::
+Usage, the learner's side (ds/learner/learner.py feeds the store and the acting copy)::
 
     registry, store = ActorRegistry(lease_s=15.0), ParamsStore()
     acting = ActingPolicy(SAC(...)) if not update_policy_mode else None
@@ -18,14 +18,14 @@ and an actor's::
     learner = LearnerClient("learner:61001", spec, rnn_state_size, max_message_bytes=limit, credentials=creds)
     me = learner.register("actor on host-3")                   # id, index, params port and key, lease
     learner.heartbeat(me.actor_id, env_steps)                  # every few seconds; LeaseExpired: register again
-    version, frames = learner.get_params()                     # decode with ds.params.decode_params
+    version, frames = learner.get_params()                     # decode with ds.net.params.decode_params
     actions, logp, next_state = learner.act(obs, noise=0.05)   # update_policy_mode: false
 
-and the evolver's (ds/evolver.py), which needs no EnvSpec::
+and the evolver's (ds/evolver/evolver.py), which needs no EnvSpec::
 
     version, frames = LearnerClient("learner:61001", credentials=creds).get_weights()   # decode_params
 
-(``creds``: ds.security.load_credentials; under mutual TLS each rpc is open only to the roles
+(``creds``: ds.net.security.load_credentials; under mutual TLS each rpc is open only to the roles
 :data:`CALLERS` names: GetWeights to the evolver, the rest to actors.)
 """
 
@@ -47,11 +47,11 @@ from grpc_health.v1 import health, health_pb2_grpc
 
 from algorithm.sac import MAX_EXPLORATION_NOISE, SAC
 from algorithm.spaces import EnvSpec
-from ds import rpc, security
-from ds.replay_codec import GRPC_DEFAULT_MESSAGE_BYTES
-from ds.security import ACTOR, EVOLVER, NO_CREDENTIALS, Credentials
-from ds.stream_key import StreamKey
-from ds.wire import TensorSpec, WireError, from_tensor, to_tensor
+from ds.net import rpc, security
+from ds.net.security import ACTOR, EVOLVER, NO_CREDENTIALS, Credentials
+from ds.net.stream_key import StreamKey
+from ds.net.wire import TensorSpec, WireError, from_tensor, to_tensor
+from ds.replay.codec import GRPC_DEFAULT_MESSAGE_BYTES
 from protos import learner_pb2, learner_pb2_grpc
 
 SERVICE_NAME = "asac.LearnerService"
@@ -72,7 +72,7 @@ _FRAMING_BYTES = 64 * 1024
 
 WeightsSource: TypeAlias = Callable[[], tuple[int, list[bytes]] | None]
 """What serves GetWeights: ``() -> (version, frames)`` of the learner's full model weights, encoded with
-:func:`ds.params.encode_params` (signed with the run's token), or None while there is no snapshot yet."""
+:func:`ds.net.params.encode_params` (signed with the run's token), or None while there is no snapshot yet."""
 
 
 def learner_message_limit(sac: SAC, max_actors_envs: int = 1024) -> int:
@@ -245,7 +245,7 @@ class LearnerServicer(learner_pb2_grpc.LearnerServiceServicer):
     ``weights`` serves GetWeights (the evolver's CEM round); it runs on an RPC thread while the
     learner trains, so it must return a consistent snapshot (frames built between updates, say),
     never weights halfway through an optimizer step. Without it GetWeights is UNIMPLEMENTED. ``stream``:
-    the publisher's :class:`~ds.stream_key.StreamKey` (its id is the learner's; its secret goes to each
+    the publisher's :class:`~ds.net.stream_key.StreamKey` (its id is the learner's; its secret goes to each
     actor); without it a fresh one (a learner whose parameters no actor subscribes to)."""
 
     def __init__(
@@ -392,8 +392,8 @@ def serve_learner(
 ) -> tuple[grpc.Server, int, health.HealthServicer]:
     """Start the learner's gRPC server on ``address`` (port 0: any free port); returns the server,
     its port and its health servicer, which reports NOT_SERVING until the caller flips it with
-    ``ds.rpc.set_serving(health, SERVICE_NAME, True)`` (after the first publication).
-    ``credentials`` and ``health_port``: see :func:`ds.security.listen`."""
+    ``ds.net.rpc.set_serving(health, SERVICE_NAME, True)`` (after the first publication).
+    ``credentials`` and ``health_port``: see :func:`ds.net.security.listen`."""
     options = rpc.channel_options(max_message_bytes)
     server = security.new_server("learner", SERVICE_NAME, CALLERS, credentials, max_workers, options)
     rpc.add_servicer(server, servicer, learner_pb2.DESCRIPTOR.services_by_name["LearnerService"])
@@ -427,14 +427,14 @@ class Registration:
     learner_id: str
     params_port: int
     lease_s: float
-    params_key: bytes = field(default=b"", repr=False)  # the learner's StreamKey secret (ds/stream_key.py)
+    params_key: bytes = field(default=b"", repr=False)  # the learner's StreamKey secret (ds/net/stream_key.py)
 
 
 class LearnerClient:
     """The actor's (and the evolver's) end of :class:`LearnerServicer`. Every call has a deadline of
     ``rpc_timeout_s``; UNAVAILABLE is retried per ``retry`` and then raised as ``grpc.RpcError``, as
     is every other status except the ones named per method. ``spec`` is needed by :meth:`act` only.
-    ``credentials``: TLS and the token (:func:`ds.security.open_channel`; the server must be a learner).
+    ``credentials``: TLS and the token (:func:`ds.net.security.open_channel`; the server must be a learner).
     Thread-safe."""
 
     def __init__(
@@ -498,13 +498,13 @@ class LearnerClient:
         return Beat(reply.learner_id, reply.params_version, reply.run_done)
 
     def get_params(self) -> tuple[int, list[bytes]]:
-        """The latest published ``(version, frames)``; decode with :func:`ds.params.decode_params`."""
+        """The latest published ``(version, frames)``; decode with :func:`ds.net.params.decode_params`."""
         reply = self._call(self._stub.GetParams, learner_pb2.GetParamsRequest())
         return reply.version, list(reply.frames)
 
     def get_weights(self) -> tuple[int, list[bytes]]:
         """The learner's full model weights as ``(version, frames)`` (the evolver's CEM round);
-        decode with :func:`ds.params.decode_params`. UNIMPLEMENTED when it runs without an evolver."""
+        decode with :func:`ds.net.params.decode_params`. UNIMPLEMENTED when it runs without an evolver."""
         reply = self._call(self._stub.GetWeights, learner_pb2.GetWeightsRequest())
         return reply.version, list(reply.frames)
 

@@ -4,7 +4,7 @@ The server decodes what actors and learners send with :meth:`ReplaySpecs.chunk_f
 :meth:`ReplaySpecs.priorities_from_proto`; the client decodes what the server returns with
 :meth:`ReplaySpecs.batch_from_proto`. Both check every tensor (dtype, shape, leading dimensions
 consistent within the message, finiteness) before the data goes anywhere, and name the offending
-field in the :class:`~ds.wire.WireError`. :func:`message_limit_bytes` sizes gRPC's message limits
+field in the :class:`~ds.net.wire.WireError`. :func:`message_limit_bytes` sizes gRPC's message limits
 from the largest message the configuration produces.
 """
 
@@ -20,7 +20,7 @@ import numpy as np
 from algorithm.replay.base import NormalizerStats, ReplayInfo
 from algorithm.spaces import SensorSpec
 from algorithm.types import Batch, Chunk
-from ds.wire import TensorSpec, WireError, from_tensor, to_tensor
+from ds.net.wire import TensorSpec, WireError, from_tensor, to_tensor
 from protos import replay_pb2
 
 # gRPC's own default receive limit; the limits are never set below it.

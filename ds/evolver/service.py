@@ -1,4 +1,4 @@
-"""The evolver over gRPC (protos/evolver.proto): a servicer around :class:`ds.evolver.Evolver`, the
+"""The evolver over gRPC (protos/evolver.proto): a servicer around :class:`ds.evolver.evolver.Evolver`, the
 server with its health service, and the client learners, actors and replays use.
 
 Usage, the evolver's process::
@@ -11,7 +11,7 @@ Usage, the evolver's process::
 
 a learner's::
 
-    evolver = EvolverClient("evolver:61000", token=token, credentials=creds)  # creds: ds.security
+    evolver = EvolverClient("evolver:61000", token=token, credentials=creds)  # creds: ds.net.security
     me = evolver.register_learner("learner-0", host="", learner_port=61001, params_port=61003,
                                   previous_id=saved_id)                # host "": the address the call came from
     orders = evolver.heartbeat(me.learner_id, env_steps, loaded_round=loaded)   # every few seconds
@@ -25,14 +25,14 @@ and an actor's or replay's::
     job = evolver.assign_replay("replay-0", "10.0.0.7:61002")
     job = evolver.renew_assignment(job.assignment_id)  # every few seconds; UnknownAssignment: assign again
 
-Status codes map to the exceptions of ds/evolver_state.py on both ends: NOT_FOUND is
+Status codes map to the exceptions of ds/evolver/state.py on both ends: NOT_FOUND is
 :class:`UnknownLearner` (or :class:`UnknownAssignment` for assignments), FAILED_PRECONDITION
 :class:`LearnerRetired`, UNAVAILABLE from Assign :class:`NoWorkYet`, INVALID_ARGUMENT
 :class:`EvolverRequestRejected` (a ``ValueError``). Every call has a deadline; UNAVAILABLE (evolver
 down or restarting) is retried with backoff and then raised as ``grpc.RpcError``. Under mutual TLS
 each rpc is open only to the roles :data:`CALLERS` names, and an :class:`EvolverClient` accepts only
 a server whose certificate names the evolver: a learner loads CEM samples from nobody else
-(ds/security.py).
+(ds/net/security.py).
 """
 
 from __future__ import annotations
@@ -47,9 +47,8 @@ import grpc
 import numpy as np
 from grpc_health.v1 import health, health_pb2_grpc
 
-from ds import rpc, security
-from ds.evolver import EVOLVER_MESSAGE_BYTES, Evolver
-from ds.evolver_state import (
+from ds.evolver.evolver import EVOLVER_MESSAGE_BYTES, Evolver
+from ds.evolver.state import (
     Assignment,
     EvolverInfo,
     Instruction,
@@ -62,8 +61,9 @@ from ds.evolver_state import (
     UnknownAssignment,
     UnknownLearner,
 )
-from ds.params import ParamsError, ParamsSpec, decode_params
-from ds.security import ACTOR, LEARNER, NO_CREDENTIALS, REPLAY, ROLES, Credentials
+from ds.net import rpc, security
+from ds.net.params import ParamsError, ParamsSpec, decode_params
+from ds.net.security import ACTOR, LEARNER, NO_CREDENTIALS, REPLAY, ROLES, Credentials
 from protos import evolver_pb2, evolver_pb2_grpc
 
 SERVICE_NAME = "asac.EvolverService"
@@ -224,8 +224,8 @@ def serve_evolver(
     """Start the evolver's gRPC server on ``address`` (port 0: any free port); returns the server, its
     port and its health servicer. The evolver's state is loaded when it is constructed, so the health
     service reports SERVING once the server runs (``ready=False``: the caller flips it with
-    ``ds.rpc.set_serving(health, SERVICE_NAME, True)``). ``credentials`` and ``health_port``: see
-    :func:`ds.security.listen`. Stop it with ``server.stop(grace)``."""
+    ``ds.net.rpc.set_serving(health, SERVICE_NAME, True)``). ``credentials`` and ``health_port``: see
+    :func:`ds.net.security.listen`. Stop it with ``server.stop(grace)``."""
     options = rpc.channel_options(max_message_bytes)
     server = security.new_server("evolver", SERVICE_NAME, CALLERS, credentials, max_workers, options)
     servicer = EvolverServicer(evolver, max_message_bytes)
@@ -259,7 +259,7 @@ class EvolverClient:
     """The learners', actors' and replays' end of :class:`EvolverServicer`. Every call has a deadline
     of ``rpc_timeout_s``; UNAVAILABLE is retried per ``retry``. ``token`` verifies samples (the
     evolver signs them with the run's token); ``credentials``: TLS and the token on every call
-    (:func:`ds.security.open_channel`; the server must hold the evolver's certificate). Thread-safe."""
+    (:func:`ds.net.security.open_channel`; the server must hold the evolver's certificate). Thread-safe."""
 
     def __init__(
         self,
@@ -329,9 +329,9 @@ class EvolverClient:
         return bool(self._call(self._stub.PostReward, request).accepted)
 
     def get_sample(self, learner_id: int, expected: ParamsSpec | None = None) -> Sample | None:
-        """The sample waiting for this learner, checked by :func:`ds.params.decode_params` against
+        """The sample waiting for this learner, checked by :func:`ds.net.params.decode_params` against
         ``expected`` (the learner's own full weights: names, dtypes, shapes; finite values) and the
-        token; None when none waits. :class:`ds.params.ParamsError` for a sample that fails a check."""
+        token; None when none waits. :class:`ds.net.params.ParamsError` for a sample that fails a check."""
         r = self._call(self._stub.GetSample, evolver_pb2.GetSampleRequest(learner_id=learner_id))
         if r.round == 0:
             return None

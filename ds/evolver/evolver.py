@@ -1,7 +1,7 @@
 """The evolver (docs/architecture.md section 10): one per experiment, it keeps the population of learners, runs CEM
 rounds over their weights on its own thread, and tells actors and replays where to work.
 
-Usage (``ds/evolver_service.py`` serves it over gRPC; protos/evolver.proto documents the calls)::
+Usage (``ds/evolver/service.py`` serves it over gRPC; protos/evolver.proto documents the calls)::
 
     evolver = Evolver(config, run_dir / "evolver", experiment=name, metrics=MetricsWriter(run_dir / "log/evolver"))
     evolver.start()                          # the round thread: checks for a due round every second, saves
@@ -9,11 +9,11 @@ Usage (``ds/evolver_service.py`` serves it over gRPC; protos/evolver.proto docum
     evolver.post_reward(me.learner_id, -170.0, env_steps=20_000)           # queues, never waits for a round
     orders = evolver.learner_heartbeat(me.learner_id, env_steps=21_000)      # CONTINUE | LOAD_WEIGHTS | RETIRE
     round_, frames = evolver.sample(me.learner_id)                           # after LOAD_WEIGHTS
-    job = evolver.assign(Role.ACTOR, "a0")                                   # ds/evolver_assign.py
+    job = evolver.assign(Role.ACTOR, "a0")                                   # ds/evolver/assign.py
     evolver.stop()                           # joins the thread and saves
 
 The math is :class:`algorithm.evolution.Population`'s; leases, stale returns and assignments are the
-registry's (ds/evolver_registry.py). What this class adds:
+registry's (ds/evolver/registry.py). What this class adds:
 
 - **Rounds on one thread.** Every ``check_every_s`` the thread moves queued returns into the
   population and checks :func:`~algorithm.evolution.cem_due` over the *live* learners: a gone
@@ -28,7 +28,7 @@ registry's (ds/evolver_registry.py). What this class adds:
   before the registration returns, so it loads it (GetSample) before its first update instead of
   starting from its own random weights. Before the first round, and for a learner back with
   ``previous_id``, nothing is drawn.
-- **Persistence** (ds/evolver_state.py). Registrations, rounds and new assignments are saved before
+- **Persistence** (ds/evolver/state.py). Registrations, rounds and new assignments are saved before
   the call returns (a round before any learner hears of it); returns, acknowledgements and expiries
   are saved by the thread within ``save_every_s``, so a ``kill -9`` loses at most that much. A new
   Evolver on the same directory carries on: same learners, round counter, pending samples, rng and
@@ -63,9 +63,9 @@ import yaml
 from algorithm.config_schema import Config
 from algorithm.evolution import Population, RoundResult, cem_due, sample_weights
 from algorithm.files import WriteFailures
-from algorithm.logging import MetricsWriter
-from ds.evolver_registry import LearnerRegistry, Return, check_address, check_host, check_port
-from ds.evolver_state import (
+from algorithm.logging import MetricsWriter, Throttle
+from ds.evolver.registry import LearnerRegistry, Return, check_address, check_host, check_port
+from ds.evolver.state import (
     FORMAT,
     SAMPLES_DIR,
     STATE_FILE,
@@ -84,11 +84,10 @@ from ds.evolver_state import (
     write_distribution,
     write_sample,
 )
-from ds.learner_service import LearnerClient
-from ds.params import ParamsError, decode_params
-from ds.replay_feeds import Throttle
-from ds.rpc import RetryPolicy
-from ds.security import NO_CREDENTIALS, Credentials
+from ds.learner.service import LearnerClient
+from ds.net.params import ParamsError, decode_params
+from ds.net.rpc import RetryPolicy
+from ds.net.security import NO_CREDENTIALS, Credentials
 
 log = logging.getLogger("asac.evolver")
 EVOLVER_MESSAGE_BYTES = 256 * 1024 * 1024  # whole SAC models travel (GetWeights, GetSample)
@@ -100,7 +99,7 @@ class Evolver:
 
     ``config`` is the experiment's (``base_config.evolver_*``, ``max_actors_each_learner``,
     ``random_params``); ``state_dir`` is where its state lives (the run directory's ``evolver/``);
-    ``token`` verifies the elites' weights and signs samples; ``credentials`` (ds/security.py: TLS, the
+    ``token`` verifies the elites' weights and signs samples; ``credentials`` (ds/net/security.py: TLS, the
     token's bearer) open the channels to the learners for GetWeights; ``metrics`` gets the ``evolver/*``
     metrics; ``seed`` seeds the draws of params and weights (default ``sac_config.seed``). A saved
     state in ``state_dir`` is loaded (:class:`EvolverStateError` names a file that cannot be).
@@ -170,8 +169,8 @@ class Evolver:
         previous_id: int | None = None,
     ) -> LearnerRegistration:
         """A new learner (a new id and its random_params draws), or ``previous_id`` back with its id
-        and config at the address given now. :class:`~ds.evolver_state.UnknownLearner` for an id this
-        evolver never gave out, :class:`~ds.evolver_state.LearnerRetired` for a retired one. A new
+        and config at the address given now. :class:`~ds.evolver.state.UnknownLearner` for an id this
+        evolver never gave out, :class:`~ds.evolver.state.LearnerRetired` for a retired one. A new
         learner after a round gets a sample of the last round's Gaussian, waiting for it (GetSample)."""
         if not host:
             raise ValueError("host: empty; say where actors reach this learner")
@@ -207,12 +206,12 @@ class Evolver:
         return self.registry.post(learner_id, mean_return, env_steps, weights_round)
 
     def sample(self, learner_id: int) -> tuple[int, list[bytes]] | None:
-        """``(round, frames)`` of the weights waiting for this learner (ds/params.py frames, the round
+        """``(round, frames)`` of the weights waiting for this learner (ds/net/params.py frames, the round
         as version, signed with the token), or None when none waits."""
         return self.registry.sample(learner_id)
 
     def assign(self, role: Role, name: str, address: str = "", previous: str = "") -> Assignment:
-        """Work for an actor or a replay (ds/evolver_assign.py); :class:`~ds.evolver_state.NoWorkYet`
+        """Work for an actor or a replay (ds/evolver/assign.py); :class:`~ds.evolver.state.NoWorkYet`
         when nobody can take it now."""
         assignment, changed = self.registry.assign(role, name, address, previous)
         if changed:

@@ -1,6 +1,6 @@
 """The actor role: the single-process actor loop, fed with the learner's weights, feeding the replay.
 
-Usage (``ds/roles.py`` composes the parts)::
+Usage (``ds/launch/roles.py`` composes the parts)::
 
     actor = DistributedActor(config, run_dir, make_env, sac, replay, learner, learner_host="10.0.0.2")
     summary = actor.run()   # until the learner says the run is done (max_step), or stop is set
@@ -10,7 +10,7 @@ with the learner, which gives it an id, an index and a lease; derives its env se
 exploration noise ``min(noise_increasing_rate * index, noise_max)`` (or ``--noise``) from the index;
 takes the latest weights with ``GetParams`` and then keeps the newest broadcast version between
 steps (``update_policy_mode: true``), or asks the learner for every action (``false``); and runs
-:class:`~algorithm.actor.ActorLoop` with a :class:`~ds.replay_sink.ReplaySink`, which never drops a
+:class:`~algorithm.actor.ActorLoop` with a :class:`~ds.actor.sink.ReplaySink`, which never drops a
 chunk while the run goes on: the replay's rate limiter holding inserts back (the learner is behind)
 and an unreachable replay hold the actor back (it stops stepping; its backlog stays within
 ``ReplaySink.max_backlog`` chunks), counted and logged. A heartbeat thread renews its lease every
@@ -25,7 +25,7 @@ rate limiter or retrying a replay that is gone; what was not stored is counted
 (``actor/unsent_steps``) and logged in one line.
 
 Nothing non-finite goes out or comes in: chunks with NaN/inf are dropped by the loop (counted:
-``actor/nonfinite_steps``) and broadcast weights that fail :func:`~ds.params.decode_params` (NaN/inf
+``actor/nonfinite_steps``) and broadcast weights that fail :func:`~ds.net.params.decode_params` (NaN/inf
 values, a wrong shape, a MAC that does not verify under the key of the learner it registered with:
 another process on the learner's port, whatever version it claims) are never loaded (counted:
 ``actor/params_rejected``, logged once per interval).
@@ -49,17 +49,17 @@ import torch
 
 from algorithm.actor import ActorLoop, VectorEnvLike
 from algorithm.config_schema import Config
-from algorithm.logging import MetricsWriter, RateMeter
+from algorithm.logging import MetricsWriter, RateMeter, Throttle
 from algorithm.replay import ReplayUnavailable
 from algorithm.sac import SAC
-from ds import learner_service, replay_service
-from ds.learner_service import LearnerClient, LeaseExpired, Registration, RemotePolicy
-from ds.params import ParamsError, ParamsSubscriber, decode_params, params_spec
-from ds.replay_feeds import Throttle
-from ds.replay_service import ReplayClient
-from ds.replay_sink import LAST_INSERTS_WAIT_S, ReplaySink
-from ds.rpc import peer_unresponsive, wait_until_serving
-from ds.stream_key import StreamKey
+from ds.actor.sink import LAST_INSERTS_WAIT_S, ReplaySink
+from ds.learner import service as learner_service
+from ds.learner.service import LearnerClient, LeaseExpired, Registration, RemotePolicy
+from ds.net.params import ParamsError, ParamsSubscriber, decode_params, params_spec
+from ds.net.rpc import peer_unresponsive, wait_until_serving
+from ds.net.stream_key import StreamKey
+from ds.replay import service as replay_service
+from ds.replay.service import ReplayClient
 
 log = logging.getLogger("asac.actor")
 ACTOR_SEED_STRIDE = 1000  # actor i's env j gets seed + 1000 * (i + 1) + j: never a training or eval seed
@@ -87,7 +87,7 @@ class DistributedActor:
     once its index (hence its seed) is known; ``sac`` is a model built from the same config as the
     learner's, which receives the published weights (unused with ``update_policy_mode: false``);
     those weights must carry the HMAC of the learner it registered with (its stream key, with
-    ``token`` when the run has one: ds/params.py), else they are dropped."""
+    ``token`` when the run has one: ds/net/params.py), else they are dropped."""
 
     def __init__(
         self,

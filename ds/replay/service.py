@@ -7,7 +7,7 @@ Usage, a replay process and its peers (protos/replay.proto documents every rpc):
                                 snapshot_dir=run / "replay")  # replay role: Save/Load name files in there
     ...
     replay = ReplayClient("replay:50051", sensors, action_size, rnn_state_size, max_message_bytes=limit,
-                          credentials=creds)   # creds: ds.security.load_credentials (token, TLS)
+                          credentials=creds)   # creds: ds.net.security.load_credentials (token, TLS)
     keys = replay.insert(chunk)                      # actor
     pending = replay.insert_async(chunks, timeout=2.0, ids=ChunkIds(producer, seqs, acked_below))
     pending.result()                                 # actor's sink: keys and duplicate flags, or raises
@@ -23,7 +23,7 @@ Errors map to gRPC status codes on the server and back to exceptions on the clie
 
 - bad data or a bad file (``WireError``, ``ValueError``): INVALID_ARGUMENT -> :class:`ReplayRequestRejected`,
   a ``ValueError`` carrying the server's message; so is a Save/Load path the server does not own
-  (outside its snapshot folder, or not a regular file: ds/replay_files.py);
+  (outside its snapshot folder, or not a regular file: ds/replay/files.py);
 - the rate limiter's ``SampleTimeout`` / ``InsertTimeout``: DEADLINE_EXCEEDED -> the same exception;
 - a file the server cannot write (``OSError``), a server without a snapshot folder: FAILED_PRECONDITION ->
   :class:`ReplayRpcError`; a full disk (ENOSPC, EDQUOT): RESOURCE_EXHAUSTED, the snapshot before it kept;
@@ -35,7 +35,7 @@ Errors map to gRPC status codes on the server and back to exceptions on the clie
   RESOURCE_EXHAUSTED -> :class:`ReplayRpcError` carrying the server's message;
 - server unreachable: UNAVAILABLE -> retried with backoff, then :class:`ReplayRpcError`;
 - a missing or wrong token, a caller whose certificate names no role that may call the rpc
-  (:data:`CALLERS`, ds/security.py): UNAUTHENTICATED / PERMISSION_DENIED -> :class:`ReplayRpcError`.
+  (:data:`CALLERS`, ds/net/security.py): UNAUTHENTICATED / PERMISSION_DENIED -> :class:`ReplayRpcError`.
 """
 
 from __future__ import annotations
@@ -64,8 +64,11 @@ from algorithm.replay import (
 )
 from algorithm.spaces import SensorSpec
 from algorithm.types import Batch, Chunk
-from ds import rpc, security
-from ds.replay_codec import (
+from ds.net import rpc, security
+from ds.net.rpc import RetryPolicy, call_with_retry, channel_options, peer_gone
+from ds.net.security import ACTOR, LEARNER, NO_CREDENTIALS, Credentials
+from ds.net.wire import TensorSpec, WireError, from_tensor, to_tensor
+from ds.replay.codec import (
     GRPC_DEFAULT_MESSAGE_BYTES,
     ReplaySpecs,
     batch_to_proto,
@@ -74,10 +77,7 @@ from ds.replay_codec import (
     message_limit_bytes,
     sample_reply_bytes,
 )
-from ds.replay_files import FileWork, FileWorkAbandoned, FileWorkBusy, SnapshotFolder
-from ds.rpc import RetryPolicy, call_with_retry, channel_options, peer_gone
-from ds.security import ACTOR, LEARNER, NO_CREDENTIALS, Credentials
-from ds.wire import TensorSpec, WireError, from_tensor, to_tensor
+from ds.replay.files import FileWork, FileWorkAbandoned, FileWorkBusy, SnapshotFolder
 from protos import replay_pb2, replay_pb2_grpc
 
 __all__ = [
@@ -118,7 +118,7 @@ class ReplayServicer(replay_pb2_grpc.ReplayServiceServicer):
     ``sensors``, ``action_size`` and ``rnn_state_size`` are what clients must send (they must
     equal the table's). The table has its own lock, so the servicer is safe under any number of
     concurrent RPCs. ``snapshot_dir`` is the one folder whose files Save and Load may name (the
-    replay role's ``<run>/replay/``; rules in ds/replay_files.py); None: Save and Load are refused
+    replay role's ``<run>/replay/``; rules in ds/replay/files.py); None: Save and Load are refused
     with FAILED_PRECONDITION. They run one at a time on a thread of their own, bounded by their
     call's deadline, so that file work never holds the workers the other rpcs need.
     """
@@ -308,15 +308,15 @@ def serve_replay(
     """Start a gRPC server for ``table`` on ``address`` (port 0: any free port); returns it and its port.
 
     ``max_message_bytes`` limits what the server sends and receives (see
-    :func:`~ds.replay_codec.message_limit_bytes`). ``max_workers`` threads serve calls; a call
+    :func:`~ds.replay.codec.message_limit_bytes`). ``max_workers`` threads serve calls; a call
     blocked by the rate limiter holds one, so give at least one per actor and learner. The health
     service reports NOT_SERVING until the server has started, then SERVING; pass ``ready=False``
     and your own ``health_servicer`` to flip it with :func:`set_serving` later (after loading a
-    saved table, say). ``credentials`` and ``health_port``: see :func:`ds.security.listen` (TLS, the
+    saved table, say). ``credentials`` and ``health_port``: see :func:`ds.net.security.listen` (TLS, the
     token, who may call what); plaintext on loopback by default (docs/security.md section 1:
     without credentials servers bind to loopback). ``interceptors`` wrap every call after those checks (tests inject
     faults with them). ``snapshot_dir``: the folder whose files the Save and Load rpcs may name
-    (a replay role's ``<run>/replay/``; ds/replay_files.py), None: Save and Load are refused. Stop
+    (a replay role's ``<run>/replay/``; ds/replay/files.py), None: Save and Load are refused. Stop
     it with ``server.stop(grace)``.
     """
     options = channel_options(max_message_bytes)
@@ -368,7 +368,7 @@ class ReplayClient:
     on ``insert``/``sample`` (a wait without end, ``timeout=None``, is a series of
     ``poll_s``-second calls), or ``file_timeout_s`` for ``save``/``load``. UNAVAILABLE is
     retried per ``retry``; every other error surfaces at once with the server's message.
-    ``credentials``: TLS and the token (:func:`ds.security.open_channel`; the server must be a replay).
+    ``credentials``: TLS and the token (:func:`ds.net.security.open_channel`; the server must be a replay).
     Thread-safe: share one client between threads.
     """
 
@@ -423,7 +423,7 @@ class ReplayClient:
     ) -> list[np.ndarray]:
         """Store several chunks in one request, all or nothing; returns each chunk's keys.
 
-        Raises :class:`~ds.replay_codec.WireError` (a ``ValueError``) before sending if a field is
+        Raises :class:`~ds.replay.codec.WireError` (a ``ValueError``) before sending if a field is
         not a numpy array or the request is over ``max_message_bytes``.
         """
         request = self._insert_request(chunks, priorities)
@@ -528,7 +528,7 @@ class ReplayClient:
 
     def save(self, path: str | Path = "") -> None:
         """Save the table atomically to ``path``, a file name inside the replay server's snapshot
-        folder (relative, no ``..``; empty: its default snapshot ``replay.npz``; ds/replay_files.py)."""
+        folder (relative, no ``..``; empty: its default snapshot ``replay.npz``; ds/replay/files.py)."""
         self._call("Save", self._stub.Save, replay_pb2.SaveRequest(path=str(path)), self.file_timeout_s)
 
     def load(self, path: str | Path = "") -> None:

@@ -1,11 +1,11 @@
 """The learner role: SAC trained from a replay over the network, publishing its acting weights.
 
-Usage (``ds/roles.py`` composes the parts; tests pass an in-process table or a loopback client)::
+Usage (``ds/launch/roles.py`` composes the parts; tests pass an in-process table or a loopback client)::
 
     learner = Learner(config, run_dir, sac, replay, publisher, store, eval_env=env, stop=stop_event)
     summary = learner.run()     # until replay has seen base_config.max_step env steps, or stop is set
 
-Inside, three threads keep the update loop busy without ever dropping data (ds/replay_feeds.py):
+Inside, three threads keep the update loop busy without ever dropping data (ds/learner/feeds.py):
 
 - :class:`BatchPrefetcher` samples the next batches from the replay into a bounded queue while the
   main thread trains on the current one (a full queue blocks it, counted);
@@ -22,7 +22,7 @@ the same run directory, and at ``max_step`` first trains on what the replay stil
 limiter's surplus: the data inserted before the stop is trained on as the ratio says), then makes
 its final evaluation and checkpoint.
 
-In an evolver's population (``member``, ds/evolver_link.py) it also posts every evaluation's return,
+In an evolver's population (``member``, ds/evolver/link.py) it also posts every evaluation's return,
 copies its full weights for the evolver's GetWeights between updates, loads the CEM samples the
 evolver draws for it (:meth:`SAC.load_model_weights`; one waiting when it starts, a new learner's draw
 of the CEM distribution, before its first update) and publishes them to its actors at once,
@@ -45,14 +45,15 @@ from algorithm.actor import VectorEnvLike
 from algorithm.checkpoint import list_checkpoints
 from algorithm.config_schema import Config
 from algorithm.learner_core import LearnerCore
+from algorithm.logging import Throttle
 from algorithm.replay import ReplayTable, ReplayUnavailable
 from algorithm.sac import SAC
 from algorithm.types import Batch
-from ds.evolver_link import Membership
-from ds.learner_service import ActingPolicy, ActorRegistry, ParamsStore
-from ds.params import ParamsPublisher
-from ds.replay_feeds import BatchPrefetcher, PriorityUpdater, Throttle
-from ds.replay_sink import LAST_INSERTS_WAIT_S
+from ds.actor.sink import LAST_INSERTS_WAIT_S
+from ds.evolver.link import Membership
+from ds.learner.feeds import BatchPrefetcher, PriorityUpdater
+from ds.learner.service import ActingPolicy, ActorRegistry, ParamsStore
+from ds.net.params import ParamsPublisher
 
 log = logging.getLogger("asac.learner")
 

@@ -8,14 +8,14 @@
   to the first one that was started without a replay and has no live replay assignment. The
   learner then finds the replay's address in its heartbeat replies.
 - Assignments are named ``assignment-<n>``, n counting every assignment made (an actor's index is
-  its learner's business, ds/learner_service.py). Every assignment has a lease renewed by
+  its learner's business, ds/learner/service.py). Every assignment has a lease renewed by
   ``AssignmentHeartbeat``; an expired one frees its place.
   Re-calling Assign with a live ``previous`` assignment (or, for a replay, from the same address)
   returns that assignment renewed, so a retry after a lost reply never takes two places. An
   assignment ends when its learner retires; it survives its learner's lease running out (the
   actor waits for the learner to come back, docs/architecture.md section 8).
 
-Usage (by :class:`ds.evolver.Evolver`, under its registry lock; not thread-safe on its own)::
+Usage (by :class:`ds.evolver.evolver.Evolver`, under its registry lock; not thread-safe on its own)::
 
     book = Assignments(lease_s=30.0, max_actors=10, clock=time.monotonic)
     assignment, changed = book.assign(Role.ACTOR, "a0", "", "", learners, live)
@@ -27,7 +27,7 @@ from __future__ import annotations
 from collections.abc import Callable, Mapping
 from typing import Any
 
-from ds.evolver_state import AssignmentEntry, LearnerEntry, NoWorkYet, Role, UnknownAssignment
+from ds.evolver.state import AssignmentEntry, LearnerEntry, NoWorkYet, Role, UnknownAssignment
 
 
 class Assignments:

@@ -1,8 +1,8 @@
 """A learner's live link with the evolver of its population: heartbeats, posted returns, CEM samples
 to load, retirement (:class:`EvolverLink`); the snapshot of its full weights the evolver fetches for a
-round (:class:`WeightsSnapshot`); and what ds/learner.py gets of both (:class:`Membership`).
+round (:class:`WeightsSnapshot`); and what ds/learner/learner.py gets of both (:class:`Membership`).
 
-Usage (ds/roles.py; the learner joined with :func:`ds.population.join_population`)::
+Usage (ds/launch/roles.py; the learner joined with :func:`ds.evolver.population.join_population`)::
 
     link = EvolverLink(client, joined, params_spec(sac.models.state_dict()))
     link.start()                               # a new learner after a round: its first sample; then
@@ -26,12 +26,12 @@ from dataclasses import dataclass
 import grpc
 import torch
 
+from algorithm.logging import Throttle
 from algorithm.replay import ReplayTable
-from ds.evolver_service import EvolverClient, Sample
-from ds.evolver_state import Instruction, LearnerRetired, UnknownLearner
-from ds.params import ParamsError, ParamsSpec, encode_params
-from ds.population import Joined, register, unreachable
-from ds.replay_feeds import Throttle
+from ds.evolver.population import Joined, register, unreachable
+from ds.evolver.service import EvolverClient, Sample
+from ds.evolver.state import Instruction, LearnerRetired, UnknownLearner
+from ds.net.params import ParamsError, ParamsSpec, encode_params
 
 log = logging.getLogger("asac.population")
 
@@ -230,7 +230,7 @@ class WeightsSnapshot:
 
 @dataclass
 class Membership:
-    """What a learner of a population needs besides its own parts (ds/learner.py): its link to the
+    """What a learner of a population needs besides its own parts (ds/learner/learner.py): its link to the
     evolver, the snapshot that serves its GetWeights, and how to connect to a replay address the
     evolver names (a replay assigned to it, or moved)."""
 

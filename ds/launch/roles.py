@@ -8,18 +8,18 @@ Usage (``main_ds.py`` resolves the config and run directory, then calls exactly 
     code = run_actor(role, noise=None, index=None)  # acts until the budget is spent
     code = run_evolver(role)                # keeps the population until stopped
 
-(``ds/local.py`` runs them all as subprocesses; :class:`RoleContext` and the helpers the loops
-share live in ds/role_context.py.) Each returns the process exit code: 0 done (or, a learner,
+(``ds/launch/local.py`` runs them all as subprocesses; :class:`RoleContext` and the helpers the loops
+share live in ds/launch/role_context.py.) Each returns the process exit code: 0 done (or, a learner,
 retired by the evolver), 130 stopped by a signal (SIGINT/SIGTERM: the role saves what it must
 first), 1 the evolver forgot a learner. Addresses come from ``net_config`` (``main_ds.py``
 flags override it): clients connect to ``<role>_host`` (null: this host), servers listen on
-``bind_host``, every server and client with the role's credentials (ds/security.py: the token on
+``bind_host``, every server and client with the role's credentials (ds/net/security.py: the token on
 every rpc, TLS / mutual TLS; a server beyond loopback without them logs a warning).
 
 With an evolver (``base_config.evolver_enabled``, or ``net_config.evolver_host`` set, e.g. by
 ``--evolver_host``) learners register with it and run with the config it gives them (their own
 flags on top), replays and actors started without a learner ask it where to work, and every role of
-learner k works in ``<run>/learner_<k>/`` (ds/population.py).
+learner k works in ``<run>/learner_<k>/`` (ds/evolver/population.py).
 """
 
 from __future__ import annotations
@@ -43,26 +43,10 @@ from algorithm.replay.persistence import snapshot_kept
 from algorithm.sac import SAC
 from algorithm.signals import stop_on_signals
 from algorithm.trainer import EVAL_SEED_OFFSET, RunDir, load_replay_snapshot, seed_everything
-from ds import learner_service, replay_service
-from ds.actor import DistributedActor
-from ds.evolver import Evolver
-from ds.evolver_link import EvolverLink, Membership, WeightsSnapshot, exit_code, wait_for_replay
-from ds.evolver_service import EvolverClient, serve_evolver
-from ds.evolver_state import Assignment
-from ds.learner import Learner
-from ds.learner_service import (
-    ActingPolicy,
-    ActorRegistry,
-    LearnerClient,
-    LearnerServicer,
-    ParamsStore,
-    Registration,
-    learner_message_limit,
-    serve_learner,
-)
-from ds.local import LOCAL_HOST
-from ds.params import ParamsPublisher, params_spec
-from ds.population import (
+from ds.actor.actor import DistributedActor
+from ds.evolver.evolver import Evolver
+from ds.evolver.link import EvolverLink, Membership, WeightsSnapshot, exit_code, wait_for_replay
+from ds.evolver.population import (
     AssignmentKeeper,
     Joined,
     LearnerAddress,
@@ -72,11 +56,28 @@ from ds.population import (
     member_config,
     wait_for_assignment,
 )
-from ds.replay_service import ReplayClient, serve_replay
-from ds.role_context import RoleContext, RoleError, fixed_port, listen, process_name
-from ds.rpc import set_serving, wait_until_serving
-from ds.security import warn_if_exposed
-from ds.stream_key import StreamKey
+from ds.evolver.service import EvolverClient, serve_evolver
+from ds.evolver.state import Assignment
+from ds.launch.local import LOCAL_HOST
+from ds.launch.role_context import RoleContext, RoleError, fixed_port, listen, process_name
+from ds.learner import service as learner_service
+from ds.learner.learner import Learner
+from ds.learner.service import (
+    ActingPolicy,
+    ActorRegistry,
+    LearnerClient,
+    LearnerServicer,
+    ParamsStore,
+    Registration,
+    learner_message_limit,
+    serve_learner,
+)
+from ds.net.params import ParamsPublisher, params_spec
+from ds.net.rpc import set_serving, wait_until_serving
+from ds.net.security import warn_if_exposed
+from ds.net.stream_key import StreamKey
+from ds.replay import service as replay_service
+from ds.replay.service import ReplayClient, serve_replay
 
 log = logging.getLogger("asac.roles")
 
@@ -85,7 +86,7 @@ log = logging.getLogger("asac.roles")
 
 
 def run_evolver(role: RoleContext) -> int:
-    """Keep the population (ds/evolver.py) on ``bind_host:evolver_port`` until stopped: its state lives
+    """Keep the population (ds/evolver/evolver.py) on ``bind_host:evolver_port`` until stopped: its state lives
     in ``<run>/evolver/`` (a restarted evolver carries on from it), TensorBoard in ``<run>/log/evolver``."""
     cfg, net = role.config, role.config.net_config
     metrics = MetricsWriter(role.run_dir / "log" / "evolver")
@@ -122,7 +123,7 @@ def run_replay(role: RoleContext, metrics_every_s: float = 10.0) -> int:
     replay killed without saving comes back with its last snapshot, including the ids of the chunks
     in it: actors send again what was not acknowledged, and what the snapshot holds is not stored
     twice. Its Save and Load rpcs may name files in ``<run>/replay/`` only (an empty name: the
-    snapshot itself; ds/replay_files.py). With an evolver it first asks which learner it serves (announcing
+    snapshot itself; ds/replay/files.py). With an evolver it first asks which learner it serves (announcing
     ``replay_host:replay_port``) and builds its table from that learner's config. A snapshot that
     cannot be written (a full disk) is logged once and tried again at the next interval, the previous
     one kept; the replay serves on, and a failed save at shutdown is logged, not raised."""
@@ -239,13 +240,13 @@ def _serve_replay(role: RoleContext, keeper: AssignmentKeeper | None, metrics_ev
 
 
 def run_learner(role: RoleContext, ckpt_step: int | None = None, progress: bool = False) -> int:
-    """Wait for the replay, then train (ds/learner.py), serving the learner service and
+    """Wait for the replay, then train (ds/learner/learner.py), serving the learner service and
     broadcasting parameters, until the replay has seen ``max_step`` env steps or a signal. With an
     evolver it first registers (its config comes from the evolver, its own flags on top), works in
     ``<run>/learner_<id>/``, and exits 0, checkpointed, when the evolver retires it."""
     net = role.config.net_config
     params_address = f"tcp://{net.bind_host}:{net.params_port or '*'}"
-    # Signed under this start's stream key (and the token: ds/stream_key.py), not encrypted (ZeroMQ carries
+    # Signed under this start's stream key (and the token: ds/net/stream_key.py), not encrypted (ZeroMQ carries
     # no TLS here): actors take parameters only from the learner they registered with.
     publisher = listen("learner's parameter broadcast", params_address, "--override net.params_port=PORT",
                        lambda: ParamsPublisher(params_address, token=role.token, stream=StreamKey.fresh()))  # fmt: skip
@@ -382,7 +383,7 @@ def publisher_port(publisher: ParamsPublisher) -> int:
 
 
 def run_actor(role: RoleContext, noise: float | None = None, index: int | None = None) -> int:
-    """Act (ds/actor.py) until the replay has seen ``max_step`` env steps, ``max_iter`` iterations
+    """Act (ds/actor/actor.py) until the replay has seen ``max_step`` env steps, ``max_iter`` iterations
     of this actor's env 0 end, or a signal. With an evolver and no ``--learner_host`` it asks the
     evolver for a learner (and its replay and config), and moves to another one when its learner
     retires or stays away longer than its lease. ``index`` (``--index``): the index it asks each
@@ -430,7 +431,7 @@ def run_actor(role: RoleContext, noise: float | None = None, index: int | None =
 class AsksForIndex(LearnerClient):
     """A learner client whose registrations ask for ``index`` when the actor names none of its own
     (its first one: an actor registering again asks for the index it had), so that ``local``'s
-    ``[actor-k]`` is the learner's index k (ds/local.py). Taken by another live actor: the learner
+    ``[actor-k]`` is the learner's index k (ds/launch/local.py). Taken by another live actor: the learner
     gives the lowest free one, as without."""
 
     def __init__(self, *args: Any, index: int | None = None, **kwargs: Any) -> None:
