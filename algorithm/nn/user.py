@@ -24,9 +24,12 @@ from types import ModuleType
 from algorithm.config_schema import NNConfig, SacConfig
 from algorithm.nn.builder import build_models
 from algorithm.nn.models import SacModels
+from algorithm.nn.recurrent import RecurrentRepresentation
 from algorithm.spaces import EnvSpec
 
 ModelBuilder = Callable[[EnvSpec, SacConfig, NNConfig], SacModels]
+# Builders whose recurrence comes from the config (build_models around a model file's representation).
+_RECURRENCE_FROM_CONFIG: set[ModelBuilder] = set()
 
 
 def load_model_file(path: Path) -> ModuleType:
@@ -60,5 +63,17 @@ def model_builder(path: Path | None) -> ModelBuilder:
         def build(spec: EnvSpec, sac: SacConfig, nn: NNConfig) -> SacModels:
             return build_models(spec, sac, nn, representation=make_rep(spec, nn))
 
+        _RECURRENCE_FROM_CONFIG.add(build)
         return build
     raise AttributeError(f"model file {path} defines neither build_models nor build_representation")
+
+
+def recurrent_state_size(spec: EnvSpec, sac: SacConfig, nn: NNConfig, build: ModelBuilder = build_models) -> int:
+    """The width of the recurrent state ``build``'s models carry (0: not recurrent), without building
+    a SAC (a replay needs only this): from the config where the recurrence is built from it (the
+    default models, or a model file's ``build_representation``); a model file's own ``build_models``
+    decides it itself, so its models are built once (no target copies, no optimizers)."""
+    if build is build_models or build in _RECURRENCE_FROM_CONFIG:
+        return RecurrentRepresentation.state_size(nn.rnn_units, nn.rnn_type) if sac.use_rnn else 0
+    rep = build(spec, sac, nn).representation
+    return rep.rnn_state_size if isinstance(rep, RecurrentRepresentation) else 0

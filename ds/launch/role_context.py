@@ -21,7 +21,7 @@ import zmq
 from algorithm.actor import VectorEnvLike
 from algorithm.config import ConfigError
 from algorithm.config_schema import Config
-from algorithm.nn.user import ModelBuilder
+from algorithm.nn.user import ModelBuilder, recurrent_state_size
 from algorithm.sac import SAC
 from algorithm.spaces import EnvSpec
 from ds.evolver import service as evolver_service
@@ -83,6 +83,11 @@ class RoleContext:
             return env.spec
         finally:
             env.close()
+
+    def rnn_state_size(self, spec: EnvSpec) -> int:
+        """The recurrent state width of this run's models, without building a SAC (a replay needs only this)."""
+        cfg = self.config
+        return recurrent_state_size(spec, cfg.sac_config, cfg.nn_config, self.build)
 
     def sac(self, spec: EnvSpec, device: str = "cpu") -> SAC:
         cfg = self.config

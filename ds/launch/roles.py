@@ -173,7 +173,7 @@ def _serve_replay(role: RoleContext, keeper: AssignmentKeeper | None, metrics_ev
     cfg = role.config
     seed_everything(role.seed)
     spec = role.spec()
-    rnn = role.sac(spec).rnn_state_size
+    rnn = role.rnn_state_size(spec)  # no SAC: a replay needs no models, target copies or optimizers
     sac_cfg = cfg.sac_config
     table = PrioritizedTable.from_config(
         cfg.replay_config,

@@ -12,7 +12,7 @@ import pytest
 import torch
 from torch.distributions import Normal, TanhTransform, TransformedDistribution
 
-from algorithm.config_schema import NNConfig, SacConfig
+from algorithm.config_schema import NNConfig, ReplayConfig, SacConfig
 from algorithm.nn.builder import build_models
 from algorithm.nn.layers import EnsembleLinear, activation, relu_mlp
 from algorithm.nn.models import (
@@ -21,7 +21,8 @@ from algorithm.nn.models import (
     VectorRepresentation,
     squashed_gaussian_log_prob,
 )
-from algorithm.nn.user import model_builder
+from algorithm.nn.user import model_builder, recurrent_state_size
+from algorithm.sac import SAC
 from algorithm.spaces import ActionSpec, EnvSpec, SensorSpec
 
 
@@ -269,3 +270,37 @@ def test_model_files_build_what_they_define_and_errors_name_the_file(tmp_path: P
     with pytest.raises(ImportError, match="broken.py.*boom"):
         model_builder(broken)
     assert model_builder(None) is build_models
+
+
+@pytest.mark.parametrize(
+    ("use_rnn", "rnn_type", "model_file"),
+    [(False, "gru", None), (True, "gru", None), (True, "lstm", None), (True, "lstm", "build_representation"),
+     (True, "gru", "build_models"), (False, "gru", "build_models")],
+)  # fmt: skip
+def test_the_recurrent_state_size_is_known_without_building_a_sac(
+    tmp_path: Path, use_rnn: bool, rnn_type: str, model_file: str | None
+) -> None:
+    """Issue 16: the replay built a whole SAC (models, target copies, three optimizers) to read it."""
+    spec = EnvSpec((SensorSpec("obs", (3,)),), ActionSpec((), 2, (-1.0, -1.0), (1.0, 1.0)))
+    sac_cfg, nn_cfg = SacConfig(use_rnn=use_rnn), NNConfig(hidden_units=[8], rnn_units=5, rnn_type=rnn_type)
+    build = build_models
+    if model_file == "build_representation":
+        path = tmp_path / "nn.py"
+        path.write_text(
+            "from algorithm.nn.models import VectorRepresentation\n"
+            "def build_representation(spec, nn_config):\n    return VectorRepresentation(spec.sensors)\n"
+        )
+        build = model_builder(path)
+    elif model_file == "build_models":  # its own recurrence, whatever the config says: 7 GRU units
+        path = tmp_path / "nn.py"
+        path.write_text(
+            "from algorithm.nn.builder import build_models as default\n"
+            "def build_models(spec, sac_config, nn_config):\n"
+            "    return default(spec, sac_config.model_copy(update={'use_rnn': True}),\n"
+            "                   nn_config.model_copy(update={'rnn_units': 7, 'rnn_type': 'gru'}))\n"
+        )
+        build = model_builder(path)
+    expected = SAC(spec, sac_cfg, nn_cfg, ReplayConfig(), build=build).rnn_state_size
+    assert recurrent_state_size(spec, sac_cfg, nn_cfg, build) == expected
+    assert expected == {None: 5 * (2 if rnn_type == "lstm" else 1) if use_rnn else 0,
+                        "build_representation": 10, "build_models": 7}[model_file]  # fmt: skip
