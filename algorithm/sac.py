@@ -92,6 +92,23 @@ class UpdateResult:
     refreshed_rnn_states: tuple[np.ndarray, np.ndarray] | None = None
 
 
+@dataclass
+class Losses:
+    """What one pass over a batch computes (:meth:`SAC._losses`), all from the same parameters:
+    the critic's, policy's, temperature's and exploration models' losses, the prediction models'
+    losses by name, ``td_abs [B]`` (mean |TD| over heads, for priorities), the pass's metrics, and
+    the online recurrent state fed in at each window step ``[B, L, S]`` (None without ``use_rnn``)."""
+
+    q: Tensor
+    policy: Tensor
+    alpha: Tensor
+    auxiliary: Tensor
+    predictions: dict[str, Tensor]
+    td_abs: Tensor
+    metrics: Metrics
+    fed_states: Tensor | None
+
+
 class SAC:
     """Models, target copies, optimizers, ``log_alpha``, PER ``beta`` and counters of one learner.
 
@@ -651,22 +668,23 @@ class SAC:
         noise = torch.randn(
             batch.batch_size, samples, self.spec.action.continuous_dim, generator=self._learn_rng, device=dev
         )
-        q_loss, pi_loss, a_loss, aux_loss, predictions, td_abs, metric_tensors, fed = self._batch_losses(
-            batch, weights, noise, self._subset(), self._subset()
-        )
+        losses = self._batch_losses(batch, weights, noise, self._subset(), self._subset())
 
         # 3. One backward: the losses touch disjoint parameters (policy_loss detaches the critic,
         #    alpha_loss detaches log_prob, the target is no-grad), so each gets exactly its own grads.
         for opt in self._optimizers():
             opt.zero_grad(set_to_none=True)
-        (q_loss + pi_loss + a_loss + aux_loss).backward(retain_graph=bool(predictions))
+        predictions = losses.predictions
+        (losses.q + losses.policy + losses.alpha + losses.auxiliary).backward(retain_graph=bool(predictions))
         if predictions:
-            self._apply_prediction_gradients(predictions, metric_tensors)
+            self._apply_prediction_gradients(predictions, losses.metrics)
         critic_norm, policy_norm = _grad_norm(self._critic_params), _grad_norm(self._policy_params)
-        prediction_loss = torch.stack(list(predictions.values())).sum().detach() if predictions else aux_loss.detach()
+        prediction_loss = (
+            torch.stack(list(predictions.values())).sum().detach() if predictions else losses.auxiliary.detach()
+        )
         checks = torch.stack(
-            [q_loss.detach(), pi_loss.detach(), a_loss.detach(), aux_loss.detach(), prediction_loss, critic_norm,
-             policy_norm]
+            [losses.q.detach(), losses.policy.detach(), losses.alpha.detach(), losses.auxiliary.detach(),
+             prediction_loss, critic_norm, policy_norm]
         )  # fmt: skip
 
         # 4. Apply, or skip the whole step if anything is non-finite.
@@ -682,15 +700,16 @@ class SAC:
                 with torch.no_grad():
                     torch._foreach_lerp_(self._target_params, self._critic_params, sac.tau)
 
+        td_abs = losses.td_abs
         td = torch.nan_to_num(td_abs, nan=0.0, posinf=0.0, neginf=0.0) if skipped else td_abs
         metrics: dict[str, float] = {}
         if with_metrics:
             tensors = {
-                **metric_tensors,
+                **losses.metrics,
                 "learner/td_abs_mean": td_abs,
-                "learner/q_loss": q_loss,
-                "learner/policy_loss": pi_loss,
-                "learner/alpha_loss": a_loss,
+                "learner/q_loss": losses.q,
+                "learner/policy_loss": losses.policy,
+                "learner/alpha_loss": losses.alpha,
                 "learner/grad_norm_critic": critic_norm,
                 "learner/grad_norm_policy": policy_norm,
                 "learner/is_weight_mean": weights if weights is not None else torch.ones(()),
@@ -705,8 +724,8 @@ class SAC:
                 }
             )
         refreshed = None
-        if sac.refresh_rnn_states and fed is not None and not skipped:
-            refreshed = self._window_rows(batch, fed)
+        if sac.refresh_rnn_states and losses.fed_states is not None and not skipped:
+            refreshed = self._window_rows(batch, losses.fed_states)
         return UpdateResult(td_abs=td.cpu().numpy(), metrics=metrics, skipped=skipped, refreshed_rnn_states=refreshed)
 
     def td_errors(self, batch: Batch) -> np.ndarray:
@@ -720,7 +739,7 @@ class SAC:
             batch.batch_size, samples, self.spec.action.continuous_dim, generator=self._score_rng, device=self.device
         )
         with torch.no_grad():
-            td_abs = self._batch_losses(batch, None, noise, None, None)[5]
+            td_abs = self._batch_losses(batch, None, noise, None, None).td_abs
         return torch.nan_to_num(td_abs.float(), nan=0.0, posinf=0.0, neginf=0.0).cpu().numpy()
 
     def _batch_losses(
@@ -730,24 +749,27 @@ class SAC:
         noise: Tensor,
         target_heads: Tensor | None,
         policy_heads: Tensor | None,
-    ) -> tuple[Tensor, Tensor, Tensor, Tensor, dict[str, Tensor], Tensor, Metrics, Tensor | None]:
-        """:meth:`_losses` of a sampled batch (its arrays moved to the device, observations normalized)."""
+    ) -> Losses:
+        """:meth:`_losses` of a sampled batch (its arrays moved to the device, observations normalized),
+        named (``_losses`` returns a plain tuple: what torch.compile traces most simply)."""
         dev = self.device
         with torch.autocast(dev.type, dtype=torch.bfloat16, enabled=self._low_precision):
-            return self._compute_losses(
-                self._normalize([torch.from_numpy(o).to(dev) for o in batch.obs]),
-                torch.from_numpy(batch.actions).to(dev),
-                torch.from_numpy(batch.prev_actions).to(dev),
-                torch.from_numpy(batch.rewards).to(dev),
-                torch.from_numpy(batch.terminated).to(dev),
-                torch.from_numpy(batch.truncated).to(dev),
-                torch.from_numpy(batch.mask).to(dev),
-                torch.from_numpy(batch.behaviour_logp).to(dev),
-                torch.from_numpy(batch.rnn_state).to(dev) if self.rnn_state_size else None,
-                weights,
-                noise,
-                target_heads,
-                policy_heads,
+            return Losses(
+                *self._compute_losses(
+                    self._normalize([torch.from_numpy(o).to(dev) for o in batch.obs]),
+                    torch.from_numpy(batch.actions).to(dev),
+                    torch.from_numpy(batch.prev_actions).to(dev),
+                    torch.from_numpy(batch.rewards).to(dev),
+                    torch.from_numpy(batch.terminated).to(dev),
+                    torch.from_numpy(batch.truncated).to(dev),
+                    torch.from_numpy(batch.mask).to(dev),
+                    torch.from_numpy(batch.behaviour_logp).to(dev),
+                    torch.from_numpy(batch.rnn_state).to(dev) if self.rnn_state_size else None,
+                    weights,
+                    noise,
+                    target_heads,
+                    policy_heads,
+                )
             )
 
     def _window_rows(self, batch: Batch, fed_states: Tensor) -> tuple[np.ndarray, np.ndarray]:
