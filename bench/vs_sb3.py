@@ -243,6 +243,7 @@ EVAL_EPISODES = 10
 EVAL_ENVS = 5
 SUMMARY_FIELDS = ("task", "system", "seed", "steps", "return", "wall_s", "eval_s", "overrides", "code", "finished")
 CURVE_FIELDS = ("env_steps", "return_mean", "return_std", "wall_seconds")
+LAST = 3  # the report also averages each run's last LAST evaluations (90k-100k of 100k)
 
 
 @dataclass
@@ -442,17 +443,31 @@ def report(out: Path, task: str | None = None) -> None:
                 f"| {s} | {steps} | {o['return'] if o else 'not run'} | {o['wall_s'] if o else ''}"
                 f" | {t['return'] if t else 'not run'} | {t['wall_s'] if t else ''} |"
             )
-        means = {}
+        means: dict[str, float] = {}
+        lasts: dict[str, float] = {}
         for system in ("asac", "sb3"):
             rets = [float(r["return"]) for (sy, _), r in runs.items() if sy == system]
-            if rets:
-                means[system] = float(np.mean(rets))
-                print(
-                    f"{system}: mean {means[system]:.1f}, min {min(rets):.1f}, max {max(rets):.1f}"
-                    f" over {len(rets)} seeds"
-                )
+            if not rets:
+                continue
+            means[system] = float(np.mean(rets))
+            # less noisy than one evaluation: each seed's mean of its last LAST evaluations
+            last = [last_evaluations(curve_path(out, name, sy, s)) for (sy, s) in runs if sy == system]
+            lasts[system] = float(np.mean(last))
+            print(
+                f"{system}: mean {means[system]:.1f}, min {min(rets):.1f}, max {max(rets):.1f} over {len(rets)} seeds;"
+                f" mean of the last {LAST} evaluations {lasts[system]:.1f} ({' / '.join(f'{v:.1f}' for v in last)})"
+            )
         if len(means) == 2 and means["sb3"] != 0:
-            print(f"ASAC / SB3 means: {means['asac'] / means['sb3']:.2f}x")
+            print(
+                f"ASAC / SB3 means: {means['asac'] / means['sb3']:.2f}x;"
+                f" of the last {LAST} evaluations {lasts['asac'] / lasts['sb3']:.2f}x"
+            )
+
+
+def last_evaluations(path: Path) -> float:
+    with path.open(newline="") as f:
+        rows = list(csv.DictReader(f))
+    return float(np.mean([float(r["return_mean"]) for r in rows[-LAST:]]))
 
 
 def suite(args: argparse.Namespace) -> None:
