@@ -23,13 +23,22 @@ from types import ModuleType
 
 from algorithm.config_schema import NNConfig, SacConfig
 from algorithm.nn.builder import build_models
-from algorithm.nn.models import SacModels
+from algorithm.nn.models import Representation, SacModels
 from algorithm.nn.recurrent import RecurrentRepresentation
 from algorithm.spaces import EnvSpec
 
 ModelBuilder = Callable[[EnvSpec, SacConfig, NNConfig], SacModels]
-# Builders whose recurrence comes from the config (build_models around a model file's representation).
-_RECURRENCE_FROM_CONFIG: set[ModelBuilder] = set()
+
+
+class _AroundRepresentation:
+    """The default models built around a model file's ``build_representation``: their recurrence,
+    like everything but the encoder, comes from the config."""
+
+    def __init__(self, make_representation: Callable[[EnvSpec, NNConfig], Representation]) -> None:
+        self.make_representation = make_representation
+
+    def __call__(self, spec: EnvSpec, sac: SacConfig, nn: NNConfig) -> SacModels:
+        return build_models(spec, sac, nn, representation=self.make_representation(spec, nn))
 
 
 def load_model_file(path: Path) -> ModuleType:
@@ -58,13 +67,7 @@ def model_builder(path: Path | None) -> ModelBuilder:
     if hasattr(module, "build_models"):
         return module.build_models
     if hasattr(module, "build_representation"):
-        make_rep = module.build_representation
-
-        def build(spec: EnvSpec, sac: SacConfig, nn: NNConfig) -> SacModels:
-            return build_models(spec, sac, nn, representation=make_rep(spec, nn))
-
-        _RECURRENCE_FROM_CONFIG.add(build)
-        return build
+        return _AroundRepresentation(module.build_representation)
     raise AttributeError(f"model file {path} defines neither build_models nor build_representation")
 
 
@@ -73,7 +76,7 @@ def recurrent_state_size(spec: EnvSpec, sac: SacConfig, nn: NNConfig, build: Mod
     a SAC (a replay needs only this): from the config where the recurrence is built from it (the
     default models, or a model file's ``build_representation``); a model file's own ``build_models``
     decides it itself, so its models are built once (no target copies, no optimizers)."""
-    if build is build_models or build in _RECURRENCE_FROM_CONFIG:
+    if build is build_models or isinstance(build, _AroundRepresentation):
         return RecurrentRepresentation.state_size(nn.rnn_units, nn.rnn_type) if sac.use_rnn else 0
     rep = build(spec, sac, nn).representation
     return rep.rnn_state_size if isinstance(rep, RecurrentRepresentation) else 0
