@@ -7,9 +7,9 @@ For each actor count, ``main_ds.py mujoco/half_cheetah local --actors N`` runs w
 default config (one update per env step, 10,000 random steps first, evaluation of 10 episodes every
 5,000 env steps) until its evaluation first reaches ``--threshold`` or ``--limit-s`` seconds pass.
 Measured per count: wall seconds from launch to the threshold (or ``not reached``), env steps then,
-and the env steps/s and updates/s of the learning phase (from the rows of ``evaluations.csv``, which
-carry the learner's env steps, updates and wall seconds: first row with updates to the last, so the
-random-step warm-up and the launch are left out). One row per
+the env steps/s and updates/s of the learning phase (the median of the rates the learner's progress
+lines report once it updates, so the random-step warm-up and the launch are left out), and the env
+steps/s of the warm-up (the actors alone: no update yet, so no rate limit). One row per
 count is appended to ``--out`` as it lands.
 
 One update per env step ties env steps/s to the learner's update rate: actors wait on the replay's
@@ -22,7 +22,9 @@ from __future__ import annotations
 import argparse
 import csv
 import os
+import re
 import signal
+import statistics
 import subprocess
 import sys
 import tempfile
@@ -57,19 +59,24 @@ def eval_rows(evaluations: Path) -> list[dict[str, float]]:
         return [{k: float(v) for k, v in row.items()} for row in csv.DictReader(f)]
 
 
-def rates(rows: list[dict[str, float]]) -> tuple[float, float, float]:
-    """(learning env steps/s, learning updates/s, warm-up env steps/s) from evaluation rows, which
-    carry the learner's env steps, updates and wall seconds; nan where the rows do not tell."""
-    nan = float("nan")
-    learning = [r for r in rows if r["updates"] > 0]
+PROGRESS = re.compile(r"^\[learner\] .* steps \|\s*([\d.]+) steps/s \|\s*([\d,]+) updates\s+([\d.]+)/s")
+
+
+def learning_rates(log: str) -> tuple[float, float]:
+    """(env steps/s, updates/s) of the learning phase: the median of the rates the learner's progress
+    lines report (over the last ~10 s each) once it updates, leaving out the first such line, which
+    spans the random-step warm-up; nan where fewer than two lines were printed."""
+    lines = [m.groups() for m in map(PROGRESS.match, log.splitlines()) if m and int(m[2].replace(",", "")) > 0]
+    if len(lines) < 2:
+        return float("nan"), float("nan")
+    return statistics.median(float(g[0]) for g in lines[1:]), statistics.median(float(g[2]) for g in lines[1:])
+
+
+def warmup_rate(rows: list[dict[str, float]]) -> float:
+    """Env steps/s before the first update, from the learner's start: the last evaluation row
+    without updates (the actors alone, unthrottled, as the random steps are collected)."""
     warmup = [r for r in rows if r["updates"] == 0 and r["wall_seconds"] > 0]
-    steps_s = updates_s = nan
-    if len(learning) >= 2 and learning[-1]["wall_seconds"] > learning[0]["wall_seconds"]:
-        dt = learning[-1]["wall_seconds"] - learning[0]["wall_seconds"]
-        steps_s = (learning[-1]["env_steps"] - learning[0]["env_steps"]) / dt
-        updates_s = (learning[-1]["updates"] - learning[0]["updates"]) / dt
-    warm_s = warmup[-1]["env_steps"] / warmup[-1]["wall_seconds"] if warmup else nan
-    return steps_s, updates_s, warm_s
+    return warmup[-1]["env_steps"] / warmup[-1]["wall_seconds"] if warmup else float("nan")
 
 
 def _copy(stream, log) -> None:  # type: ignore[no-untyped-def]
@@ -110,7 +117,8 @@ def run_one(args: argparse.Namespace, actors: int, root: str, log_dir: Path) -> 
                 proc.wait()
         reader.join(timeout=5)
     rows = eval_rows(evaluations)
-    steps_s, updates_s, warm_s = rates(rows)
+    steps_s, updates_s = learning_rates((log_dir / f"{run}.log").read_text())
+    warm_s = warmup_rate(rows)
     return {
         "actors": actors,
         "device": args.device,
