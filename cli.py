@@ -30,7 +30,7 @@ from algorithm.config_schema import Config
 from algorithm.evaluation import evaluate
 from algorithm.logging import LogFileHandler
 from algorithm.nn.user import ModelBuilder, model_builder
-from algorithm.sac import SAC
+from algorithm.policy import Policy
 from algorithm.trainer import RunDir, seed_everything
 from envs.make import VectorEnv, make_env, vector_env_factory
 
@@ -278,15 +278,14 @@ def play(args: argparse.Namespace) -> int:
     if args.render:
         return _play_rendered(config, state, run_dir, ckpt.stem, episodes, limit, args.device)
     env = env_factory(config)(min(episodes, config.eval_config.eval_envs), seed)
-    sac = SAC(env.spec, config.sac_config, config.nn_config, config.replay_config, device=args.device,
-              build=run_model_builder(paths))  # fmt: skip
+    sac = Policy(env.spec, config.sac_config, config.nn_config, device=args.device, build=run_model_builder(paths))
     _load_policy(sac, state, ckpt)
     result = evaluate(env, sac, episodes, seed)
     print(f"{run_dir} checkpoint {ckpt.stem}: return {result.mean:.1f} +- {result.std:.1f} over {episodes} episodes")
     return 0
 
 
-def _load_policy(sac: SAC, state: dict, ckpt: Path) -> None:
+def _load_policy(sac: Policy, state: dict, ckpt: Path) -> None:
     with restoring(ckpt):
         sac.load_state_dict(state["sac"])
 
@@ -305,8 +304,7 @@ def _play_rendered(
     )
     venv = VectorEnv([env])  # sensors split and actions mapped exactly as in training
     spec = venv.spec
-    sac = SAC(spec, config.sac_config, config.nn_config, config.replay_config, device=device,
-              build=run_model_builder(RunDir(run_dir)))  # fmt: skip
+    sac = Policy(spec, config.sac_config, config.nn_config, device=device, build=run_model_builder(RunDir(run_dir)))
     _load_policy(sac, state, run_dir / "model" / f"{step}.pt")
     frames: list[np.ndarray] = []
     returns = []

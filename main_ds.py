@@ -27,7 +27,7 @@ from algorithm.config import ConfigError, apply_overrides, config_from_file, con
 from algorithm.config_schema import Config
 from algorithm.files import WriteFailures, atomic_write
 from algorithm.logging import LogFileHandler
-from algorithm.sac import MAX_EXPLORATION_NOISE
+from algorithm.policy import MAX_EXPLORATION_NOISE
 from algorithm.signals import StopRequest
 from algorithm.trainer import RunDir
 from cli import (

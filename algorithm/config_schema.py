@@ -257,7 +257,7 @@ class ActorConfig(Section):
     noise_increasing_rate: float = Field(
         0.0, ge=0.0, description="Distributed actor i explores with extra noise min(rate * i, noise_max)."
     )
-    # le: algorithm.sac.MAX_EXPLORATION_NOISE (acting refuses more; tanh saturates long before it).
+    # le: algorithm.policy.MAX_EXPLORATION_NOISE (acting refuses more; tanh saturates long before it).
     noise_max: float = Field(0.1, ge=0.0, le=1e6, description="Ceiling of the per-actor exploration noise.")
 
 

@@ -1,8 +1,10 @@
-"""Soft Actor-Critic: :class:`SAC` owns the models, optimizers and the update step.
+"""Soft Actor-Critic, the learner's side: :class:`SAC` extends the acting :class:`~algorithm.policy.Policy`
+with the target networks, the optimizers, the update step and the checkpoint state.
 
-The losses are pure functions in :mod:`algorithm.losses`; targets over windows in
-:mod:`algorithm.returns`. Actions may be continuous, discrete (several branches, optional
-action masks, ``discrete_dqn_like``) or both (docs/architecture.md sections 3 and 5).
+What an update computes is in :mod:`algorithm.sac_losses` (plain SAC first, each feature in its own
+method); the losses are pure functions in :mod:`algorithm.losses`, targets over windows in
+:mod:`algorithm.returns`. Actions may be continuous, discrete (several branches, optional action
+masks, ``discrete_dqn_like``) or both (docs/architecture.md sections 3 and 5).
 
 Usage, in a learner loop::
 
@@ -14,7 +16,8 @@ Usage, in a learner loop::
             table.update_priorities(batch.keys, result.td_abs)
         writer.write(result.metrics)
 
-and on the acting side ``actions, behaviour_logp = sac.act(obs, deterministic=False)``.
+and, being a :class:`~algorithm.policy.Policy`, ``actions, behaviour_logp = sac.act(obs)`` acts
+(actors that do not train build the :class:`~algorithm.policy.Policy` alone).
 """
 
 from __future__ import annotations
@@ -31,35 +34,15 @@ import torch
 from torch import Tensor
 
 from algorithm.config_schema import NNConfig, ReplayConfig, SacConfig
-from algorithm.losses import (
-    Metrics,
-    PolicySample,
-    alpha_loss,
-    branch_matrix,
-    critic_loss,
-    expected_log_prob,
-    importance_weights,
-    policy_loss,
-    soft_value,
-)
+from algorithm.losses import Metrics, importance_weights
 from algorithm.nn.builder import build_models
-from algorithm.nn.models import (
-    MASKED_LOG_PROB,
-    SacModels,
-    masked_branch_one_hot_argmax,
-    stored_action_log_prob,
-)
-from algorithm.nn.noisy import NoisyLayer, reset_noise, set_noise
-from algorithm.nn.numpy_acting import numpy_actor_for
-from algorithm.nn.prediction import gated_gradients, observation_targets, prediction_losses
-from algorithm.nn.recurrent import RecurrentRepresentation
-from algorithm.returns import bootstrap_index, gather_positions, n_step_target, valid_steps, vtrace_target
+from algorithm.nn.models import SacModels
+from algorithm.nn.noisy import reset_noise
+from algorithm.nn.prediction import gated_gradients, observation_targets
+from algorithm.policy import Policy
+from algorithm.sac_losses import SacLosses
 from algorithm.spaces import EnvSpec
 from algorithm.types import Batch
-
-# The largest extra exploration noise (a std added before the tanh) acting accepts. Far past it tanh
-# saturates every action anyway; near 1e37 the float32 std overflows and log-probs become NaN.
-MAX_EXPLORATION_NOISE = 1e6
 
 
 def uses_bfloat16(compute_dtype: str, device: torch.device, cpuinfo: Path = Path("/proc/cpuinfo")) -> bool:
@@ -109,8 +92,9 @@ class Losses:
     fed_states: Tensor | None
 
 
-class SAC:
-    """Models, target copies, optimizers, ``log_alpha``, PER ``beta`` and counters of one learner.
+class SAC(SacLosses, Policy):
+    """One learner: the :class:`~algorithm.policy.Policy` (models, acting) plus target copies,
+    optimizers, ``log_alpha``, PER ``beta`` and counters.
 
     Three Adam optimizers with separate parameters: critic (Q heads + representation), policy,
     and ``log_alpha`` (only with ``use_auto_alpha``). Adam runs ``fused``: for 256x256 models on
@@ -118,12 +102,9 @@ class SAC:
     ``compile=True`` wraps the loss computation in ``torch.compile``; on CPU it did not pay
     (5-10% slower than eager in bench/learner.py), so it is off by default.
 
-    Randomness: model initialisation uses torch's global RNG, forked and seeded with
-    ``sac.seed`` when it is set (the global state is left as it was). Action noise for
-    :meth:`act` and the noise and head subsets of :meth:`update` come from two
-    ``torch.Generator`` objects owned here (acting in NumPy: a ``numpy.random.Generator``),
-    seeded from ``sac.seed`` (or, when it is None, drawn from torch's global RNG, so
-    ``torch.manual_seed`` makes a run reproducible); all are in :meth:`state_dict`.
+    Randomness: as the :class:`~algorithm.policy.Policy`'s, plus two ``torch.Generator`` objects
+    for the noise and head subsets of :meth:`update` and for :meth:`td_errors`, seeded from the
+    third seed the policy drew; all are in :meth:`state_dict`.
     """
 
     def __init__(
@@ -136,9 +117,7 @@ class SAC:
         compile: bool = False,
         build: Callable[[EnvSpec, SacConfig, NNConfig], SacModels] = build_models,
     ) -> None:
-        self.spec = spec
-        self.sac = sac
-        self.device = torch.device(device)
+        super().__init__(spec, sac, nn, device, build)
         self.beta = float(replay.beta)
         self.beta_increment = float(replay.beta_increment_per_sampling)
         act = spec.action
@@ -147,28 +126,13 @@ class SAC:
         self.discrete_target_entropy = torch.tensor(
             [sac.discrete_target_entropy_ratio * math.log(n) for n in act.discrete_branches], device=self.device
         )
-        self._branches = branch_matrix(act.discrete_branches, self.device) if act.discrete_branches else None
-        self._mask_index = spec.action_mask_index
         self._observation_targets = observation_targets(spec.sensors, nn.critic_only, sac.use_extra_data)
-
-        if sac.seed is None:
-            init_seed, act_seed, learn_seed = (int(s) for s in torch.randint(0, 2**62, (3,)))
-        else:
-            init_seed, act_seed, learn_seed = (int(s) for s in np.random.SeedSequence(sac.seed).generate_state(3))
-        with torch.random.fork_rng(devices=[]):
-            torch.manual_seed(init_seed)
-            self.models = build(spec, sac, nn).to(self.device)
         self.target_representation = copy.deepcopy(self.models.representation).requires_grad_(False)
         self.target_q = copy.deepcopy(self.models.q).requires_grad_(False)
-        self._act_rng = torch.Generator(device=self.device)
-        self._act_rng.manual_seed(act_seed)
-        # numpy_acting's noise: drawing it with torch cost as much as the NumPy forward itself
-        # (13 vs 2 us per call inside an actor loop, and the env step after it 8 us more).
-        self._act_np_rng = np.random.default_rng(act_seed)
         self._learn_rng = torch.Generator(device=self.device)
-        self._learn_rng.manual_seed(learn_seed)
+        self._learn_rng.manual_seed(self._learn_seed)
         self._score_rng = torch.Generator(device=self.device)  # td_errors(): scoring new data
-        self._score_rng.manual_seed(learn_seed + 1)
+        self._score_rng.manual_seed(self._learn_seed + 1)
 
         # One temperature for the continuous part, one per discrete branch (none when greedy).
         self.log_alpha = torch.nn.Parameter(
@@ -183,29 +147,9 @@ class SAC:
             *self.models.representation.parameters(),
             *self.models.q.parameters(),
         ]
-        acting: dict[str, torch.nn.Module] = {"representation": self.models.representation}
-        if self.models.normalizer is not None:
-            acting["normalizer"] = self.models.normalizer
-        for name in ("policy", "discrete_policy"):
-            module = getattr(self.models, name)
-            if module is not None:
-                acting[name] = module
         self._policy_params: list[Tensor] = [
-            p for name, m in acting.items() if name.endswith("policy") for p in m.parameters()
+            p for m in (self.models.policy, self.models.discrete_policy) if m is not None for p in m.parameters()
         ]
-        if self._branches is not None and self.models.discrete_policy is None:
-            acting["q"] = self.models.q  # dqn_like: the Q heads pick the discrete actions
-        self._acting = torch.nn.ModuleDict(acting)
-        # Noisy layers (nn_config.noisy_q / noisy_policy) draw fresh noise for every update and every
-        # stochastic act() call, from this SAC's generators; deterministic acting uses the mean weights.
-        self._noisy = any(isinstance(m, NoisyLayer) for m in self.models.modules())
-        rep = self.models.representation
-        self.rnn_state_size = rep.rnn_state_size if isinstance(rep, RecurrentRepresentation) else 0
-        # act() in NumPy where that computes what torch would (nn/numpy_acting.py), else None.
-        self._numpy_actor = None
-        if sac.numpy_acting:
-            discrete = bool(act.discrete_branches)
-            self._numpy_actor = numpy_actor_for(self.models, self.device.type, bool(self.rnn_state_size), discrete)
         alpha_params = [p for p, used in ((self.log_alpha, act.continuous_dim > 0),
                                           (self.log_alpha_discrete, n_discrete_alphas > 0)) if used]  # fmt: skip
         self.critic_optimizer = self._adam(self._critic_params)
@@ -214,8 +158,6 @@ class SAC:
         auxiliary = [m for m in (self.models.curiosity, self.models.rnd, self.models.prediction) if m is not None]
         self._auxiliary_params: list[Tensor] = [p for m in auxiliary for p in m.parameters() if p.requires_grad]
         self.auxiliary_optimizer = self._adam(self._auxiliary_params) if self._auxiliary_params else None
-        if self.models.rnd is not None:
-            self._acting["rnd"] = self.models.rnd  # actors choose by novelty
         self._target_params: list[Tensor] = [
             *self.target_representation.parameters(),
             *self.target_q.parameters(),
@@ -227,422 +169,12 @@ class SAC:
         # Hidden layers in bfloat16 (sac.compute_dtype): 2.2x faster matmuls on this project's AVX512-BF16
         # CPUs, 1.4x faster updates (bench/learner.py); output layers stay float32 (nn.layers.in_float32).
         self._low_precision = uses_bfloat16(sac.compute_dtype, self.device)
-        # Extra exploration of one distributed actor, min(noise_increasing_rate * i, noise_max)
-        # (docs/architecture.md section 9): stochastic acting widens the pre-tanh Gaussian to
-        # std' = sqrt(std^2 + noise^2) and mixes each discrete branch with the uniform distribution
-        # over allowed actions (weight min(noise, 1)).
-        # The log-prob returned is the widened policy's, so the stored behaviour mu stays exact.
-        self.exploration_noise = 0.0
         self.updates = 0  # applied (not skipped) updates
         self.nonfinite_skipped = 0
         self._consecutive_nonfinite = 0
 
     def _adam(self, params: Sequence[Tensor]) -> torch.optim.Adam:
         return torch.optim.Adam(params, lr=self.sac.learning_rate, fused=True)
-
-    # -- acting ---------------------------------------------------------------------------------
-
-    def act(self, obs: list[np.ndarray], deterministic: bool = False) -> tuple[np.ndarray, np.ndarray]:
-        """Actions ``[N, A]`` float32 (``[one-hot per branch | continuous in [-1, 1]]``) and their
-        behaviour log-probability ``[N]`` under the current policy, exploration included, for ``N``
-        observations given as one ``[N, *sensor_shape]`` array per sensor.
-
-        ``deterministic`` acts with ``tanh(mean)`` and each branch's most probable (or, dqn-like,
-        greedy) allowed action; the log-prob is then the density at that point. Stochastic acting
-        samples the policy, or with ``discrete_dqn_like`` acts epsilon-greedily among allowed actions
-        (``discrete_dqn_epsilon``), and reports the true probability of the mixture."""
-        if self.rnn_state_size:
-            raise TypeError("a recurrent policy (use_rnn) acts with act_recurrent(obs, prev_actions, rnn_state)")
-        if self._numpy_actor is None:
-            return self._act_torch(obs, deterministic)
-        self._check_obs(obs)
-        noise = None
-        if not deterministic:
-            noise = self._act_np_rng.standard_normal((obs[0].shape[0], self.spec.action.continuous_dim), np.float32)
-        return self._numpy_actor.act(obs, noise, 0.0 if deterministic else self.exploration_noise)
-
-    @torch.inference_mode()
-    def _act_torch(self, obs: list[np.ndarray], deterministic: bool) -> tuple[np.ndarray, np.ndarray]:
-        return self._act_with_noise(self._obs_tensors(obs), deterministic, None)
-
-    @torch.inference_mode()
-    def act_recurrent(
-        self, obs: list[np.ndarray], prev_actions: np.ndarray, rnn_state: np.ndarray, deterministic: bool = False
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """:meth:`act` for ``use_rnn``: also takes each env's previous action ``[N, A]`` (zeros at
-        episode start) and recurrent state ``[N, rnn_state_size]`` (zeros at episode start), and
-        returns the next state as a third array. The next state does not depend on the action
-        chosen now (the cell reads ``a_{t-1}``), so an actor may replace the action (random warm-up)."""
-        n = prev_actions.shape[0]
-        if prev_actions.shape != (n, self.spec.action.size) or rnn_state.shape != (n, self.rnn_state_size):
-            raise ValueError(
-                f"act_recurrent: prev_actions must be [N, {self.spec.action.size}] and rnn_state "
-                f"[N, {self.rnn_state_size}], got {prev_actions.shape} and {rnn_state.shape}"
-            )
-        tensors = self._obs_tensors(obs)
-        prev = torch.as_tensor(prev_actions, dtype=torch.float32, device=self.device)
-        state = torch.as_tensor(rnn_state, dtype=torch.float32, device=self.device)
-        rep = self.models.representation
-        assert isinstance(rep, RecurrentRepresentation)
-        full_state, next_state = rep.step(tensors, prev, state)
-        actions, log_prob = self._act_with_noise(tensors, deterministic, full_state)
-        return actions, log_prob, next_state.cpu().numpy()
-
-    def initial_rnn_state(self, n: int) -> np.ndarray:
-        """The recurrent state an episode starts from (zeros ``[n, rnn_state_size]``)."""
-        return np.zeros((n, self.rnn_state_size), dtype=np.float32)
-
-    def _check_obs(self, obs: list[np.ndarray]) -> None:
-        sensors = self.spec.sensors
-        if len(obs) != len(sensors):
-            raise ValueError(f"act: expected {len(sensors)} sensors {[s.name for s in sensors]}, got {len(obs)}")
-        for o, s in zip(obs, sensors, strict=True):
-            if o.ndim != len(s.shape) + 1 or tuple(o.shape[1:]) != s.shape:
-                raise ValueError(f"act: sensor {s.name!r} must be [N, {', '.join(map(str, s.shape))}], got {o.shape}")
-
-    def _obs_tensors(self, obs: list[np.ndarray]) -> list[Tensor]:
-        self._check_obs(obs)
-        tensors = [torch.as_tensor(o, dtype=torch.float32, device=self.device) for o in obs]
-        return self._normalize(tensors)
-
-    def _act_with_noise(
-        self, tensors: list[Tensor], deterministic: bool, full_state: Tensor | None
-    ) -> tuple[np.ndarray, np.ndarray]:
-        if self._noisy:
-            if deterministic:
-                set_noise(self._acting, False)
-            else:
-                reset_noise(self._acting, self._act_rng)
-        try:
-            if full_state is None:
-                full_state = self.models.representation(tensors)
-            if self.models.rnd is None or deterministic:
-                action, log_prob = self._act(full_state, tensors, deterministic)
-            else:  # the most novel of rnd_n_sample policy actions per env
-                n, k = full_state.shape[0], self.sac.rnd_n_sample
-                repeated = full_state.repeat_interleave(k, dim=0)
-                candidates, log_probs = self._act(repeated, [t.repeat_interleave(k, dim=0) for t in tensors], False)
-                novelty = self.models.rnd.novelty(repeated, candidates).view(n, k)
-                pick = novelty.argmax(dim=1) + torch.arange(n, device=self.device) * k
-                # log-prob under the policy alone: the selection's own probability has no closed form
-                action, log_prob = candidates[pick], log_probs[pick]
-            return action.cpu().numpy(), log_prob.cpu().numpy()
-        finally:
-            if self._noisy and deterministic:
-                set_noise(self._acting, True)
-
-    def _act(self, full_state: Tensor, tensors: list[Tensor], deterministic: bool) -> tuple[Tensor, Tensor]:
-        state = self.models.representation.policy_state(full_state)
-        n, spec = state.shape[0], self.spec.action
-        log_prob = torch.zeros(n, device=self.device)
-        continuous = None
-        extra = 0.0 if deterministic else self.exploration_noise
-        if self.models.policy is not None:
-            if deterministic:
-                continuous, log_prob = self.models.policy.sample(state, None)
-            else:
-                noise = torch.randn(n, spec.continuous_dim, generator=self._act_rng, device=self.device)
-                continuous, log_prob = self._behaviour_sample(state, noise, extra)
-        parts = []
-        if self._branches is not None:
-            mask = self._mask(tensors)
-            allowed = torch.ones(n, spec.discrete_size, device=self.device) if mask is None else mask.float()
-            uniform = allowed / (allowed @ self._branches @ self._branches.T)
-            if self.models.discrete_policy is not None:
-                probs = self.models.discrete_policy(state, mask).exp()
-            else:
-                probs = self._greedy(full_state, continuous, mask)
-                if not deterministic:
-                    eps = self.sac.discrete_dqn_epsilon
-                    probs = (1.0 - eps) * probs + eps * uniform
-            if extra > 0:
-                probs = (1.0 - min(extra, 1.0)) * probs + min(extra, 1.0) * uniform
-            for branch_probs in probs.split(list(spec.discrete_branches), dim=-1):
-                if deterministic:
-                    choice = branch_probs.argmax(dim=-1)
-                else:
-                    choice = torch.multinomial(branch_probs, 1, generator=self._act_rng).squeeze(-1)
-                log_prob = log_prob + branch_probs.gather(-1, choice[:, None]).squeeze(-1).log()
-                parts.append(torch.nn.functional.one_hot(choice, branch_probs.shape[-1]).float())
-        if continuous is not None:
-            parts.append(continuous)
-        action = parts[0] if len(parts) == 1 else torch.cat(parts, dim=-1)
-        return action, log_prob
-
-    def _behaviour_sample(self, state: Tensor, noise: Tensor, extra: float) -> tuple[Tensor, Tensor]:
-        """An exploring action and its behaviour log-prob, as the learner will evaluate it again
-        from the stored action (:func:`stored_action_log_prob`). With ``extra`` Gaussian noise added
-        before the tanh, ``u ~ N(mean, std^2 + extra^2)`` (log std' = logaddexp(2 log std, 2 log
-        extra) / 2), and the log-prob is that of the widened Gaussian."""
-        assert self.models.policy is not None
-        mean, log_std = self.models.policy(state)
-        if extra > 0:
-            log_std = 0.5 * torch.logaddexp(2.0 * log_std, torch.full_like(log_std, 2.0 * math.log(extra)))
-        action = torch.tanh(mean + log_std.exp() * noise)
-        return action, stored_action_log_prob(mean, log_std, action)
-
-    def _normalize(self, obs: list[Tensor]) -> list[Tensor]:
-        return obs if self.models.normalizer is None else self.models.normalizer(obs)
-
-    def load_normalizer_stats(self, stats: Mapping[str, Mapping[str, Any]]) -> None:
-        """With ``use_normalization``: take the replay's running statistics (``table.normalizer_stats()``)
-        for acting and learning from now on; a no-op otherwise."""
-        if self.models.normalizer is not None:
-            self.models.normalizer.load_stats(stats)
-
-    def _mask(self, obs: list[Tensor]) -> Tensor | None:
-        """The ``action_mask`` sensor as bool (True = allowed), or None when the task has none."""
-        return None if self._mask_index is None else obs[self._mask_index] > 0.5
-
-    def _greedy(self, state: Tensor, continuous: Tensor | None, mask: Tensor | None) -> Tensor:
-        """``discrete_dqn_like``: one-hot of each branch's allowed argmax of ``min_i Q_i`` (online heads)."""
-        assert self._branches is not None
-        with torch.no_grad():
-            q = self.models.q(state, continuous).min(dim=0).values
-        return masked_branch_one_hot_argmax(q, self.spec.action.discrete_branches, mask)
-
-    def _policy(self, state: Tensor, noise: Tensor, mask: Tensor | None) -> PolicySample:
-        """The policy at ``state``: a reparameterised continuous sample from ``noise`` and each
-        discrete branch's full distribution (greedy one-hots with ``discrete_dqn_like``)."""
-        pi = PolicySample()
-        policy_state = self.models.representation.policy_state(state)
-        if self.models.policy is not None:
-            pi.continuous, pi.continuous_log_prob = self.models.policy.sample(policy_state, noise)
-        if self.models.discrete_policy is not None:
-            pi.log_probs = self.models.discrete_policy(policy_state, mask)
-            pi.probs = pi.log_probs.exp()
-        elif self._branches is not None:
-            pi.probs = self._greedy(state, pi.continuous, mask)
-        return pi
-
-    def _q_taken(self, q: torch.nn.Module, state: Tensor, action: Tensor, heads: Tensor | None = None) -> Tensor:
-        """Each head's value of the stored ``action``: ``[E, B]``, or ``[E, B, K]`` per discrete branch."""
-        d = self.spec.action.discrete_size
-        values = q(state, action[..., d:] if self.models.policy is not None else None, heads)
-        if self._branches is None:
-            return values
-        return (values * action[..., :d]) @ self._branches
-
-    # -- learning -------------------------------------------------------------------------------
-
-    def _subset(self) -> Tensor | None:
-        """A fresh random subset of ``ensemble_q_sample`` heads; None (all heads) when it is all."""
-        n, k = self.sac.ensemble_q_num, self.sac.ensemble_q_sample
-        if k == n:
-            return None
-        return torch.randperm(n, generator=self._learn_rng, device=self.device)[:k]
-
-    def _window_values(
-        self,
-        online: Tensor,
-        target: Tensor,
-        action_mask: Tensor | None,
-        actions: Tensor,
-        noise: Tensor,
-        alpha: Tensor,
-        alpha_d: Tensor,
-        heads: Tensor | None,
-    ) -> tuple[Tensor, Tensor]:
-        """For V-trace: soft values ``V(o_t) [B, P]`` at every window position (online and target
-        states ``[B, P, D]``) and the current policy's ``log pi(a_t|o_t) [B, P - 1]`` of the stored
-        actions (greedy dqn-like branches: 0 for the greedy action, ``MASKED_LOG_PROB`` otherwise,
-        so the trace is cut where behaviour left it)."""
-        b, positions = online.shape[:2]
-        state = online.flatten(0, 1)
-        mask = None if action_mask is None else action_mask.flatten(0, 1)
-        pi = self._policy(state, noise.flatten(0, 1), mask)
-        q = self.target_q(target.flatten(0, 1), pi.continuous, heads).min(dim=0).values
-        values = soft_value(q, pi, alpha, alpha_d, self._branches).view(b, positions)
-
-        taken = actions.flatten(0, 1)
-        steps = torch.arange(b * positions, device=actions.device).view(b, positions)[:, :-1].flatten()
-        log_pi = torch.zeros(steps.shape[0], device=actions.device)
-        policy_state = self.models.representation.policy_state(state[steps])
-        d = self.spec.action.discrete_size
-        if self.models.policy is not None:
-            log_pi = log_pi + self.models.policy.log_prob(policy_state, taken[:, d:])
-        if self._branches is not None:
-            assert pi.probs is not None
-            chosen = taken[:, :d] > 0.5
-            if pi.log_probs is not None:
-                per_action = pi.log_probs[steps]
-            else:
-                per_action = torch.where(pi.probs[steps] > 0.5, 0.0, MASKED_LOG_PROB)
-            log_pi = log_pi + torch.where(chosen, per_action, 0.0).sum(dim=-1)
-        return values, log_pi.view(b, positions - 1)
-
-    def _sequence_states(
-        self, obs: list[Tensor], actions: Tensor, prev_actions: Tensor, mask: Tensor, rnn_state: Tensor
-    ) -> tuple[Tensor, Tensor, Tensor]:
-        """``use_rnn``: online and target states ``[B, L + 1, H]`` at every obs position of the window,
-        from the stored state at its first valid row, and the online recurrent state fed in at each
-        position ``[B, L + 1, S]``. Positions before the first valid row keep the state.
-
-        A position's previous action is the stored one on a step row; on the bootstrap position of a
-        window cut short by its chunk's end (or a time-limit truncation, which ends a chunk), and on
-        position ``L``, it is the action of the step before, which the window holds (the table
-        stores zeros on a chunk's bootstrap row)."""
-        first = mask.long().argmax(dim=1)  # the first valid step (look-back rows before it are masked)
-        positions = torch.arange(mask.shape[1] + 1, device=mask.device)
-        valid = positions[None, :] >= first[:, None]
-        stepped = torch.where(mask[:, 1:, None], prev_actions[:, 1:], actions[:, :-1])
-        prev = torch.cat([prev_actions[:, :1], stepped, actions[:, -1:]], dim=1)
-        rep, target_rep = self.models.representation, self.target_representation
-        assert isinstance(rep, RecurrentRepresentation) and isinstance(target_rep, RecurrentRepresentation)
-        burn_in = self.sac.burn_in_step
-        online, fed = rep.sequence_with_states(obs, prev, rnn_state, valid, burn_in, self.sac.burn_in_gradient)
-        with torch.no_grad():
-            target = target_rep.sequence(obs, prev, rnn_state, valid, burn_in)
-        return online, target, fed
-
-    def _losses(
-        self,
-        obs: list[Tensor],
-        actions: Tensor,
-        prev_actions: Tensor,
-        rewards: Tensor,
-        terminated: Tensor,
-        truncated: Tensor,
-        mask: Tensor,
-        behaviour_logp: Tensor,
-        rnn_state: Tensor | None,
-        weights: Tensor | None,
-        noise: Tensor,
-        target_heads: Tensor | None,
-        policy_heads: Tensor | None,
-    ) -> tuple[Tensor, Tensor, Tensor, Tensor, dict[str, Tensor], Tensor, Metrics, Tensor | None]:
-        """The SAC losses from the current parameters: ``(q_loss, policy_loss, alpha_loss,
-        auxiliary_loss, prediction_losses, td_abs, metrics, fed_states)``, where ``fed_states`` is
-        the online recurrent state fed in at each window step ``[B, L, S]`` (None without
-        ``use_rnn``). Batch tensors are ``[B, L(+1), ...]``; the trained step is step
-        ``burn_in_step`` of each window (the sampled key; earlier steps only warm up a recurrent
-        state). ``noise [B, n_step + 2, A]`` feeds the action samples: position 0 the policy loss's,
-        1.. the target's (only ``noise[:, 1]`` without V-trace, the value at the bootstrap observation)."""
-        sac, dev, branches = self.sac, self.device, self._branches
-        q = self.models.q
-        alpha = self.log_alpha.detach().exp()
-        alpha_d = self.log_alpha_discrete.detach().exp()
-        metrics: Metrics = {"learner/alpha": alpha}
-        if alpha_d.numel():
-            metrics["learner/alpha_discrete"] = alpha_d
-
-        # 0. States at the window's observation positions from the trained step on. A recurrent
-        #    representation runs over the whole window (burn-in first); otherwise states are computed
-        #    only where they are needed: at the trained step and at the bootstrap position.
-        burn_in = sac.burn_in_step
-        sequences, fed_states = None, None
-        if rnn_state is not None:
-            online_seq, target_seq, fed = self._sequence_states(obs, actions, prev_actions, mask, rnn_state)
-            fed_states = fed[:, :-1]
-            sequences = (online_seq[:, burn_in:], target_seq[:, burn_in:])
-        obs = [o[:, burn_in:] for o in obs]
-        actions, rewards, terminated, truncated, mask, behaviour_logp = (
-            x[:, burn_in:] for x in (actions, rewards, terminated, truncated, mask, behaviour_logp)
-        )
-        action_masks = None if self._mask_index is None else obs[self._mask_index] > 0.5
-
-        def states_at(index: Tensor | int | None, target: bool) -> Tensor:
-            """States ``[B, D]`` at position ``index`` (a ``[B]`` tensor or an int), or ``[B, P, D]``
-            at every position (None)."""
-            if sequences is not None:
-                seq = sequences[1] if target else sequences[0]
-                if index is None:
-                    return seq
-                return seq[:, index] if isinstance(index, int) else gather_positions(seq, index)
-            rep = self.target_representation if target else self.models.representation
-            if index is None:
-                b, p = obs[0].shape[:2]
-                return rep([o.flatten(0, 1) for o in obs]).view(b, p, -1)
-            return rep([o[:, index] if isinstance(index, int) else gather_positions(o, index) for o in obs])
-
-        def masks_at(index: Tensor | int | None) -> Tensor | None:
-            if action_masks is None or index is None:
-                return action_masks
-            return action_masks[:, index] if isinstance(index, int) else gather_positions(action_masks, index)
-
-        # Computed once and shared below: the trained steps, the online state at the trained step
-        # (with gradients, for the critic), and, for curiosity and V-trace, the online states at
-        # every position (no gradients: both only read them).
-        valid = valid_steps(mask, terminated, truncated)
-        state = states_at(0, False)
-        online_all = None
-        if self.models.curiosity is not None or sac.use_n_step_is:
-            with torch.no_grad():
-                online_all = states_at(None, False)
-
-        # Exploration models: curiosity rewards (targets only) and their training losses.
-        aux_loss = torch.zeros((), device=dev)
-        if self.models.curiosity is not None:
-            assert online_all is not None
-            states = online_all
-            b, p = states.shape[:2]
-            forward_error, inverse_error = (
-                e.view(b, p - 1)
-                for e in self.models.curiosity.errors(
-                    states[:, :-1].flatten(0, 1), actions.flatten(0, 1), states[:, 1:].flatten(0, 1)
-                )
-            )
-            intrinsic = sac.curiosity_strength * torch.where(valid, forward_error.detach(), 0.0)
-            rewards = rewards + intrinsic
-            aux_loss = aux_loss + ((forward_error + inverse_error) * valid).sum() / valid.sum()
-            metrics["learner/curiosity_reward"] = intrinsic[:, 0]
-        if self.models.rnd is not None:
-            novelty = self.models.rnd.novelty(state.detach(), actions[:, 0])
-            aux_loss = aux_loss + novelty.mean()
-            metrics["learner/rnd_novelty"] = novelty.detach()
-
-        # 1. Target y for the trained step: n-step return + gamma^m V(o_m)  (eq. 2, 3, 5), or the
-        #    V-trace estimate over the window (returns.vtrace_target).
-        with torch.no_grad():
-            if sac.use_n_step_is:
-                assert online_all is not None
-                values, log_pi = self._window_values(
-                    online_all, states_at(None, True), masks_at(None),
-                    actions, noise[:, 1:], alpha, alpha_d, target_heads,
-                )  # fmt: skip
-                y, rho = vtrace_target(
-                    rewards, terminated, valid, values, log_pi - behaviour_logp,
-                    sac.gamma, sac.v_lambda, sac.v_rho, sac.v_c,
-                )  # fmt: skip
-                weighted = rho > 0
-                metrics["learner/vtrace_rho"] = rho[weighted] if weighted.any() else torch.ones(1, device=dev)
-                v = values[:, 1]
-            else:
-                m = bootstrap_index(valid)
-                next_pi = self._policy(states_at(m, False), noise[:, 1], masks_at(m))
-                next_q = self.target_q(states_at(m, True), next_pi.continuous, target_heads)
-                v = soft_value(next_q.min(dim=0).values, next_pi, alpha, alpha_d, branches)
-                y = n_step_target(rewards, terminated, valid, v, sac.gamma)
-            action0 = actions[:, 0]
-            old_q = None
-            if sac.clip_epsilon is not None:
-                old_q = self._q_taken(self.target_q, states_at(0, True), action0)
-
-        # 2. Critic loss; the policy and alpha losses on the detached state; prediction losses on the
-        #    live state (update() gates their gradient into the representation).
-        predictions: dict[str, Tensor] = {}
-        if self.models.prediction is not None:
-            with torch.no_grad():
-                next_state = states_at(1, True)
-            targets = [obs[i][:, 0].flatten(1) for i in self._observation_targets]
-            predictions = prediction_losses(
-                self.models.prediction, state, actions[:, 0], next_state, rewards[:, 0],
-                torch.cat(targets, dim=-1) if targets else None, sac.transition_kl,
-            )  # fmt: skip
-            metrics.update({f"learner/prediction_{k}": v.detach() for k, v in predictions.items()})
-        q_loss, td_abs, q_metrics = critic_loss(self._q_taken(q, state, action0), y, weights, sac.clip_epsilon, old_q)
-        pi = self._policy(state.detach(), noise[:, 0], masks_at(0))
-        q_pi = q(state.detach(), pi.continuous, policy_heads, detach_params=True).min(dim=0).values
-        pi_loss, pi_metrics = policy_loss(q_pi, pi, alpha, alpha_d, branches)
-        a_loss = torch.zeros((), device=dev)
-        if self.alpha_optimizer is not None:
-            if pi.continuous_log_prob is not None:
-                a_loss = a_loss + alpha_loss(self.log_alpha, pi.continuous_log_prob, self.target_entropy)[0]
-            if pi.log_probs is not None and branches is not None:
-                expected = expected_log_prob(pi, branches)
-                a_loss = a_loss + alpha_loss(self.log_alpha_discrete, expected, self.discrete_target_entropy)[0]
-        metrics.update({**q_metrics, **pi_metrics, "learner/next_value": v, "learner/auxiliary_loss": aux_loss})
-        return q_loss, pi_loss, a_loss, aux_loss, predictions, td_abs, metrics, fed_states
 
     def update(self, batch: Batch, with_metrics: bool = False) -> UpdateResult:
         """One gradient step on every part from one batch (docs/architecture.md section 5).
@@ -877,7 +409,7 @@ class SAC:
             },
         }
 
-    def load_state_dict(self, state: dict[str, Any]) -> None:
+    def load_state_dict(self, state: Mapping[str, Any]) -> None:
         """Restore what :meth:`state_dict` returned (from an identically configured SAC)."""
         missing = set(self.state_dict()) - set(state)
         if missing:
@@ -937,16 +469,6 @@ class SAC:
         if self.auxiliary_optimizer is not None:
             named["auxiliary"] = self.auxiliary_optimizer
         return named
-
-    def acting_state_dict(self) -> dict[str, Tensor]:
-        """The parameters :meth:`act` uses (``representation.*`` and ``policy.*``), flat name ->
-        tensor: what a learner publishes to actors."""
-        return self._acting.state_dict()
-
-    def load_acting_state_dict(self, state: dict[str, Tensor]) -> None:
-        """Load what :meth:`acting_state_dict` returned (an actor receiving published weights);
-        missing or unexpected names raise, naming them."""
-        self._acting.load_state_dict(state)
 
 
 def _grad_norm(params: list[Tensor]) -> Tensor:

@@ -36,6 +36,7 @@ from algorithm.config_schema import Config
 from algorithm.files import WriteFailures
 from algorithm.learner_core import LearnerCore, UpdateBudget
 from algorithm.nn.user import model_builder
+from algorithm.policy import Policy
 from algorithm.replay import PrioritizedTable
 from algorithm.replay.persistence import snapshot_kept
 from algorithm.run_dir import EVAL_SEED_OFFSET, RunDir
@@ -117,9 +118,9 @@ class EmbeddedTrainer:
         )
         # Actors act with the learner's weights as of the last publication, every
         # update_policy_variables_per_step updates (1: always current), as distributed actors do.
-        self.acting_policy = self.sac
+        self.acting_policy: Policy = self.sac
         if sac_cfg.update_policy_variables_per_step > 1:
-            self.acting_policy = SAC(spec, sac_cfg, config.nn_config, replay_cfg, device=device, build=build)
+            self.acting_policy = Policy(spec, sac_cfg, config.nn_config, device=device, build=build)
             self.acting_policy.load_acting_state_dict(self.sac.acting_state_dict())
         self.actor = ActorLoop(
             self.env,

@@ -50,8 +50,8 @@ import torch
 from algorithm.actor import ActorLoop, VectorEnvLike
 from algorithm.config_schema import Config
 from algorithm.logging import MetricsWriter, RateMeter, Throttle
+from algorithm.policy import Policy
 from algorithm.replay import ReplayUnavailable
-from algorithm.sac import SAC
 from ds.actor.sink import LAST_INSERTS_WAIT_S, ReplaySink
 from ds.learner import service as learner_service
 from ds.learner.service import LearnerClient, LeaseExpired, Registration, RemotePolicy
@@ -94,7 +94,7 @@ class DistributedActor:
         config: Config,
         run_dir: Path,
         make_env: Callable[[int, int], VectorEnvLike],
-        sac: SAC,
+        sac: Policy,
         replay: ReplayClient,
         learner: LearnerClient,
         learner_host: str,

@@ -22,6 +22,7 @@ from algorithm.actor import VectorEnvLike
 from algorithm.config import ConfigError
 from algorithm.config_schema import Config
 from algorithm.nn.user import ModelBuilder, recurrent_state_size
+from algorithm.policy import Policy
 from algorithm.sac import SAC
 from algorithm.spaces import EnvSpec
 from ds.evolver import service as evolver_service
@@ -88,6 +89,11 @@ class RoleContext:
         """The recurrent state width of this run's models, without building a SAC (a replay needs only this)."""
         cfg = self.config
         return recurrent_state_size(spec, cfg.sac_config, cfg.nn_config, self.build)
+
+    def policy(self, spec: EnvSpec, device: str = "cpu") -> Policy:
+        """The acting side alone (actors, the learner's GetAction copy): no optimizers, no targets."""
+        cfg = self.config
+        return Policy(spec, cfg.sac_config, cfg.nn_config, device=device, build=self.build)
 
     def sac(self, spec: EnvSpec, device: str = "cpu") -> SAC:
         cfg = self.config

@@ -63,11 +63,11 @@ from ds.launch.role_context import RoleContext, RoleError, fixed_port, listen, p
 from ds.learner import service as learner_service
 from ds.learner.learner import Learner
 from ds.learner.service import (
-    ActingPolicy,
     ActorRegistry,
     LearnerClient,
     LearnerServicer,
     ParamsStore,
+    PublishedPolicy,
     Registration,
     learner_message_limit,
     serve_learner,
@@ -333,7 +333,7 @@ def _train(
         if not wait_until_serving(replay.channel, replay_service.SERVICE_NAME, "replay", replay.address, role.stop):
             return 130
         store, registry = ParamsStore(), ActorRegistry(lease_s=net.lease_s)
-        acting = None if cfg.actor_config.update_policy_mode else ActingPolicy(role.sac(spec))
+        acting = None if cfg.actor_config.update_policy_mode else PublishedPolicy(role.policy(spec))
         weights = None if member is None else member.snapshot
         servicer = LearnerServicer(spec, registry, store, publisher_port(publisher), acting, sac.rnn_state_size,
                                    weights=weights, stream=publisher.stream)  # fmt: skip
@@ -453,7 +453,7 @@ def _act(
 ) -> int:
     seed_everything(role.seed)
     spec = role.spec()
-    sac = role.sac(spec)
+    sac = role.policy(spec)
     replay = role.replay_client(spec, sac.rnn_state_size, replay_address)
     learner = AsksForIndex(learner_address, spec, sac.rnn_state_size, max_message_bytes=learner_message_limit(sac),
                            credentials=role.credentials, rpc_timeout_s=role.config.net_config.rpc_timeout_s,

@@ -52,7 +52,7 @@ from algorithm.types import Batch
 from ds.actor.sink import LAST_INSERTS_WAIT_S
 from ds.evolver.link import Membership
 from ds.learner.feeds import BatchPrefetcher, PriorityUpdater
-from ds.learner.service import ActingPolicy, ActorRegistry, ParamsStore
+from ds.learner.service import ActorRegistry, ParamsStore, PublishedPolicy
 from ds.net.params import ParamsPublisher
 
 log = logging.getLogger("asac.learner")
@@ -125,7 +125,7 @@ class Learner:
         publisher: ParamsPublisher,
         store: ParamsStore,
         *,
-        acting: ActingPolicy | None = None,
+        acting: PublishedPolicy | None = None,
         registry: ActorRegistry | None = None,
         eval_env: VectorEnvLike | None = None,
         stop: threading.Event | None = None,

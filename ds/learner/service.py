@@ -5,7 +5,7 @@ for the evolver.
 Usage, the learner's side (ds/learner/learner.py feeds the store and the acting copy)::
 
     registry, store = ActorRegistry(lease_s=15.0), ParamsStore()
-    acting = ActingPolicy(SAC(...)) if not update_policy_mode else None
+    acting = PublishedPolicy(Policy(...)) if not update_policy_mode else None
     servicer = LearnerServicer(spec, registry, store, params_port=publisher_port, acting=acting,
                                weights=latest_full_weights,  # with an evolver: () -> (version, frames) | None
                                stream=publisher.stream)      # the key actors check the parameters with
@@ -45,7 +45,7 @@ import numpy as np
 import torch
 from grpc_health.v1 import health, health_pb2_grpc
 
-from algorithm.sac import MAX_EXPLORATION_NOISE, SAC
+from algorithm.policy import MAX_EXPLORATION_NOISE, Policy
 from algorithm.spaces import EnvSpec
 from ds.net import rpc, security
 from ds.net.security import ACTOR, EVOLVER, NO_CREDENTIALS, Credentials
@@ -75,7 +75,7 @@ WeightsSource: TypeAlias = Callable[[], tuple[int, list[bytes]] | None]
 :func:`ds.net.params.encode_params` (signed with the run's token), or None while there is no snapshot yet."""
 
 
-def learner_message_limit(sac: SAC, max_actors_envs: int = 1024) -> int:
+def learner_message_limit(sac: Policy, max_actors_envs: int = 1024) -> int:
     """The gRPC message limit for a learner and its clients: ``max(4 MiB, 2 * P + 1 MiB)`` where P is
     the largest of the acting parameters (GetParams), the full models (GetWeights) and a GetAction of
     ``max_actors_envs`` envs."""
@@ -201,15 +201,15 @@ class ParamsStore:
         return -1 if latest is None else latest[0]
 
 
-class ActingPolicy:
+class PublishedPolicy:
     """A copy of the learner's acting weights as of the last publication, for ``GetAction``.
 
     The learner trains its own SAC and loads each published version here, so served actions
     always come from a published version (never from weights halfway through an optimizer step).
     One lock serialises acting and loading."""
 
-    def __init__(self, sac: SAC) -> None:
-        self.sac = sac
+    def __init__(self, policy: Policy) -> None:
+        self.sac = policy
         self.version = -1
         self._lock = threading.Lock()
 
@@ -254,7 +254,7 @@ class LearnerServicer(learner_pb2_grpc.LearnerServiceServicer):
         registry: ActorRegistry,
         store: ParamsStore,
         params_port: int,
-        acting: ActingPolicy | None = None,
+        acting: PublishedPolicy | None = None,
         rnn_state_size: int = 0,
         weights: WeightsSource | None = None,
         stream: StreamKey | None = None,
@@ -565,7 +565,7 @@ class RemotePolicy:
 __all__ = [
     "CALLERS",
     "SERVICE_NAME",
-    "ActingPolicy",
+    "PublishedPolicy",
     "ActorRegistry",
     "LearnerClient",
     "LearnerServicer",

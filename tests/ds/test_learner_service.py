@@ -21,12 +21,12 @@ from algorithm.sac import SAC
 from ds.actor.actor import DistributedActor, actor_noise
 from ds.learner.service import (
     SERVICE_NAME,
-    ActingPolicy,
     ActorRegistry,
     LearnerClient,
     LearnerServicer,
     LeaseExpired,
     ParamsStore,
+    PublishedPolicy,
     RemotePolicy,
     serve_learner,
 )
@@ -71,7 +71,7 @@ class LearnerSide:
 def learner_side(request: pytest.FixtureRequest) -> Iterator[LearnerSide]:
     cfg = config()
     sac = pendulum_sac(cfg, seed=1)
-    acting = ActingPolicy(pendulum_sac(cfg, seed=1)) if getattr(request, "param", False) else None
+    acting = PublishedPolicy(pendulum_sac(cfg, seed=1)) if getattr(request, "param", False) else None
     publisher = ParamsPublisher("tcp://127.0.0.1:*", stream=StreamKey.fresh())
     store, registry = ParamsStore(), ActorRegistry(lease_s=30)
     port = int(publisher.address.rsplit(":", 1)[1])
@@ -217,7 +217,7 @@ def test_get_action_without_an_acting_copy_is_a_failed_precondition(learner_side
 
 def test_the_acting_copy_serves_concurrent_calls() -> None:
     sac = pendulum_sac(config(), seed=1)
-    servicer_acting = ActingPolicy(pendulum_sac(config(), seed=2))
+    servicer_acting = PublishedPolicy(pendulum_sac(config(), seed=2))
     servicer_acting.load(1, sac.acting_state_dict())
     assert servicer_acting.version == 1
     results: list[np.ndarray] = []

@@ -34,7 +34,7 @@ from algorithm.sac import SAC
 from algorithm.spaces import ActionSpec, EnvSpec, SensorSpec
 from ds.evolver.evolver import Evolver
 from ds.evolver.service import serve_evolver
-from ds.learner.service import ActingPolicy, ActorRegistry, LearnerServicer, ParamsStore, serve_learner
+from ds.learner.service import ActorRegistry, LearnerServicer, ParamsStore, PublishedPolicy, serve_learner
 from ds.net.wire import WIRE_DTYPES, to_tensor
 from ds.replay.codec import chunk_to_proto
 from ds.replay.service import serve_replay
@@ -478,7 +478,7 @@ def learner_server(recurrent: bool) -> tuple[Learner, grpc.Server]:
     cfg = Config.model_validate({"sac_config": sac_config, "nn_config": {"hidden_units": [8], "rnn_units": 4}})
     spec = EnvSpec(TWO_SENSORS, ACTIONS)
     sac = SAC(spec, cfg.sac_config, cfg.nn_config, cfg.replay_config)
-    acting = ActingPolicy(SAC(spec, cfg.sac_config, cfg.nn_config, cfg.replay_config))
+    acting = PublishedPolicy(SAC(spec, cfg.sac_config, cfg.nn_config, cfg.replay_config))
     acting.load(3, sac.acting_state_dict())
     store = ParamsStore()
     store.put(3, [b"frames as published"])
