@@ -166,6 +166,16 @@ class SacConfig(Section):
     discrete_target_entropy_ratio: float = Field(
         0.98, gt=0.0, le=1.0, description="Discrete target entropy per branch, as a fraction of log|A_b|."
     )
+    discrete_target_entropy_start: float | None = Field(
+        None,
+        gt=0.0,
+        le=1.0,
+        description="Anneal the discrete target entropy ratio from this value down to discrete_target_entropy_ratio "
+        "over discrete_target_entropy_anneal_updates updates (TES-SAC); null = constant.",
+    )
+    discrete_target_entropy_anneal_updates: int = Field(
+        10000, ge=1, description="Updates over which the discrete target entropy moves to its final ratio."
+    )
     use_priority: bool = Field(True, description="Weight the Q loss by PER importance weights.")
     use_n_step_is: bool = Field(False, description="V-trace correction of n-step targets.")
     use_prediction: bool = Field(False, description="Transition/reward/observation models shape the representation.")

@@ -122,10 +122,10 @@ class SAC(SacLosses, Policy):
         self.beta_increment = float(replay.beta_increment_per_sampling)
         act = spec.action
         self.target_entropy = -float(act.continuous_dim)
-        # Discrete: a fraction of each branch's maximum entropy log|A_b| (Christodoulou 2019 used 0.98).
-        self.discrete_target_entropy = torch.tensor(
-            [sac.discrete_target_entropy_ratio * math.log(n) for n in act.discrete_branches], device=self.device
-        )
+        # Discrete: a fraction of each branch's maximum entropy log|A_b| (Christodoulou 2019 used 0.98),
+        # annealed from discrete_target_entropy_start when that is set (_anneal_target_entropy).
+        self._max_discrete_entropy = torch.tensor([math.log(n) for n in act.discrete_branches], device=self.device)
+        self.discrete_target_entropy = self._max_discrete_entropy * self._target_entropy_ratio(0)
         self._observation_targets = observation_targets(spec.sensors, nn.critic_only, sac.use_extra_data)
         self.target_representation = copy.deepcopy(self.models.representation).requires_grad_(False)
         self.target_q = copy.deepcopy(self.models.q).requires_grad_(False)
@@ -200,6 +200,7 @@ class SAC(SacLosses, Policy):
         noise = torch.randn(
             batch.batch_size, samples, self.spec.action.continuous_dim, generator=self._learn_rng, device=dev
         )
+        self._anneal_target_entropy()
         losses = self._batch_losses(batch, weights, noise, self._subset(), self._subset())
 
         # 3. One backward: the losses touch disjoint parameters (policy_loss detaches the critic,
@@ -255,10 +256,31 @@ class SAC(SacLosses, Policy):
                     "learner/updates": float(self.updates),
                 }
             )
+            if self._max_discrete_entropy.numel():
+                metrics["learner/discrete_target_entropy"] = float(self.discrete_target_entropy.mean())
         refreshed = None
         if sac.refresh_rnn_states and losses.fed_states is not None and not skipped:
             refreshed = self._window_rows(batch, losses.fed_states)
         return UpdateResult(td_abs=td.cpu().numpy(), metrics=metrics, skipped=skipped, refreshed_rnn_states=refreshed)
+
+    def _target_entropy_ratio(self, updates: int) -> float:
+        """The discrete target entropy as a fraction of log|A_b| after ``updates`` updates: constant,
+        or with ``discrete_target_entropy_start`` moving linearly from it to the final ratio. A
+        high target early keeps both actions in use where a young critic's spurious action gaps
+        would otherwise make the policy deterministic before they are corrected; the final, lower
+        target lets it exploit. The idea is TES-SAC's (Xu et al. 2021, arXiv:2112.02852), which
+        lowers the target in steps as the policy's entropy settles; this schedule is linear."""
+        final, start = self.sac.discrete_target_entropy_ratio, self.sac.discrete_target_entropy_start
+        if start is None:
+            return final
+        done = min(1.0, updates / self.sac.discrete_target_entropy_anneal_updates)
+        return start + (final - start) * done
+
+    def _anneal_target_entropy(self) -> None:
+        """Move the discrete target entropy to this update's value, in place (a tensor the compiled
+        loss reads, so torch.compile sees no new constant)."""
+        if self.sac.discrete_target_entropy_start is not None and self._max_discrete_entropy.numel():
+            self.discrete_target_entropy.copy_(self._max_discrete_entropy * self._target_entropy_ratio(self.updates))
 
     def td_errors(self, batch: Batch) -> np.ndarray:
         """``|TD| [B]`` float32 of each window's trained step under the current weights (mean over all

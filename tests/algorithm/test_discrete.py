@@ -250,3 +250,29 @@ def test_noisy_heads_explore_stochastically_act_deterministically_and_resume_exa
     other.load_state_dict(copy.deepcopy(sac.state_dict()))
     a, b = sac.update(make_batch(spec, seed=5)), other.update(make_batch(spec, seed=5))
     np.testing.assert_array_equal(a.td_abs, b.td_abs)
+
+
+def test_the_discrete_target_entropy_anneals_linearly_from_its_start_and_resumes_where_it_was() -> None:
+    spec = masked_spec((4, 3))
+    log_n = np.log([4.0, 3.0])
+    sac = make_sac(spec, discrete_target_entropy_start=0.9, discrete_target_entropy_ratio=0.3,
+                   discrete_target_entropy_anneal_updates=4)  # fmt: skip
+    seen = []
+    for i in range(6):
+        result = sac.update(make_batch(spec, seed=i), with_metrics=True)
+        seen.append(result.metrics["learner/discrete_target_entropy"])
+    ratios = [0.9, 0.75, 0.6, 0.45, 0.3, 0.3]  # read before each update: 0, 1, ... updates done
+    np.testing.assert_allclose(seen, [r * log_n.mean() for r in ratios], rtol=1e-6)
+
+    resumed = make_sac(spec, discrete_target_entropy_start=0.9, discrete_target_entropy_ratio=0.3,
+                       discrete_target_entropy_anneal_updates=8)  # fmt: skip
+    state = sac.state_dict()
+    state["updates"] = 2
+    resumed.load_state_dict(state)
+    resumed.update(make_batch(spec, seed=9))
+    np.testing.assert_allclose(resumed.discrete_target_entropy.numpy(), (0.9 - 0.6 * 2 / 8) * log_n, rtol=1e-6)
+
+    constant = make_sac(spec, discrete_target_entropy_ratio=0.3)
+    for i in range(3):
+        constant.update(make_batch(spec, seed=i))
+    np.testing.assert_allclose(constant.discrete_target_entropy.numpy(), 0.3 * log_n, rtol=1e-6)
