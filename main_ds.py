@@ -49,9 +49,10 @@ from cli import (
 )
 from cli import task_dir as resolve_task
 from ds.evolver.state import EvolverStateError
-from ds.launch import k8s, roles
+from ds.launch import k8s
 from ds.launch.local import run_local
 from ds.launch.local_summary import PlayableRun
+from ds.learner import role as roles
 from ds.net import security
 
 ROLES = {"replay": "replay", "r": "replay", "learner": "learner", "l": "learner", "actor": "actor", "a": "actor",

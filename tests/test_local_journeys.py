@@ -23,7 +23,7 @@ import torch
 
 from ds.launch.local import plan
 from ds.launch.local_summary import python_command
-from ds.launch.roles import AsksForIndex
+from ds.learner.role import AsksForIndex
 from ds.learner.service import LearnerClient
 from tests.role_runs import ENV, TINY, main_ds_command
 

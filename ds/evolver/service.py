@@ -62,6 +62,7 @@ from ds.evolver.state import (
     UnknownLearner,
 )
 from ds.net import rpc, security
+from ds.net.client import RpcClient
 from ds.net.params import ParamsError, ParamsSpec, decode_params
 from ds.net.security import ACTOR, LEARNER, NO_CREDENTIALS, REPLAY, ROLES, Credentials
 from protos import evolver_pb2, evolver_pb2_grpc
@@ -255,7 +256,7 @@ class Sample:
     weights: dict[str, np.ndarray]
 
 
-class EvolverClient:
+class EvolverClient(RpcClient):
     """The learners', actors' and replays' end of :class:`EvolverServicer`. Every call has a deadline
     of ``rpc_timeout_s``; UNAVAILABLE is retried per ``retry``. ``token`` verifies samples (the
     evolver signs them with the run's token); ``credentials``: TLS and the token on every call
@@ -271,22 +272,16 @@ class EvolverClient:
         retry: rpc.RetryPolicy | None = None,
         credentials: Credentials = NO_CREDENTIALS,
     ) -> None:
-        self.address = address
+        super().__init__(
+            address,
+            security.EVOLVER,
+            evolver_pb2_grpc.EvolverServiceStub,
+            max_message_bytes=max_message_bytes,
+            rpc_timeout_s=rpc_timeout_s,
+            retry=retry,
+            credentials=credentials,
+        )
         self.token = token
-        self.rpc_timeout_s = float(rpc_timeout_s)
-        self.retry = retry or rpc.RetryPolicy()
-        options = rpc.channel_options(max_message_bytes)
-        self.channel = security.open_channel(address, security.EVOLVER, credentials, options)
-        self._stub = evolver_pb2_grpc.EvolverServiceStub(self.channel)
-
-    def close(self) -> None:
-        self.channel.close()
-
-    def __enter__(self) -> EvolverClient:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
 
     def register_learner(
         self,
@@ -380,7 +375,7 @@ class EvolverClient:
 
     def _call(self, method: Callable[..., Any], request: Any, not_found: type[LookupError] = UnknownLearner) -> Any:
         try:
-            return rpc.call_with_retry(method, request, self.rpc_timeout_s, self.retry)
+            return self._unary(method, request)
         except grpc.RpcError as e:
             code, details = e.code(), e.details()
             if code == grpc.StatusCode.NOT_FOUND:

@@ -48,6 +48,7 @@ from grpc_health.v1 import health, health_pb2_grpc
 from algorithm.policy import MAX_EXPLORATION_NOISE, Policy
 from algorithm.spaces import EnvSpec
 from ds.net import rpc, security
+from ds.net.client import RpcClient
 from ds.net.security import ACTOR, EVOLVER, NO_CREDENTIALS, Credentials
 from ds.net.stream_key import StreamKey
 from ds.net.wire import TensorSpec, WireError, from_tensor, to_tensor
@@ -430,7 +431,7 @@ class Registration:
     params_key: bytes = field(default=b"", repr=False)  # the learner's StreamKey secret (ds/net/stream_key.py)
 
 
-class LearnerClient:
+class LearnerClient(RpcClient):
     """The actor's (and the evolver's) end of :class:`LearnerServicer`. Every call has a deadline of
     ``rpc_timeout_s``; UNAVAILABLE is retried per ``retry`` and then raised as ``grpc.RpcError``, as
     is every other status except the ones named per method. ``spec`` is needed by :meth:`act` only.
@@ -448,23 +449,17 @@ class LearnerClient:
         retry: rpc.RetryPolicy | None = None,
         credentials: Credentials = NO_CREDENTIALS,
     ) -> None:
-        self.address = address
+        super().__init__(
+            address,
+            security.LEARNER,
+            learner_pb2_grpc.LearnerServiceStub,
+            max_message_bytes=max_message_bytes,
+            rpc_timeout_s=rpc_timeout_s,
+            retry=retry,
+            credentials=credentials,
+        )
         self.spec = spec
         self.rnn_state_size = int(rnn_state_size)
-        self.rpc_timeout_s = float(rpc_timeout_s)
-        self.retry = retry or rpc.RetryPolicy()
-        options = rpc.channel_options(max_message_bytes)
-        self.channel = security.open_channel(address, security.LEARNER, credentials, options)
-        self._stub = learner_pb2_grpc.LearnerServiceStub(self.channel)
-
-    def close(self) -> None:
-        self.channel.close()
-
-    def __enter__(self) -> LearnerClient:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
 
     def register(self, name: str, preferred_index: int | None = None) -> Registration:
         request = learner_pb2.RegisterActorRequest(name=name)
@@ -538,7 +533,7 @@ class LearnerClient:
         return actions, logp, state
 
     def _call(self, method: Callable[..., Any], request: Any) -> Any:
-        return rpc.call_with_retry(method, request, self.rpc_timeout_s, self.retry)
+        return self._unary(method, request)
 
 
 class RemotePolicy:

@@ -65,7 +65,8 @@ from algorithm.replay import (
 from algorithm.spaces import SensorSpec
 from algorithm.types import Batch, Chunk
 from ds.net import rpc, security
-from ds.net.rpc import RetryPolicy, call_with_retry, channel_options, peer_gone
+from ds.net.client import RpcClient
+from ds.net.rpc import RetryPolicy, channel_options, peer_gone
 from ds.net.security import ACTOR, LEARNER, NO_CREDENTIALS, Credentials
 from ds.net.wire import TensorSpec, WireError, from_tensor, to_tensor
 from ds.replay.codec import (
@@ -357,7 +358,7 @@ class ReplayUnreachable(ReplayRpcError, ReplayUnavailable):
     without knowing the transport."""
 
 
-class ReplayClient:
+class ReplayClient(RpcClient):
     """The replay table interface over gRPC: ``insert``, ``insert_many``, ``insert_once``, ``sample``,
     ``update_priorities``, ``info``, ``normalizer_stats``, ``save``, ``load``.
 
@@ -386,28 +387,22 @@ class ReplayClient:
         retry: RetryPolicy | None = None,
         credentials: Credentials = NO_CREDENTIALS,
     ) -> None:
-        self.address = address
+        super().__init__(
+            address,
+            security.REPLAY,
+            replay_pb2_grpc.ReplayServiceStub,
+            max_message_bytes=max_message_bytes,
+            rpc_timeout_s=rpc_timeout_s,
+            retry=retry,
+            credentials=credentials,
+        )
         self.sensors = tuple(sensors)
         self.action_size = int(action_size)
         self.rnn_state_size = int(rnn_state_size)
         self.specs = ReplaySpecs(self.sensors, self.action_size, self.rnn_state_size)
         self.max_message_bytes = int(max_message_bytes)
-        self.rpc_timeout_s = float(rpc_timeout_s)
         self.file_timeout_s = float(file_timeout_s)
         self.poll_s = float(poll_s)
-        self.retry = retry or RetryPolicy()
-        # The channel reconnects by itself; other services of the same server (health) may use it.
-        self.channel = security.open_channel(address, security.REPLAY, credentials, channel_options(max_message_bytes))
-        self._stub = replay_pb2_grpc.ReplayServiceStub(self.channel)
-
-    def close(self) -> None:
-        self.channel.close()
-
-    def __enter__(self) -> ReplayClient:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
 
     # ------------------------------------------------------------------ the table interface
 
@@ -573,7 +568,7 @@ class ReplayClient:
         """One unary call with a deadline of ``deadline_s`` seconds, retrying UNAVAILABLE with
         backoff; other errors become :class:`ReplayRpcError` carrying the server's message."""
         try:
-            return call_with_retry(rpc, request, deadline_s, self.retry)
+            return self._unary(rpc, request, deadline_s)
         except grpc.RpcError as e:
             message = f"replay {method} at {self.address}: {e.details()}"
             raise _client_error(e.code(), message, self.retry.attempts) from None
