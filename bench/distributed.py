@@ -244,14 +244,19 @@ def time_to_threshold(command: list[str], evaluations: Path, threshold: float, l
             if steps is not None:
                 result = (time.perf_counter() - start, steps)
     finally:
-        if proc.poll() is None:
-            os.killpg(proc.pid, signal.SIGINT)
-            try:
-                proc.wait(timeout=60)
-            except subprocess.TimeoutExpired:
-                os.killpg(proc.pid, signal.SIGKILL)
-                proc.wait()
+        interrupt(proc)
     return result
+
+
+def interrupt(proc: subprocess.Popen) -> None:  # type: ignore[type-arg]
+    """SIGINT to ``proc``'s process group if it still runs (it saves and stops), SIGKILL after 60 s."""
+    if proc.poll() is None:
+        os.killpg(proc.pid, signal.SIGINT)
+        try:
+            proc.wait(timeout=60)
+        except subprocess.TimeoutExpired:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait()
 
 
 def bench_pendulum(args: argparse.Namespace) -> None:

@@ -23,7 +23,6 @@ import argparse
 import csv
 import os
 import re
-import signal
 import statistics
 import subprocess
 import sys
@@ -32,7 +31,7 @@ import threading
 import time
 from pathlib import Path
 
-from bench.distributed import first_at_threshold
+from bench.distributed import first_at_threshold, interrupt
 
 ROOT = Path(__file__).resolve().parents[1]
 TASK = "mujoco/half_cheetah"
@@ -108,13 +107,7 @@ def run_one(args: argparse.Namespace, actors: int, root: str, log_dir: Path) -> 
                 break
             time.sleep(0.5)
         wall = time.perf_counter() - start
-        if proc.poll() is None:
-            os.killpg(proc.pid, signal.SIGINT)
-            try:
-                proc.wait(timeout=60)
-            except subprocess.TimeoutExpired:
-                os.killpg(proc.pid, signal.SIGKILL)
-                proc.wait()
+        interrupt(proc)
         reader.join(timeout=5)
     rows = eval_rows(evaluations)
     steps_s, updates_s = learning_rates((log_dir / f"{run}.log").read_text())
