@@ -1,8 +1,9 @@
 """Distributed ASAC: ``python main_ds.py gym/pendulum {replay,learner,actor,evolver,local} ...`` runs one role.
 
 Thin by design, like main.py (whose flags it shares): parse, resolve the config and the run
-directory, call ds/launch/roles.py (docs/architecture.md section 1). Exit codes: 0 done, 2 bad usage or config,
-130 stopped by Ctrl-C / SIGTERM (``local``: 130 SIGINT, 143 SIGTERM; ds/launch/local.py), 1 a role failed.
+directory, call the role's composition in ds/<role>/role.py (docs/architecture.md section 1). Exit codes:
+0 done, 2 bad usage or config, 130 stopped by Ctrl-C / SIGTERM (``local``: 130 SIGINT, 143 SIGTERM;
+ds/launch/local.py), 1 a role failed.
 """
 
 from __future__ import annotations
@@ -28,7 +29,7 @@ from algorithm.config_schema import Config
 from algorithm.files import WriteFailures, atomic_write
 from algorithm.logging import LogFileHandler
 from algorithm.policy import MAX_EXPLORATION_NOISE
-from algorithm.signals import StopRequest
+from algorithm.signals import StopRequest, stop_on_signals
 from algorithm.trainer import RunDir
 from cli import (
     ArgumentParser,
@@ -48,12 +49,16 @@ from cli import (
     run_model_builder,
 )
 from cli import task_dir as resolve_task
+from ds.actor.role import run_actor
+from ds.evolver.role import run_evolver
 from ds.evolver.state import EvolverStateError
 from ds.launch import k8s
 from ds.launch.local import run_local
 from ds.launch.local_summary import PlayableRun
-from ds.learner import role as roles
+from ds.launch.role_context import RoleContext, RoleError
+from ds.learner.role import run_learner
 from ds.net import security
+from ds.replay.role import run_replay
 
 ROLES = {"replay": "replay", "r": "replay", "learner": "learner", "l": "learner", "actor": "actor", "a": "actor",
          "evolver": "evolver", "e": "evolver", "local": "local"}  # fmt: skip
@@ -183,7 +188,7 @@ def credentials(config: Config, role: str) -> security.Credentials:
     return loaded
 
 
-def check_models(context: roles.RoleContext) -> None:
+def check_models(context: RoleContext) -> None:
     """Build the run's models once on the CPU: a config that fits the schema but not the task (an
     unknown ``critic_only`` sensor, say) is a :class:`ConfigError` before anything starts, as in
     main.py, not a traceback in a role that already runs."""
@@ -239,13 +244,13 @@ def run(args: argparse.Namespace) -> int:
     with removed_if_not_started(run_dir):
         copy_model_file(resolve_task(args.env), config, run_dir, explicit=args.nn is not None)
         setup_logging(run_dir, role, args.logger_in_file)
-        context = roles.RoleContext(
+        context = RoleContext(
             config,
             run_dir,
             env_factory(config),
             run_model_builder(RunDir(run_dir)),
             args.device,
-            roles.stop_on_signals("stopping"),
+            stop_on_signals("stopping"),
             credentials=credentials(config, role),
             overrides=tuple(cli_overrides(args)),
         )
@@ -264,14 +269,14 @@ def run(args: argparse.Namespace) -> int:
     return stop.exit_code if code == 130 and isinstance(stop, StopRequest) else code  # 143 after SIGTERM
 
 
-def run_role(role: str, context: roles.RoleContext, args: argparse.Namespace) -> int:
+def run_role(role: str, context: RoleContext, args: argparse.Namespace) -> int:
     if role == "evolver":
-        return roles.run_evolver(context)
+        return run_evolver(context)
     if role == "replay":
-        return roles.run_replay(context)
+        return run_replay(context)
     if role == "learner":
-        return roles.run_learner(context, args.ckpt, progress=not args.no_progress)
-    return roles.run_actor(context, args.noise, args.index)
+        return run_learner(context, args.ckpt, progress=not args.no_progress)
+    return run_actor(context, args.noise, args.index)
 
 
 def local(args: argparse.Namespace, config: Config, run_dir: Path, creds: security.Credentials) -> int:
@@ -311,7 +316,7 @@ def main(argv: list[str] | None = None) -> int:
     except (UsageError, ConfigError, CheckpointError, EvolverStateError) as e:
         print(f"error: {one_line(e)}", file=sys.stderr)
         return 2
-    except roles.RoleError as e:
+    except RoleError as e:
         print(f"error: {one_line(e)}", file=sys.stderr)
         return 1
 

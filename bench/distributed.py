@@ -183,7 +183,7 @@ def actor_rate(config: Config, agents: int, seconds: float, replay: ReplayClient
 
 
 def bench_actor(args: argparse.Namespace) -> None:
-    torch.set_num_threads(1)  # as actors run (ds/launch/roles.py)
+    torch.set_num_threads(1)  # as actors run (ds/actor/role.py)
     config = half_cheetah_config()
     spec = make_vector_env("HalfCheetah-v5", 1, seed=0).spec
     sensors, action_size = spec.sensors, spec.action.size

@@ -61,13 +61,15 @@ def test_protos_import_only_protos() -> None:
         assert not bad, f"{path.relative_to(ROOT)} imports {bad}"
 
 
-def test_only_roles_composes_the_network_with_the_envs() -> None:
-    """docs/architecture.md section 2: only main*.py and ds/launch/roles.py compose everything; the other
-    ds/ modules are transports and role loops over algorithm/ interfaces (envs arrive as factories)."""
+def test_only_the_role_compositions_compose_the_network_with_the_envs() -> None:
+    """docs/architecture.md section 2: only main*.py and the role compositions (ds/<role>/role.py) compose
+    everything; the other ds/ modules are transports and role loops over algorithm/ interfaces (envs arrive
+    as factories), and no ds/ module imports a role's composition, not even another role's."""
+    compositions = {f"ds.{role}.role" for role in ("replay", "learner", "actor", "evolver")}
+    assert all((ROOT / f"{name.replace('.', '/')}.py").is_file() for name in compositions)
     for path in (ROOT / "ds").rglob("*.py"):
-        if path.name == "roles.py":
-            continue
-        bad = {n for n in imported_packages(path) if n.startswith("envs") or n == "ds.launch.roles"}
+        envs_allowed = path.name == "role.py"
+        bad = {n for n in imported_packages(path) if (n.startswith("envs") and not envs_allowed) or n in compositions}
         assert not bad, f"{path.relative_to(ROOT)} imports {bad}"
 
 

@@ -21,9 +21,9 @@ from pathlib import Path
 import pytest
 import torch
 
+from ds.actor.role import AsksForIndex
 from ds.launch.local import plan
 from ds.launch.local_summary import python_command
-from ds.learner.role import AsksForIndex
 from ds.learner.service import LearnerClient
 from tests.role_runs import ENV, TINY, main_ds_command
 

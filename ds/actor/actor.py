@@ -1,6 +1,6 @@
 """The actor role: the single-process actor loop, fed with the learner's weights, feeding the replay.
 
-Usage (``ds/launch/roles.py`` composes the parts)::
+Usage (``ds/actor/role.py`` composes the parts)::
 
     actor = DistributedActor(config, run_dir, make_env, sac, replay, learner, learner_host="10.0.0.2")
     summary = actor.run()   # until the learner says the run is done (max_step), or stop is set

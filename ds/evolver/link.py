@@ -2,7 +2,7 @@
 to load, retirement (:class:`EvolverLink`); the snapshot of its full weights the evolver fetches for a
 round (:class:`WeightsSnapshot`); and what ds/learner/learner.py gets of both (:class:`Membership`).
 
-Usage (ds/launch/roles.py; the learner joined with :func:`ds.evolver.population.join_population`)::
+Usage (ds/learner/role.py; the learner joined with :func:`ds.evolver.population.join_population`)::
 
     link = EvolverLink(client, joined, params_spec(sac.models.state_dict()))
     link.start()                               # a new learner after a round: its first sample; then

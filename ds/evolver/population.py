@@ -1,7 +1,7 @@
 """How the roles take part in an evolver's population (docs/architecture.md section 10, protos/evolver.proto): a
 learner's folder and identity, the config a learner's group runs with, and the assignments of actors
 and replays (a learner's live link with the evolver is ds/evolver/link.py).
-``ds/launch/roles.py`` composes these with the role loops; nothing here touches envs.
+ds/learner/role.py, ds/replay/role.py and ds/actor/role.py compose these with the role loops; nothing here touches envs.
 
 Usage, a learner's (``run_learner``)::
 

@@ -1,9 +1,27 @@
-"""What every role process is given (:class:`RoleContext`) and the small helpers the role loops of
-ds/launch/roles.py share: how a server that cannot listen fails (:class:`RoleError`), and how a role names
-itself to its peers.
+"""What every role process is given (:class:`RoleContext`) and the small helpers the four role
+compositions share: how a server that cannot listen fails (:class:`RoleError`), and how a role names
+itself to its peers. Each role is composed in its own package, beside its loop, server and client::
 
-Split out of ds/launch/roles.py so that the role loops can live in modules of their own; like ds/launch/roles.py
-it touches no envs itself (they arrive as the ``make_env`` factory).
+    role = RoleContext(config, run_dir, make_env, build, stop=stop_on_signals())
+    code = run_replay(role)                 # ds/replay/role.py: serves the replay table until stopped
+    code = run_learner(role, ckpt_step=None) # ds/learner/role.py: trains until replay has seen max_step env steps
+    code = run_actor(role, noise=None, index=None)  # ds/actor/role.py: acts until the budget is spent
+    code = run_evolver(role)                # ds/evolver/role.py: keeps the population until stopped
+
+(``main_ds.py`` resolves the config and run directory, then calls exactly one of these;
+``ds/launch/local.py`` runs them all as subprocesses.) Each returns the process exit code: 0 done (or, a
+learner, retired by the evolver), 130 stopped by a signal (SIGINT/SIGTERM: the role saves what it must
+first), 1 the evolver forgot a learner. Addresses come from ``net_config`` (``main_ds.py`` flags
+override it): clients connect to ``<role>_host`` (null: this host), servers listen on ``bind_host``,
+every server and client with the role's credentials (ds/net/security.py: the token on every rpc, TLS /
+mutual TLS; a server beyond loopback without them logs a warning).
+
+With an evolver (``base_config.evolver_enabled``, or ``net_config.evolver_host`` set, e.g. by
+``--evolver_host``) learners register with it and run with the config it gives them (their own flags on
+top), replays and actors started without a learner ask it where to work, and every role of learner k
+works in ``<run>/learner_<k>/`` (ds/evolver/population.py).
+
+Like the role compositions, this touches no envs itself (they arrive as the ``make_env`` factory).
 """
 
 from __future__ import annotations

@@ -1,2 +1,3 @@
-"""The learner role: its loop (learner.py), the gRPC service actors register with and fetch
-weights from (service.py), and its replay traffic: prefetched batches, priority updates (feeds.py)."""
+"""The learner role: its composition (role.py), its loop (learner.py), the gRPC service actors register
+with and fetch weights from (service.py), and its replay traffic: prefetched batches, priority updates
+(feeds.py)."""

@@ -1,6 +1,6 @@
 """The learner role: SAC trained from a replay over the network, publishing its acting weights.
 
-Usage (``ds/launch/roles.py`` composes the parts; tests pass an in-process table or a loopback client)::
+Usage (``ds/learner/role.py`` composes the parts; tests pass an in-process table or a loopback client)::
 
     learner = Learner(config, run_dir, sac, replay, publisher, store, eval_env=env, stop=stop_event)
     summary = learner.run()     # until replay has seen base_config.max_step env steps, or stop is set

@@ -166,7 +166,7 @@ def servers() -> Iterator[list[SacServer]]:
 def start_learner(
     client: EvolverClient, tmp_path: Path, over_grpc: ServeOverGrpc, seed: int
 ) -> tuple[Learner, EvolverLink, dict[str, np.ndarray]]:
-    """A new learner joined as ``join_population`` and ds/launch/roles.py join it, its link started; its
+    """A new learner joined as ``join_population`` and ds/learner/role.py join it, its link started; its
     own initial weights. Its stop is set: :meth:`Learner.run` does everything before the first update."""
     config, sac, table = pendulum_sac(seed)
     own = weights(sac)
