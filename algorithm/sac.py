@@ -40,7 +40,7 @@ from algorithm.nn.models import SacModels
 from algorithm.nn.noisy import reset_noise
 from algorithm.nn.prediction import gated_gradients, observation_targets
 from algorithm.policy import Policy
-from algorithm.sac_losses import SacLosses
+from algorithm.sac_losses import Losses, SacLosses
 from algorithm.spaces import EnvSpec
 from algorithm.types import Batch
 
@@ -75,23 +75,6 @@ class UpdateResult:
     refreshed_rnn_states: tuple[np.ndarray, np.ndarray] | None = None
 
 
-@dataclass
-class Losses:
-    """What one pass over a batch computes (:meth:`SAC._losses`), all from the same parameters:
-    the critic's, policy's, temperature's and exploration models' losses, the prediction models'
-    losses by name, ``td_abs [B]`` (mean |TD| over heads, for priorities), the pass's metrics, and
-    the online recurrent state fed in at each window step ``[B, L, S]`` (None without ``use_rnn``)."""
-
-    q: Tensor
-    policy: Tensor
-    alpha: Tensor
-    auxiliary: Tensor
-    predictions: dict[str, Tensor]
-    td_abs: Tensor
-    metrics: Metrics
-    fed_states: Tensor | None
-
-
 class SAC(SacLosses, Policy):
     """One learner: the :class:`~algorithm.policy.Policy` (models, acting) plus target copies,
     optimizers, ``log_alpha``, PER ``beta`` and counters.
@@ -124,8 +107,8 @@ class SAC(SacLosses, Policy):
         self.target_entropy = -float(act.continuous_dim)
         # Discrete: a fraction of each branch's maximum entropy log|A_b| (Christodoulou 2019 used 0.98),
         # annealed from discrete_target_entropy_start when that is set (_anneal_target_entropy).
-        self._max_discrete_entropy = torch.tensor([math.log(n) for n in act.discrete_branches], device=self.device)
-        self.discrete_target_entropy = self._max_discrete_entropy * self._target_entropy_ratio(0)
+        self._max_discrete_entropy = [math.log(n) for n in act.discrete_branches]
+        self.discrete_target_entropy = self._discrete_target_entropy(0)
         self._observation_targets = observation_targets(spec.sensors, nn.critic_only, sac.use_extra_data)
         self.target_representation = copy.deepcopy(self.models.representation).requires_grad_(False)
         self.target_q = copy.deepcopy(self.models.q).requires_grad_(False)
@@ -256,7 +239,7 @@ class SAC(SacLosses, Policy):
                     "learner/updates": float(self.updates),
                 }
             )
-            if self._max_discrete_entropy.numel():
+            if self._max_discrete_entropy:
                 metrics["learner/discrete_target_entropy"] = float(self.discrete_target_entropy.mean())
         refreshed = None
         if sac.refresh_rnn_states and losses.fed_states is not None and not skipped:
@@ -276,11 +259,15 @@ class SAC(SacLosses, Policy):
         done = min(1.0, updates / self.sac.discrete_target_entropy_anneal_updates)
         return start + (final - start) * done
 
+    def _discrete_target_entropy(self, updates: int) -> Tensor:
+        ratio = self._target_entropy_ratio(updates)
+        return torch.tensor([ratio * log_n for log_n in self._max_discrete_entropy], device=self.device)
+
     def _anneal_target_entropy(self) -> None:
         """Move the discrete target entropy to this update's value, in place (a tensor the compiled
         loss reads, so torch.compile sees no new constant)."""
-        if self.sac.discrete_target_entropy_start is not None and self._max_discrete_entropy.numel():
-            self.discrete_target_entropy.copy_(self._max_discrete_entropy * self._target_entropy_ratio(self.updates))
+        if self.sac.discrete_target_entropy_start is not None and self._max_discrete_entropy:
+            self.discrete_target_entropy.copy_(self._discrete_target_entropy(self.updates))
 
     def td_errors(self, batch: Batch) -> np.ndarray:
         """``|TD| [B]`` float32 of each window's trained step under the current weights (mean over all
@@ -304,26 +291,23 @@ class SAC(SacLosses, Policy):
         target_heads: Tensor | None,
         policy_heads: Tensor | None,
     ) -> Losses:
-        """:meth:`_losses` of a sampled batch (its arrays moved to the device, observations normalized),
-        named (``_losses`` returns a plain tuple: what torch.compile traces most simply)."""
+        """:meth:`_losses` of a sampled batch (its arrays moved to the device, observations normalized)."""
         dev = self.device
         with torch.autocast(dev.type, dtype=torch.bfloat16, enabled=self._low_precision):
-            return Losses(
-                *self._compute_losses(
-                    self._normalize([torch.from_numpy(o).to(dev) for o in batch.obs]),
-                    torch.from_numpy(batch.actions).to(dev),
-                    torch.from_numpy(batch.prev_actions).to(dev),
-                    torch.from_numpy(batch.rewards).to(dev),
-                    torch.from_numpy(batch.terminated).to(dev),
-                    torch.from_numpy(batch.truncated).to(dev),
-                    torch.from_numpy(batch.mask).to(dev),
-                    torch.from_numpy(batch.behaviour_logp).to(dev),
-                    torch.from_numpy(batch.rnn_state).to(dev) if self.rnn_state_size else None,
-                    weights,
-                    noise,
-                    target_heads,
-                    policy_heads,
-                )
+            return self._compute_losses(
+                self._normalize([torch.from_numpy(o).to(dev) for o in batch.obs]),
+                torch.from_numpy(batch.actions).to(dev),
+                torch.from_numpy(batch.prev_actions).to(dev),
+                torch.from_numpy(batch.rewards).to(dev),
+                torch.from_numpy(batch.terminated).to(dev),
+                torch.from_numpy(batch.truncated).to(dev),
+                torch.from_numpy(batch.mask).to(dev),
+                torch.from_numpy(batch.behaviour_logp).to(dev),
+                torch.from_numpy(batch.rnn_state).to(dev) if self.rnn_state_size else None,
+                weights,
+                noise,
+                target_heads,
+                policy_heads,
             )
 
     def _window_rows(self, batch: Batch, fed_states: Tensor) -> tuple[np.ndarray, np.ndarray]:

@@ -39,7 +39,22 @@ from algorithm.nn.recurrent import RecurrentRepresentation
 from algorithm.returns import bootstrap_index, gather_positions, n_step_target, valid_steps, vtrace_target
 from algorithm.spaces import EnvSpec
 
-LossTuple = tuple[Tensor, Tensor, Tensor, Tensor, dict[str, Tensor], Tensor, Metrics, Tensor | None]
+
+@dataclass
+class Losses:
+    """What one pass over a batch computes (:meth:`SacLosses._losses`), all from the same parameters:
+    the critic's, policy's, temperature's and exploration models' losses, the prediction models'
+    losses by name, ``td_abs [B]`` (mean |TD| over heads, for priorities), the pass's metrics, and
+    the online recurrent state fed in at each window step ``[B, L, S]`` (None without ``use_rnn``)."""
+
+    q: Tensor
+    policy: Tensor
+    alpha: Tensor
+    auxiliary: Tensor
+    predictions: dict[str, Tensor]
+    td_abs: Tensor
+    metrics: Metrics
+    fed_states: Tensor | None
 
 
 @dataclass
@@ -124,10 +139,8 @@ class SacLosses:
         noise: Tensor,
         target_heads: Tensor | None,
         policy_heads: Tensor | None,
-    ) -> LossTuple:
-        """The SAC losses from the current parameters: ``(q_loss, policy_loss, alpha_loss,
-        auxiliary_loss, prediction_losses, td_abs, metrics, fed_states)`` (the fields of
-        :class:`algorithm.sac.Losses`; a plain tuple is what torch.compile traces most simply).
+    ) -> Losses:
+        """The SAC losses from the current parameters (:class:`Losses`).
         Batch tensors are ``[B, L(+1), ...]``; the trained step is step ``burn_in_step`` of each
         window (the sampled key; earlier steps only warm up a recurrent state). ``noise [B,
         n_step + 2, A]`` feeds the action samples: position 0 the policy loss's, 1.. the target's
@@ -166,7 +179,7 @@ class SacLosses:
         pi_loss, pi_metrics = policy_loss(q_pi, pi, alpha, alpha_d, self._branches)
         a_loss = self._temperature_loss(pi)
         metrics.update({**q_metrics, **pi_metrics, "learner/next_value": v, "learner/auxiliary_loss": aux_loss})
-        return q_loss, pi_loss, a_loss, aux_loss, predictions, td_abs, metrics, fed_states
+        return Losses(q_loss, pi_loss, a_loss, aux_loss, predictions, td_abs, metrics, fed_states)
 
     def _temperature_loss(self, pi: PolicySample) -> Tensor:
         """``use_auto_alpha``: the continuous temperature's loss toward ``-|A_c|`` and each discrete
