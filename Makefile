@@ -4,6 +4,10 @@ VENV ?= .venv
 PY := $(VENV)/bin/python
 TASK ?= gym/pendulum
 PYTEST_ARGS ?=
+# Two pytest workers (pytest-xdist): the tests that start several role processes run one after the
+# other on one of them (tests/conftest.py, SERIAL), the rest on whichever is free. PYTEST_WORKERS= runs
+# the suite in one process, as a plain `pytest` does.
+PYTEST_WORKERS ?= -n 2 --dist loadgroup
 
 .PHONY: install install-test train test lint bench image-test lock
 
@@ -28,7 +32,10 @@ train: install
 	$(PY) main.py $(TASK)
 
 test: install
-	$(PY) -m pytest $(PYTEST_ARGS)
+	@if [ -n "$(strip $(PYTEST_WORKERS))" ] && ! $(PY) -c 'import xdist' 2>/dev/null; then \
+		echo "pytest-xdist is missing from $(VENV) (PYTEST_WORKERS needs it): rm $(VENV)/.installed; make install VENV=$(VENV)"; \
+		echo "  or run the suite in one process: make test PYTEST_WORKERS="; exit 2; fi
+	$(PY) -m pytest $(PYTEST_WORKERS) $(PYTEST_ARGS)
 
 lint: install
 	$(PY) -m ruff check .

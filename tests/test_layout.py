@@ -194,3 +194,17 @@ def test_the_tree_is_formatted() -> None:
         text=True,
     )
     assert result.returncode == 0, result.stdout + result.stderr
+
+
+def test_every_serial_group_entry_names_a_test() -> None:
+    """tests/conftest.py's SERIAL table (the tests `make test` runs one at a time on one worker) names
+    files and test functions that exist: a renamed test would silently leave its group."""
+    from tests.conftest import SERIAL
+
+    for entries in SERIAL.values():
+        for entry in entries:
+            path, _, name = entry.partition("::")
+            assert (ROOT / path).is_file() and path.startswith("tests/"), entry
+            if name:
+                tests = {n.name for n in ast.parse((ROOT / path).read_text()).body if isinstance(n, ast.FunctionDef)}
+                assert name in tests, entry
