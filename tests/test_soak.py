@@ -2,7 +2,7 @@
 real ``main_ds.py`` process on loopback (tests/role_runs.py). Memory of every role stays flat once
 warm, the replay is full and keeps turning over, and no queue the roles report grows without bound.
 
-``ASAC_SOAK_S`` sets the duration in seconds (default 600; .ci/run sets 360 to stay in its time
+``ASAC_SOAK_S`` sets the duration in seconds (default 600; .ci/run sets 240 to stay in its time
 budget); shorter runs are for development (the thirds below shrink with it, and so does what they can tell apart).
 """
 
