@@ -7,8 +7,9 @@
 Trains ``envs/TASK`` (a config section with ``-c``) for ``--steps`` env steps per seed,
 evaluating (10 deterministic episodes) every ``--every`` steps, and appends one row per seed to
 bench/results/tasks.csv: the first evaluation that reached ``--threshold`` (or none), the best and
-the last evaluation's mean return, and the wall time. ``--report`` prints every row so far as the
-table of BENCHMARKS.md section 8. Examples (BENCHMARKS.md lists the exact commands behind its numbers):
+the last evaluation's mean return, the lowest evaluation from the first that reached the threshold
+on ("kept": whether a result, once found, was held to the end), and the wall time. ``--report``
+prints every row so far as the table of BENCHMARKS.md section 8. Examples (BENCHMARKS.md lists the exact commands behind its numbers):
 
     python -m bench.tasks gym/cartpole --threshold 475 --steps 30000
     python -m bench.tasks gym/pendulum_novel -c feedforward --threshold -300 --steps 15000
@@ -34,7 +35,16 @@ from envs.make import vector_env_factory  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "bench" / "results" / "tasks.csv"
-FIELDS = ["task", "section", "overrides", "seed", "steps", "threshold", "reached_at", "best", "last", "wall_s"]
+FIELDS = ["task", "section", "overrides", "seed", "steps", "threshold", "reached_at", "best", "last", "kept", "wall_s"]
+
+
+def reached_and_kept(rows: list[dict[str, float]], threshold: float | None) -> tuple[int | None, float | None]:
+    """The env steps of the first evaluation at or above ``threshold``, and the lowest mean return from
+    that evaluation to the last (None, None when none reached it)."""
+    first = next((i for i, r in enumerate(rows) if threshold is not None and r["return_mean"] >= threshold), None)
+    if first is None:
+        return None, None
+    return int(rows[first]["env_steps"]), round(min(r["return_mean"] for r in rows[first:]), 1)
 
 
 def run(task: str, section: str | None, seed: int, steps: int, every: int, threshold: float | None,
@@ -49,24 +59,24 @@ def run(task: str, section: str | None, seed: int, steps: int, every: int, thres
         factory = vector_env_factory(base.build_path, env_kwargs=base.env_kwargs, max_episode_steps=limit)
         EmbeddedTrainer(config, Path(tmp), factory, progress=False).run()
         rows = read_evaluations(Path(tmp) / "evaluations.csv")
-    reached = next((int(r["env_steps"]) for r in rows if threshold is not None and r["return_mean"] >= threshold), None)
+    reached, kept = reached_and_kept(rows, threshold)
     return {
         "task": task, "section": section or "default", "overrides": " ".join(overrides), "seed": seed,
         "steps": steps, "threshold": threshold, "reached_at": reached,
-        "best": round(max(r["return_mean"] for r in rows), 1), "last": round(rows[-1]["return_mean"], 1),
+        "best": round(max(r["return_mean"] for r in rows), 1), "last": round(rows[-1]["return_mean"], 1), "kept": kept,
         "wall_s": round(time.perf_counter() - start),
     }  # fmt: skip
 
 
 def report() -> None:
     rows = list(csv.DictReader(RESULTS.open())) if RESULTS.exists() else []
-    print("| task | config | seed | steps | reached threshold at | best | last | wall s |")
-    print("|---|---|---|---|---|---|---|---|")
+    print("| task | config | seed | steps | reached threshold at | best | last | lowest after reaching | wall s |")
+    print("|---|---|---|---|---|---|---|---|---|")
     for r in rows:
         config = r["section"] + (f" ({r['overrides']})" if r["overrides"] else "")
         reached = f"{r['reached_at']} ({r['threshold']})" if r["reached_at"] else f"not reached ({r['threshold']})"
         print(f"| {r['task']} | {config} | {r['seed']} | {r['steps']} | {reached} | {r['best']} | {r['last']} "
-              f"| {r['wall_s']} |")  # fmt: skip
+              f"| {r.get('kept') or '-'} | {r['wall_s']} |")  # fmt: skip
 
 
 def main() -> None:
@@ -86,13 +96,27 @@ def main() -> None:
     RESULTS.parent.mkdir(parents=True, exist_ok=True)
     for seed in args.seeds:
         row = run(args.task, args.config, seed, args.steps, args.every, args.threshold, args.override)
-        new = not RESULTS.exists()
-        with RESULTS.open("a", newline="") as f:
-            writer = csv.DictWriter(f, FIELDS)
-            if new:
-                writer.writeheader()
-            writer.writerow(row)
+        append(row)
         print(row, flush=True)
+
+
+def append(row: dict[str, object], path: Path = RESULTS) -> None:
+    """Append ``row``; a file written before a column was added is rewritten with the new header first
+    (its rows keep their values, the new column left empty)."""
+    old: list[dict[str, str]] = []
+    rewrite = not path.exists()
+    if not rewrite:
+        with path.open(newline="") as f:
+            reader = csv.DictReader(f)
+            rewrite = reader.fieldnames != FIELDS
+            old = list(reader) if rewrite else []
+    if rewrite:
+        with path.open("w", newline="") as f:
+            writer = csv.DictWriter(f, FIELDS)
+            writer.writeheader()
+            writer.writerows({k: r.get(k, "") for k in FIELDS} for r in old)
+    with path.open("a", newline="") as f:
+        csv.DictWriter(f, FIELDS).writerow(row)
 
 
 if __name__ == "__main__":
