@@ -3,19 +3,11 @@
 With OpenMP's default (active) waiting, a 2-thread torch update slowed ~200x whenever another
 process held a core on the 2-core CI machine (measured while writing bench/learner.py); tests run
 beside each other and beside subprocesses, so they pin torch to one passive thread.
-
-Two workers: see SERIAL below.
 """
 
 from __future__ import annotations
 
-import fcntl
 import os
-import tempfile
-from collections.abc import Iterator
-from typing import Any
-
-import pytest
 
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 os.environ.setdefault("MUJOCO_GL", "egl")
@@ -30,105 +22,3 @@ from hypothesis import settings  # noqa: E402
 # hypothesis' random exploration, which is how such cases are found.
 settings.register_profile("ci", derandomize=True)
 settings.load_profile("ci" if os.environ.get("CI") else "default")
-
-
-# ---------------------------------------------------------------------- two workers (make test)
-
-# `make test` runs the suite on two pytest-xdist workers (the Makefile's PYTEST_WORKERS: -n 2 --dist
-# loadgroup); a plain `pytest` runs it in one process. The tests (or modules) of one group below run on
-# one worker, one after the other; everything else goes to whichever worker is free.
-#
-# "roles": tests that start several role processes (replay, learner, actors, evolver), or time waits of
-# seconds inside the test. One at a time, such a test never shares the two cores with another of its
-# kind: beside it runs at most the other worker's test (one main.py process, or one in-process test), as
-# a CPU job beside the old one-process suite did. A new test of that kind belongs here.
-# ALONE: tests that time calls to tenths of a second (70 calls with 0.5 s deadlines, "answered within
-# 0.05 s"): they run first in "roles", one after the other, and the other worker waits meanwhile (a lock,
-# pytest_runtest_protocol below), so they run as in the one-process suite.
-# "journeys", "main": a module fixture trains a run; one worker runs the module, so it is trained once.
-#
-# Entries are a file, or a file::test (all its parameters). The table, not xdist_group marks: with
-# pytest 9.2, xdist 3.8's loadgroup no longer sees the marks (pytest-dev/pytest-xdist#1386), so
-# pytest_xdist_make_scheduler below groups by this table (tests/test_layout.py checks every entry names
-# a test).
-ALONE = (
-    "tests/ds/test_replay_files.py",
-    "tests/ds/test_replay_service.py",
-    "tests/ds/test_replay_sink.py",
-    "tests/test_backpressure.py",
-)
-SERIAL: dict[str, tuple[str, ...]] = {
-    "roles": (
-        "tests/test_soak.py",
-        "tests/test_population.py",
-        "tests/test_local_journeys.py",
-        "tests/test_faults_roles.py",
-        "tests/test_faults_replay.py",
-        "tests/test_cross_host.py",
-        "tests/test_token_by_default.py",
-        "tests/test_main_ds.py::test_local_run_trains_to_its_budget_and_every_role_logs",
-        "tests/test_main_ds.py::test_sigint_stops_every_child_and_the_same_command_resumes",
-        "tests/test_main_ds.py::test_replay_learner_and_two_actors_learn_pendulum",
-        "tests/test_main_ds.py::test_local_run_with_a_token_and_mutual_tls_trains",
-        # ~15 processes side by side (the processes fixture), and the tests sharing its trained fixture
-        "tests/test_bad_input.py::test_a_damaged_run_is_refused_naming_the_file_and_left_as_it_was",
-        "tests/test_bad_input.py::test_a_bad_command_line_is_one_line_exit_2_and_creates_nothing",
-        "tests/test_bad_input.py::test_a_run_with_a_damaged_config_is_refused_naming_it_and_left_as_it_was",
-        # timed waits on a replay role through a full disk
-        "tests/test_full_disk.py::test_the_replay_role_serves_on_through_a_full_disk_and_snapshots_again_once_space_is_back",
-        *ALONE,  # first: the files of tests/ds come before tests/test_*
-    ),
-    "journeys": ("tests/test_journeys.py",),
-    "main": ("tests/test_main.py",),
-}
-
-
-def names(entry: str, nodeid: str) -> bool:
-    """Whether a SERIAL or ALONE entry (a file, or a file::test with all its parameters) names a test."""
-    if "::" in entry:
-        return nodeid == entry or nodeid.startswith(entry + "[")
-    return nodeid.startswith(entry + "::")
-
-
-def serial_group(nodeid: str) -> str | None:
-    """The SERIAL group of a test's node id, or None."""
-    return next((group for group, entries in SERIAL.items() for e in entries if names(e, nodeid)), None)
-
-
-def alone(item: pytest.Item | None) -> bool:
-    return item is not None and any(names(entry, item.nodeid) for entry in ALONE)
-
-
-_HELD: list[Any] = []  # the exclusive lock's file while this worker runs a stretch of ALONE tests
-
-
-def _locked(path: str, mode: int) -> Any:
-    file = open(path, "a")  # noqa: SIM115 (held beyond this function)
-    fcntl.flock(file, mode)
-    return file
-
-
-@pytest.hookimpl(hookwrapper=True)
-def pytest_runtest_protocol(item: pytest.Item, nextitem: pytest.Item | None) -> Iterator[None]:
-    """On a worker, every test holds a shared lock while it runs (its fixtures included), and a stretch
-    of ALONE tests an exclusive one, from the first to the last. Either is taken through a gate, which
-    a waiting ALONE test holds: the other worker starts no test before it has run."""
-    run = os.environ.get("PYTEST_XDIST_TESTRUNUID")
-    if run is None:  # one process: nothing runs beside a test
-        yield
-        return
-    base = os.path.join(tempfile.gettempdir(), f"asac-tests-{run}")
-    held = None
-    if not _HELD:
-        gate = _locked(base + ".gate", fcntl.LOCK_EX)
-        held = _locked(base + ".lock", fcntl.LOCK_EX if alone(item) else fcntl.LOCK_SH)
-        gate.close()
-        if alone(item):
-            _HELD.append(held)
-    try:
-        yield
-    finally:
-        if _HELD and not alone(nextitem):
-            _HELD.pop().close()
-        elif held is not None and not _HELD:
-            held.close()

@@ -197,9 +197,9 @@ def test_the_tree_is_formatted() -> None:
 
 
 def test_every_serial_group_entry_names_a_test() -> None:
-    """tests/conftest.py's SERIAL table (the tests `make test` runs one at a time on one worker) names
+    """tests/workers.py's SERIAL table (the tests `make test` runs one at a time on one worker) names
     files and test functions that exist: a renamed test would silently leave its group."""
-    from tests.conftest import SERIAL
+    from tests.workers import SERIAL
 
     for entries in SERIAL.values():
         for entry in entries:
