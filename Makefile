@@ -5,7 +5,7 @@ PY := $(VENV)/bin/python
 TASK ?= gym/pendulum
 PYTEST_ARGS ?=
 # Two pytest workers (pytest-xdist): the tests that start several role processes run one after the
-# other on one of them (tests/conftest.py, SERIAL), the rest on whichever is free. PYTEST_WORKERS= runs
+# other on one of them (tests/workers.py, SERIAL), the rest on whichever is free. PYTEST_WORKERS= runs
 # the suite in one process, as a plain `pytest` does.
 PYTEST_WORKERS ?= -n 2 --dist loadgroup
 

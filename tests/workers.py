@@ -28,8 +28,7 @@ import pytest
 # Entries are a file, or a file::test (all its parameters). The table, not xdist_group marks: with
 # pytest 9.2, xdist 3.8's loadgroup no longer sees the marks (pytest-dev/pytest-xdist#1386), so
 # pytest_xdist_make_scheduler below groups by this table (tests/test_layout.py checks every entry names
-# a test). The repository's conftest.py registers these hooks: pytest loads it before the first worker
-# starts (tests/conftest.py it loads only when collecting, which the controller of the workers never does).
+# a test). The repository's conftest.py registers these hooks.
 ALONE = (
     "tests/ds/test_replay_files.py",
     "tests/ds/test_replay_service.py",
