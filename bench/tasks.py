@@ -9,7 +9,8 @@ evaluating (10 deterministic episodes) every ``--every`` steps, and appends one 
 bench/results/tasks.csv: the first evaluation that reached ``--threshold`` (or none), the best and
 the last evaluation's mean return, the lowest evaluation from the first that reached the threshold
 on ("kept": whether a result, once found, was held to the end), and the wall time. ``--report``
-prints every row so far as the table of BENCHMARKS.md section 8. Examples (BENCHMARKS.md lists the exact commands behind its numbers):
+prints every row so far as the table of BENCHMARKS.md section 8. Examples (BENCHMARKS.md lists
+the exact commands behind its numbers):
 
     python -m bench.tasks gym/cartpole --threshold 475 --steps 30000
     python -m bench.tasks gym/pendulum_novel -c feedforward --threshold -300 --steps 15000
