@@ -208,3 +208,16 @@ def test_every_serial_group_entry_names_a_test() -> None:
             if name:
                 tests = {n.name for n in ast.parse((ROOT / path).read_text()).body if isinstance(n, ast.FunctionDef)}
                 assert name in tests, entry
+
+
+def test_the_two_worker_hooks_are_registered_and_group_by_the_table() -> None:
+    """The root conftest.py hands xdist tests/workers.py's hooks (a lost hook once left `make test`
+    ungrouped while every test still passed), and a SERIAL entry's tests share one scope."""
+    import conftest
+    from tests import workers
+
+    assert conftest.pytest_xdist_make_scheduler is workers.pytest_xdist_make_scheduler
+    assert conftest.pytest_runtest_protocol is workers.pytest_runtest_protocol
+    assert workers.serial_group("tests/test_soak.py::test_any[x]") == "roles"
+    assert workers.serial_group("tests/test_journeys.py::test_a") == workers.serial_group("tests/test_journeys.py::b")
+    assert workers.serial_group("tests/algorithm/test_sac.py::test_update") is None
