@@ -22,9 +22,10 @@
         wall seconds, of which evaluating, overrides, code version) to bench/results/mujoco/summary.csv;
         runs already there are skipped. `mujoco [TASK] --report` prints the tables.
     python -m bench.vs_sb3 suite [--tasks hopper walker2d ant half_cheetah] [--seeds 0 1 2]
+                                 [--out DIR] [--override sac.compute_dtype=float32]
         every `mujoco` run of the comparison, one process at a time, task by task and per seed ASAC
-        then SB3, ASAC with sac.compute_dtype=bfloat16; finished runs are skipped, so starting it
-        again resumes it. `python -m bench.curves` draws the learning curves.
+        then SB3, ASAC with sac.compute_dtype=bfloat16 unless --override says otherwise; finished
+        runs are skipped, so starting it again resumes it. `python -m bench.curves` draws the learning curves.
 
 SB3 is an optional peer (pip install -e '.[bench]'). Both sides use 256x256 MLPs, batch 256,
 lr 3e-4, gamma 0.99, tau 0.005, automatic entropy (alpha initialised at 1, target -|A|), uniform
@@ -475,7 +476,7 @@ def suite(args: argparse.Namespace) -> None:
     each run its own process; runs already in OUT/summary.csv are skipped, so a stopped suite is
     resumed by starting it again."""
     out = Path(args.out)
-    overrides = list(SUITE_OVERRIDES)
+    overrides = args.override or list(SUITE_OVERRIDES)
     for task in args.tasks:
         for seed in args.seeds:
             for which, system in (("ours", "asac"), ("sb3", "sb3")):
@@ -571,6 +572,14 @@ def main() -> None:
     su.add_argument("--every", type=int, default=5000)
     su.add_argument("--threads", type=int, default=1)
     su.add_argument("--out", default=str(RESULTS / "mujoco"))
+    su.add_argument(
+        "--override",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help=f"ASAC's config overrides instead of {' '.join(SUITE_OVERRIDES)} (repeatable; e.g."
+        " sac.compute_dtype=float32 on a CPU without native bfloat16)",
+    )
     args = p.parse_args()
     if args.what == "mujoco" and args.task is None:
         args.report = True
