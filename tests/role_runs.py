@@ -57,6 +57,23 @@ def main_ds_command(*args: str) -> list[str]:
     return [sys.executable, str(ROOT / "main_ds.py"), *args]
 
 
+def child_pids(output: str) -> dict[str, int]:
+    """The pid of every role a ``local`` launcher logged as started, by its label."""
+    return {name: int(pid) for name, pid in re.findall(r"started (\S+) \(pid (\d+)\)", output)}
+
+
+def no_process_mentions(name: str) -> bool:
+    """No process on the machine has ``-n NAME `` in its command line (a run's roles all do)."""
+    found = subprocess.run(["pgrep", "-f", f"-n {name} "], capture_output=True, text=True)
+    return found.stdout.strip() == ""
+
+
+def event_files(run: Path, role: str) -> list[Path]:
+    """The TensorBoard event files of one role of a run (``log/<role>``)."""
+    folder = run / "log" / role
+    return sorted(folder.glob("events.out.tfevents.*")) if folder.is_dir() else []
+
+
 def running(pid: int) -> bool:
     """Whether ``pid`` exists and is not a zombie (a stopped process, state T, is running)."""
     try:

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import csv
-import os
 import re
 import signal
 import socket
@@ -15,7 +14,7 @@ import pytest
 
 from ds.net.security import ROLES
 from tests.pki import Pki
-from tests.role_runs import ENV, TINY, main_ds_command, running
+from tests.role_runs import ENV, TINY, event_files, main_ds_command
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -30,20 +29,6 @@ def run_ds(*args: str, cwd: Path, timeout: float = 240) -> subprocess.CompletedP
 def start_ds(*args: str, cwd: Path, log: Path) -> subprocess.Popen[bytes]:
     with log.open("wb") as out:
         return subprocess.Popen(command(*args), cwd=cwd, env=ENV, stdout=out, stderr=subprocess.STDOUT)
-
-
-def child_pids(output: str) -> dict[str, int]:
-    return {name: int(pid) for name, pid in re.findall(r"started (\S+) \(pid (\d+)\)", output)}
-
-
-def no_process_mentions(name: str) -> bool:
-    found = subprocess.run(["pgrep", "-f", f"-n {name} "], capture_output=True, text=True)
-    return found.stdout.strip() == ""
-
-
-def event_files(run: Path, role: str) -> list[Path]:
-    folder = run / "log" / role
-    return sorted(folder.glob("events.out.tfevents.*")) if folder.is_dir() else []
 
 
 # ---------------------------------------------------------------------- usage errors
@@ -108,62 +93,6 @@ def test_in_k8s_pairs_learner_k_with_replay_k_by_pod_name(tmp_path: Path) -> Non
 
 
 # ---------------------------------------------------------------------- local runs
-
-
-@pytest.mark.slow
-@pytest.mark.grpc
-def test_local_run_trains_to_its_budget_and_every_role_logs(tmp_path: Path) -> None:
-    # A budget both actors take part in: with inserts pipelined, one fast actor alone filled 800 steps
-    # before the other had registered (no actor_1 events, once in CI).
-    done = run_ds("gym/pendulum", "local", "--actors", "2", "-n", "e2e_budget", *TINY,
-                  "--override", "base.max_step=2000", cwd=tmp_path)  # fmt: skip
-    assert done.returncode == 0, done.stdout[-4000:] + done.stderr[-4000:]
-    run = tmp_path / "models/gym/pendulum/e2e_budget"
-    for role in ("learner", "actor_0", "actor_1", "replay"):
-        assert event_files(run, role), f"no TensorBoard events for {role}"
-    rows = list(csv.DictReader((run / "evaluations.csv").open()))
-    steps = [int(r["env_steps"]) for r in rows]
-    assert steps and steps[0] >= 300 and steps == sorted(set(steps))  # every eval_per_step env steps
-    assert max(int(p.stem) for p in run.glob("model/*.pt")) >= 2000  # the final checkpoint
-    for role in ("[replay]", "[learner]", "[actor-0]", "[actor-1]"):
-        assert role in done.stdout, f"no log lines prefixed {role}"
-    pids = child_pids(done.stderr)
-    assert set(pids) == {"replay", "learner", "actor-0", "actor-1"}
-    assert not any(running(pid) for pid in pids.values())
-
-
-@pytest.mark.slow
-@pytest.mark.grpc
-@pytest.mark.fault
-def test_sigint_stops_every_child_and_the_same_command_resumes(tmp_path: Path) -> None:
-    name = f"e2e_sigint_{os.getpid()}"
-    log = tmp_path / "local.log"
-    keep = ["--override", "replay.save_replay=true"]
-    proc = start_ds("gym/pendulum", "local", "--actors", "2", "-n", name, *TINY, *keep, "--override",
-                    "base.max_step=-1", cwd=tmp_path, log=log)  # fmt: skip
-    run = tmp_path / "models/gym/pendulum" / name
-    deadline = time.monotonic() + 180
-    while not (event_files(run, "actor_0") and event_files(run, "actor_1") and "eval at" in log.read_text()):
-        assert proc.poll() is None, log.read_text()[-4000:]
-        assert time.monotonic() < deadline, "the local run did not get going: " + log.read_text()[-4000:]
-        time.sleep(0.5)
-    pids = child_pids(log.read_text())
-    assert set(pids) == {"replay", "learner", "actor-0", "actor-1"}
-    proc.send_signal(signal.SIGINT)  # what Ctrl-C in a terminal sends the launcher
-    assert proc.wait(timeout=90) == 130, log.read_text()[-4000:]
-    assert not any(running(pid) for pid in pids.values()), log.read_text()[-4000:]
-    assert no_process_mentions(name)
-    steps = sorted(int(p.stem) for p in run.glob("model/*.pt"))
-    assert steps, "the learner did not checkpoint on SIGINT"
-    assert (run / "replay/replay.npz").is_file(), "the replay did not save on SIGINT"
-
-    budget = steps[-1] + 100
-    again = run_ds("gym/pendulum", "local", "--actors", "2", "-n", name, *TINY, *keep, "--override",
-                   f"base.max_step={budget}", cwd=tmp_path)  # fmt: skip
-    assert again.returncode == 0, again.stdout[-4000:] + again.stderr[-4000:]
-    assert f"resumed from models/gym/pendulum/{name}/model/{steps[-1]}.pt" in again.stdout
-    assert "replay restored from" in again.stdout
-    assert max(int(p.stem) for p in run.glob("model/*.pt")) >= budget
 
 
 # ---------------------------------------------------------------------- learning

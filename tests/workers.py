@@ -44,8 +44,6 @@ SERIAL: dict[str, tuple[str, ...]] = {
         "tests/test_faults_replay.py",
         "tests/test_cross_host.py",
         "tests/test_token_by_default.py",
-        "tests/test_main_ds.py::test_local_run_trains_to_its_budget_and_every_role_logs",
-        "tests/test_main_ds.py::test_sigint_stops_every_child_and_the_same_command_resumes",
         "tests/test_main_ds.py::test_replay_learner_and_two_actors_learn_pendulum",
         "tests/test_main_ds.py::test_local_run_with_a_token_and_mutual_tls_trains",
         # ~15 processes side by side (the processes fixture), and the tests sharing its trained fixture
