@@ -15,6 +15,17 @@ from pathlib import Path
 from typing import Any, BinaryIO
 
 
+def _read_umask() -> int:
+    mask = os.umask(0o022)  # reading the umask means setting it; done once, at import
+    os.umask(mask)
+    return mask
+
+
+# The mode a file made by ``open()`` would get (0o666 less the umask read at import): atomic_write's
+# temp files come from mkstemp, which makes them 0600 whatever the umask.
+NEW_FILE_MODE = 0o666 & ~_read_umask()
+
+
 class NotRegularFile(ValueError):
     """A path names something other than a regular file (a FIFO, a device, a socket, a folder, or a
     symlink where none is followed); refused before it is opened."""
@@ -71,11 +82,16 @@ def atomic_write(
 
     A write that fails (a full disk, an I/O error) removes the temp file, leaves ``path`` as it was
     and raises the ``OSError``, also when ``write`` turned it into another exception (``torch.save``
-    raises a RuntimeError from its zip writer with the cause lost in its message)."""
+    raises a RuntimeError from its zip writer with the cause lost in its message).
+
+    The file gets the mode a plain ``open()`` would give it under the process's umask
+    (:data:`NEW_FILE_MODE`, e.g. 0644), so another user or a container with another uid can read a
+    run's checkpoints and evaluations where the umask allows it."""
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     try:
         with os.fdopen(fd, "wb") as f:
+            os.fchmod(f.fileno(), NEW_FILE_MODE)
             sink = _Recorded(f)
             try:
                 write(sink)  # type: ignore[arg-type]  # a file in all but name
