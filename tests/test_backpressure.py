@@ -18,6 +18,7 @@ import pytest
 from algorithm.replay import PrioritizedTable, RateLimiter, SampleTimeout
 from algorithm.sac import SAC
 from ds.actor.actor import DistributedActor
+from ds.actor.sink import LAST_INSERTS_WAIT_S
 from ds.learner.service import LearnerClient, Registration
 from ds.replay.service import ReplayClient, serve_replay
 from envs.make import vector_env_factory
@@ -76,7 +77,10 @@ def test_an_actor_held_back_at_the_end_of_the_budget_stops_at_once_and_counts_wh
     assert not thread.is_alive()
     sink = actor.sink
     assert sink.insert_waits > 0  # the rate limiter held the actor back
-    assert stopped_s < 3 * sink.timeout_s  # an insert already waiting finishes its wait; nothing else waits
+    # The last inserts wait for the learner LAST_INSERTS_WAIT_S in all (here in vain: this learner stopped
+    # at the budget, a real one trains until the actors leave); an insert already waiting finishes its
+    # wait; nothing else waits.
+    assert stopped_s < LAST_INSERTS_WAIT_S + 3 * sink.timeout_s
     # Nothing vanished: every collected step stored or counted, the open chunks included.
     assert actor.env_steps == sink.inserted_steps + sink.unsent_steps
     assert sink.inserted_steps == table.info()["inserted_steps"]
