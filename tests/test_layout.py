@@ -5,6 +5,7 @@ code they share); and every docs/*.md section the tree cites exists."""
 from __future__ import annotations
 
 import ast
+import os
 import re
 import subprocess
 import sys
@@ -221,3 +222,14 @@ def test_the_two_worker_hooks_are_registered_and_group_by_the_table() -> None:
     assert workers.serial_group("tests/test_soak.py::test_any[x]") == "roles"
     assert workers.serial_group("tests/test_journeys.py::test_a") == workers.serial_group("tests/test_journeys.py::b")
     assert workers.serial_group("tests/algorithm/test_sac.py::test_update") is None
+
+
+def test_a_two_worker_run_leaves_no_lock_files_behind(tmp_path: Path) -> None:
+    """`make test`'s workers take their locks through two files in the temp folder
+    (tests/workers.py); the controller removes them once the last worker is down."""
+    env = {**os.environ, "TMPDIR": str(tmp_path)}
+    done = subprocess.run([sys.executable, "-m", "pytest", "-n", "2", "--dist", "loadgroup", "-q", "-p",
+                           "no:cacheprovider", "tests/algorithm/test_file_modes.py"],
+                          cwd=ROOT, env=env, capture_output=True, text=True, timeout=300)  # fmt: skip
+    assert done.returncode == 0, done.stdout[-3000:] + done.stderr[-3000:]
+    assert not list(tmp_path.glob("asac-tests-*")), sorted(p.name for p in tmp_path.iterdir())

@@ -4,6 +4,7 @@ The hooks below are registered by the repository's conftest.py."""
 
 from __future__ import annotations
 
+import contextlib
 import fcntl
 import os
 import tempfile
@@ -93,11 +94,11 @@ def pytest_runtest_protocol(item: pytest.Item, nextitem: pytest.Item | None) -> 
     if run is None:  # one process: nothing runs beside a test
         yield
         return
-    base = os.path.join(tempfile.gettempdir(), f"asac-tests-{run}")
+    gate_path, lock_path = _lock_files(run)
     held = None
     if not _HELD:
-        gate = _locked(base + ".gate", fcntl.LOCK_EX)
-        held = _locked(base + ".lock", fcntl.LOCK_EX if alone(item) else fcntl.LOCK_SH)
+        gate = _locked(gate_path, fcntl.LOCK_EX)
+        held = _locked(lock_path, fcntl.LOCK_EX if alone(item) else fcntl.LOCK_SH)
         gate.close()
         if alone(item):
             _HELD.append(held)
@@ -108,6 +109,30 @@ def pytest_runtest_protocol(item: pytest.Item, nextitem: pytest.Item | None) -> 
             _HELD.pop().close()
         elif held is not None and not _HELD:
             held.close()
+
+
+_LIVE_WORKERS: set[str] = set()  # on the controller: the workers up now
+
+
+def _lock_files(run: str) -> list[str]:
+    base = os.path.join(tempfile.gettempdir(), f"asac-tests-{run}")
+    return [base + ".gate", base + ".lock"]
+
+
+def pytest_testnodeready(node: Any) -> None:
+    """On the controller: a worker is up."""
+    _LIVE_WORKERS.add(node.gateway.id)
+
+
+def pytest_testnodedown(node: Any, error: object) -> None:
+    """On the controller, once the last worker is down: remove the run's lock files (a worker still
+    running must keep them: a file made again after an unlink would be another lock)."""
+    _LIVE_WORKERS.discard(node.gateway.id)
+    run = getattr(node, "workerinput", {}).get("testrunuid")
+    if run and not _LIVE_WORKERS:
+        for path in _lock_files(run):
+            with contextlib.suppress(FileNotFoundError):
+                os.unlink(path)
 
 
 def pytest_xdist_make_scheduler(config: pytest.Config, log: Any) -> Any:
