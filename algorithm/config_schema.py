@@ -186,6 +186,13 @@ class SacConfig(Section):
     curiosity_inverse: bool = Field(False, description="Learn curiosity features with an inverse model (ICM).")
     use_rnd: bool = Field(False, description="Act with the most novel of rnd_n_sample policy actions (RND).")
     rnd_n_sample: int = Field(10, ge=1, description="Policy actions drawn per step to pick the most novel from.")
+    action_noise_color: float = Field(
+        0.0,
+        ge=0.0,
+        description="Exponent beta of the acting noise's power spectrum 1/f^beta along each env's steps: 0 draws it "
+        "afresh every step (SAC's default), 1 is pink, 2 red (Eberhard et al. 2023). Each step's noise stays a "
+        "standard normal, so actions keep the policy's distribution and behaviour log-probs stay exact.",
+    )
     use_normalization: bool = False
     max_nonfinite_steps: int = Field(100, ge=1, description="Consecutive skipped (non-finite) updates before stopping.")
     compile: bool = Field(False, description="torch.compile the losses; 5-10% slower on CPU (bench/learner.py).")

@@ -22,6 +22,7 @@ from torch import Tensor
 from algorithm.config_schema import NNConfig, SacConfig
 from algorithm.losses import PolicySample, branch_matrix
 from algorithm.nn.builder import build_models
+from algorithm.nn.colored_noise import ColoredNoise
 from algorithm.nn.models import masked_branch_one_hot_argmax, stored_action_log_prob
 from algorithm.nn.noisy import NoisyLayer, reset_noise, set_noise
 from algorithm.nn.numpy_acting import numpy_actor_for
@@ -76,6 +77,11 @@ class Policy:
         # numpy_acting's noise: drawing it with torch cost as much as the NumPy forward itself
         # (13 vs 2 us per call inside an actor loop, and the env step after it 8 us more).
         self._act_np_rng = np.random.default_rng(act_seed)
+        # sac_config.action_noise_color > 0: the acting noise of each env is correlated across its steps
+        # (nn/colored_noise.py); its own generator, so that white acting draws the same as before.
+        self._colored = None
+        if sac.action_noise_color > 0:
+            self._colored = ColoredNoise(sac.action_noise_color, np.random.default_rng([act_seed, 1]))
 
         acting: dict[str, torch.nn.Module] = {"representation": self.models.representation}
         if self.models.normalizer is not None:
@@ -124,7 +130,9 @@ class Policy:
         self._check_obs(obs)
         noise = None
         if not deterministic:
-            noise = self._act_np_rng.standard_normal((obs[0].shape[0], self.spec.action.continuous_dim), np.float32)
+            shape = (obs[0].shape[0], self.spec.action.continuous_dim)
+            colored = self._colored
+            noise = self._act_np_rng.standard_normal(shape, np.float32) if colored is None else colored.draw(*shape)
         return self._numpy_actor.act(obs, noise, 0.0 if deterministic else self.exploration_noise)
 
     @torch.inference_mode()
@@ -187,7 +195,9 @@ class Policy:
             else:  # the most novel of rnd_n_sample policy actions per env
                 n, k = full_state.shape[0], self.sac.rnd_n_sample
                 repeated = full_state.repeat_interleave(k, dim=0)
-                candidates, log_probs = self._act(repeated, [t.repeat_interleave(k, dim=0) for t in tensors], False)
+                candidates, log_probs = self._act(
+                    repeated, [t.repeat_interleave(k, dim=0) for t in tensors], False, colored=False
+                )
                 novelty = self.models.rnd.novelty(repeated, candidates).view(n, k)
                 pick = novelty.argmax(dim=1) + torch.arange(n, device=self.device) * k
                 # log-prob under the policy alone: the selection's own probability has no closed form
@@ -197,17 +207,29 @@ class Policy:
             if self._noisy and deterministic:
                 set_noise(self._acting, True)
 
-    def _act(self, full_state: Tensor, tensors: list[Tensor], deterministic: bool) -> tuple[Tensor, Tensor]:
+    def _act(
+        self, full_state: Tensor, tensors: list[Tensor], deterministic: bool, colored: bool = True
+    ) -> tuple[Tensor, Tensor]:
+        """Actions and behaviour log-probs of ``n`` states. With colored noise (``colored`` and
+        ``action_noise_color > 0``) one correlated standard normal per continuous dimension and per
+        discrete branch, per env (RND's candidates, ``colored=False``, stay white)."""
         state = self.models.representation.policy_state(full_state)
         n, spec = state.shape[0], self.spec.action
         log_prob = torch.zeros(n, device=self.device)
         continuous = None
         extra = 0.0 if deterministic else self.exploration_noise
+        draws = None
+        if colored and self._colored is not None and not deterministic:
+            z = self._colored.draw(n, spec.continuous_dim + len(spec.discrete_branches))
+            draws = torch.as_tensor(z, device=self.device)
         if self.models.policy is not None:
             if deterministic:
                 continuous, log_prob = self.models.policy.sample(state, None)
             else:
-                noise = torch.randn(n, spec.continuous_dim, generator=self._act_rng, device=self.device)
+                if draws is None:
+                    noise = torch.randn(n, spec.continuous_dim, generator=self._act_rng, device=self.device)
+                else:
+                    noise = draws[:, : spec.continuous_dim]
                 continuous, log_prob = self._behaviour_sample(state, noise, extra)
         parts = []
         if self._branches is not None:
@@ -223,9 +245,15 @@ class Policy:
                     probs = (1.0 - eps) * probs + eps * uniform
             if extra > 0:
                 probs = (1.0 - min(extra, 1.0)) * probs + min(extra, 1.0) * uniform
-            for branch_probs in probs.split(list(spec.discrete_branches), dim=-1):
+            for b, branch_probs in enumerate(probs.split(list(spec.discrete_branches), dim=-1)):
                 if deterministic:
                     choice = branch_probs.argmax(dim=-1)
+                elif draws is not None:  # inverse CDF of a uniform Phi(z): the branch's distribution exactly
+                    uniform = torch.special.ndtr(draws[:, spec.continuous_dim + b, None])
+                    below = (branch_probs.cumsum(dim=-1) <= uniform).sum(dim=-1)
+                    # a uniform past the rounded total picks the last action allowed, never a masked one
+                    last = branch_probs.shape[-1] - 1 - (branch_probs > 0).flip(-1).int().argmax(dim=-1)
+                    choice = torch.minimum(below, last)
                 else:
                     choice = torch.multinomial(branch_probs, 1, generator=self._act_rng).squeeze(-1)
                 log_prob = log_prob + branch_probs.gather(-1, choice[:, None]).squeeze(-1).log()
@@ -285,10 +313,15 @@ class Policy:
 
     def state_dict(self) -> dict[str, Any]:
         """The models and the acting generators' states."""
-        return {
-            "models": self.models.state_dict(),
-            "rng": {"act": self._act_rng.get_state(), "act_numpy": self._act_np_rng.bit_generator.state},
-        }
+        rng: dict[str, Any] = {"act": self._act_rng.get_state(), "act_numpy": self._act_np_rng.bit_generator.state}
+        if self._colored is not None:
+            colored = self._colored.state()
+            rng["act_colored"] = {
+                "generator": self._colored.rng.bit_generator.state,
+                "sequences": torch.from_numpy(colored["sequences"]),
+                "position": colored["position"],
+            }
+        return {"models": self.models.state_dict(), "rng": rng}
 
     def load_state_dict(self, state: Mapping[str, Any]) -> None:
         """Restore the models and the acting generators from :meth:`state_dict` or from a learner's
@@ -301,6 +334,10 @@ class Policy:
             self._act_rng.set_state(rng["act"])
         if "act_numpy" in rng:  # checkpoints from before numpy_acting have none
             self._act_np_rng.bit_generator.state = rng["act_numpy"]
+        if self._colored is not None and "act_colored" in rng:
+            colored = rng["act_colored"]
+            self._colored.rng.bit_generator.state = colored["generator"]
+            self._colored.load_state({"sequences": np.asarray(colored["sequences"]), "position": colored["position"]})
 
     def acting_state_dict(self) -> dict[str, Tensor]:
         """The parameters :meth:`act` uses (``representation.*`` and ``policy.*``), flat name ->
