@@ -22,7 +22,7 @@ from torch import Tensor
 from algorithm.config_schema import NNConfig, SacConfig
 from algorithm.losses import PolicySample, branch_matrix
 from algorithm.nn.builder import build_models
-from algorithm.nn.colored_noise import ColoredNoise
+from algorithm.nn.colored_noise import ColoredNoise, inverse_cdf_choice
 from algorithm.nn.models import masked_branch_one_hot_argmax, stored_action_log_prob
 from algorithm.nn.noisy import NoisyLayer, reset_noise, set_noise
 from algorithm.nn.numpy_acting import numpy_actor_for
@@ -248,12 +248,8 @@ class Policy:
             for b, branch_probs in enumerate(probs.split(list(spec.discrete_branches), dim=-1)):
                 if deterministic:
                     choice = branch_probs.argmax(dim=-1)
-                elif draws is not None:  # inverse CDF of a uniform Phi(z): the branch's distribution exactly
-                    uniform = torch.special.ndtr(draws[:, spec.continuous_dim + b, None])
-                    below = (branch_probs.cumsum(dim=-1) <= uniform).sum(dim=-1)
-                    # a uniform past the rounded total picks the last action allowed, never a masked one
-                    last = branch_probs.shape[-1] - 1 - (branch_probs > 0).flip(-1).int().argmax(dim=-1)
-                    choice = torch.minimum(below, last)
+                elif draws is not None:
+                    choice = inverse_cdf_choice(branch_probs, draws[:, spec.continuous_dim + b])
                 else:
                     choice = torch.multinomial(branch_probs, 1, generator=self._act_rng).squeeze(-1)
                 log_prob = log_prob + branch_probs.gather(-1, choice[:, None]).squeeze(-1).log()
@@ -313,6 +309,18 @@ class Policy:
 
     def state_dict(self) -> dict[str, Any]:
         """The models and the acting generators' states."""
+        return {"models": self.models.state_dict(), "rng": self._acting_rng_state()}
+
+    def load_state_dict(self, state: Mapping[str, Any]) -> None:
+        """Restore the models and the acting generators from :meth:`state_dict` or from a learner's
+        :meth:`algorithm.sac.SAC.state_dict` (a checkpoint's ``"sac"``: its learner parts are not read)."""
+        if "models" not in state:
+            raise KeyError("policy state dict lacks 'models'")
+        self.models.load_state_dict(state["models"])
+        self._load_acting_rng_state(state.get("rng", {}))
+
+    def _acting_rng_state(self) -> dict[str, Any]:
+        """The acting generators' states (torch, NumPy, and the colored noise's stream)."""
         rng: dict[str, Any] = {"act": self._act_rng.get_state(), "act_numpy": self._act_np_rng.bit_generator.state}
         if self._colored is not None:
             colored = self._colored.state()
@@ -321,15 +329,9 @@ class Policy:
                 "sequences": torch.from_numpy(colored["sequences"]),
                 "position": colored["position"],
             }
-        return {"models": self.models.state_dict(), "rng": rng}
+        return rng
 
-    def load_state_dict(self, state: Mapping[str, Any]) -> None:
-        """Restore the models and the acting generators from :meth:`state_dict` or from a learner's
-        :meth:`algorithm.sac.SAC.state_dict` (a checkpoint's ``"sac"``: its learner parts are not read)."""
-        if "models" not in state:
-            raise KeyError("policy state dict lacks 'models'")
-        self.models.load_state_dict(state["models"])
-        rng = state.get("rng", {})
+    def _load_acting_rng_state(self, rng: Mapping[str, Any]) -> None:
         if "act" in rng:
             self._act_rng.set_state(rng["act"])
         if "act_numpy" in rng:  # checkpoints from before numpy_acting have none

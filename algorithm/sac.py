@@ -408,11 +408,7 @@ class SAC(SacLosses, Policy):
             "updates": self.updates,
             "nonfinite_skipped": self.nonfinite_skipped,
             "consecutive_nonfinite": self._consecutive_nonfinite,
-            "rng": {
-                "act": self._act_rng.get_state(),
-                "learn": self._learn_rng.get_state(),
-                "act_numpy": self._act_np_rng.bit_generator.state,
-            },
+            "rng": {**self._acting_rng_state(), "learn": self._learn_rng.get_state()},
         }
 
     def load_state_dict(self, state: Mapping[str, Any]) -> None:
@@ -438,10 +434,8 @@ class SAC(SacLosses, Policy):
         self.updates = int(state["updates"])
         self.nonfinite_skipped = int(state["nonfinite_skipped"])
         self._consecutive_nonfinite = int(state["consecutive_nonfinite"])
-        self._act_rng.set_state(state["rng"]["act"])
+        self._load_acting_rng_state(state["rng"])
         self._learn_rng.set_state(state["rng"]["learn"])
-        if "act_numpy" in state["rng"]:  # checkpoints from before numpy_acting have none
-            self._act_np_rng.bit_generator.state = state["rng"]["act_numpy"]
 
     def load_model_weights(self, weights: Mapping[str, Tensor | np.ndarray]) -> None:
         """Replace the online models' weights with ``weights`` (every name of ``models.state_dict()``,

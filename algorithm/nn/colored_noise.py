@@ -22,6 +22,8 @@ import math
 from typing import Any
 
 import numpy as np
+import torch
+from torch import Tensor
 
 HORIZON = 1000  # steps per sequence: the episode length of most tasks, as in Eberhard et al. 2023
 
@@ -78,3 +80,14 @@ class ColoredNoise:
     def load_state(self, state: dict[str, Any]) -> None:
         self._sequences = np.asarray(state["sequences"], dtype=np.float64)
         self._position = int(state["position"])
+
+
+def inverse_cdf_choice(probs: Tensor, z: Tensor) -> Tensor:
+    """One action per row of ``probs [N, K]`` from a standard normal ``z [N]``: the inverse CDF of the
+    row's distribution at the uniform ``Phi(z)``, so a N(0, 1) ``z`` picks action k with probability
+    ``probs[k]`` exactly, and correlated ``z`` give correlated choices. A uniform past the row's
+    rounded total picks its last action of positive probability, never a masked one."""
+    uniform = torch.special.ndtr(z.to(probs.dtype))[:, None]
+    below = (probs.cumsum(dim=-1) <= uniform).sum(dim=-1)
+    last = probs.shape[-1] - 1 - (probs > 0).flip(-1).int().argmax(dim=-1)
+    return torch.minimum(below, last)
