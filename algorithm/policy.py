@@ -73,15 +73,8 @@ class Policy:
             torch.manual_seed(init_seed)
             self.models = build(spec, sac, nn).to(self.device)
         self._act_rng = torch.Generator(device=self.device)
-        self._act_rng.manual_seed(act_seed)
-        # numpy_acting's noise: drawing it with torch cost as much as the NumPy forward itself
-        # (13 vs 2 us per call inside an actor loop, and the env step after it 8 us more).
-        self._act_np_rng = np.random.default_rng(act_seed)
-        # sac_config.action_noise_color > 0: the acting noise of each env is correlated across its steps
-        # (nn/colored_noise.py); its own generator, so that white acting draws the same as before.
-        self._colored = None
-        if sac.action_noise_color > 0:
-            self._colored = ColoredNoise(sac.action_noise_color, np.random.default_rng([act_seed, 1]))
+        self._colored: ColoredNoise | None = None
+        self._seed_acting_generators(act_seed)
 
         acting: dict[str, torch.nn.Module] = {"representation": self.models.representation}
         if self.models.normalizer is not None:
@@ -113,6 +106,21 @@ class Policy:
         self.exploration_noise = 0.0
 
     # -- acting ---------------------------------------------------------------------------------
+
+    def _seed_acting_generators(self, act_seed: int) -> None:
+        self._act_rng.manual_seed(act_seed)
+        # numpy_acting's noise: drawing it with torch cost as much as the NumPy forward itself
+        # (13 vs 2 us per call inside an actor loop, and the env step after it 8 us more).
+        self._act_np_rng = np.random.default_rng(act_seed)
+        # sac_config.action_noise_color > 0: the acting noise of each env is correlated across its steps
+        # (nn/colored_noise.py); its own generator, so that white acting draws the same as before.
+        if self.sac.action_noise_color > 0:
+            self._colored = ColoredNoise(self.sac.action_noise_color, np.random.default_rng([act_seed, 1]))
+
+    def seed_acting(self, seed: int) -> None:
+        """Reseed the acting noise (white and colored) from ``seed``: each distributed actor calls it
+        with its own seed, so that actors built from one config do not all draw the same noise."""
+        self._seed_acting_generators(int(np.random.SeedSequence([seed, 7]).generate_state(1)[0]))
 
     def act(self, obs: list[np.ndarray], deterministic: bool = False) -> tuple[np.ndarray, np.ndarray]:
         """Actions ``[N, A]`` float32 (``[one-hot per branch | continuous in [-1, 1]]``) and their

@@ -157,6 +157,7 @@ class DistributedActor:
         noise = actor_noise(self.config, index, self.noise_override)
         seed = int(self.config.sac_config.seed or 0) + ACTOR_SEED_STRIDE * (index + 1)
         self.sac.exploration_noise = noise
+        self.sac.seed_acting(seed)  # every actor's policy is built from the same config: its own noise
         policy = self.sac if self.update_mode else RemotePolicy(self.learner, noise)
         if self.update_mode:
             self._fetch_params()

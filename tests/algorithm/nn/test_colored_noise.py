@@ -104,3 +104,17 @@ def test_a_restored_policy_draws_the_same_noise_on() -> None:
         b, logq = second.act(obs)
         np.testing.assert_array_equal(a, b)
         np.testing.assert_array_equal(logp, logq)
+
+
+@pytest.mark.parametrize("color", [0.0, 1.0])
+def test_actors_built_from_one_config_draw_their_own_noise_once_seeded_apart(color: float) -> None:
+    """Distributed actors build their policies from one config (one sac.seed); each reseeds its acting
+    noise from its own seed (ds/actor/actor.py), or they would all draw the same noise."""
+    obs = [np.zeros((4, 3), np.float32)]
+    action = ActionSpec((2,), 1, (-1.0,), (1.0,))
+    actors = [make(action, color) for _ in range(3)]
+    for policy, seed in zip(actors, (1000, 2000, 1000), strict=True):
+        policy.seed_acting(seed)
+    runs = [np.stack([policy.act(obs)[0] for _ in range(20)]) for policy in actors]
+    assert not np.array_equal(runs[0], runs[1])  # two actors: their own noise
+    np.testing.assert_array_equal(runs[0], runs[2])  # the same seed: the same draws
