@@ -5,7 +5,12 @@ flags and composes its mode.
 
 Bad input ends the process with one line ``error: ...`` on stderr and exit code 2 (the entry points
 catch :class:`UsageError`, :class:`~algorithm.config.ConfigError` and
-:class:`~algorithm.checkpoint.CheckpointError`), before anything starts.
+:class:`~algorithm.errors.CheckpointError`), before anything starts.
+
+Nothing here imports torch at module level: the flags, the task, the config and the run folder are
+checked before it is imported (a mistyped command is answered in a fraction of a second, not after
+the ~3 s of CPU torch's import takes); the functions that build models or play a checkpoint import
+what they need.
 """
 
 from __future__ import annotations
@@ -13,26 +18,26 @@ from __future__ import annotations
 import argparse
 import logging
 import os
+import re
 import shutil
 import sys
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
-from typing import NoReturn
+from typing import TYPE_CHECKING, NoReturn
 
 import gymnasium
 import numpy as np
-import torch
 
-from algorithm.checkpoint import list_checkpoints, load_for_resume, restoring
 from algorithm.config import ConfigError, apply_overrides, config_from_file
 from algorithm.config_schema import Config
-from algorithm.evaluation import evaluate
 from algorithm.logging import LogFileHandler
-from algorithm.nn.user import ModelBuilder, model_builder
-from algorithm.policy import Policy
-from algorithm.trainer import RunDir, seed_everything
+from algorithm.run_dir import RunDir
 from envs.make import VectorEnv, make_env, vector_env_factory
+
+if TYPE_CHECKING:
+    from algorithm.nn.user import ModelBuilder
+    from algorithm.policy import Policy
 
 ROOT = Path(__file__).resolve().parent
 ENVS_DIR = ROOT / "envs"
@@ -70,20 +75,24 @@ def step_number(text: str) -> int:
     return int(text)
 
 
+# The torch device strings ASAC runs on (torch.device parses them once a run starts).
+DEVICE = re.compile(r"(cpu|cuda|mps)(:(0|[1-9]\d*))?")
+
+
 def torch_device(text: str) -> str:
     """``cpu``, ``cuda``, ``cuda:N`` or ``mps``; whether this machine has it is :func:`check_device`'s
     question (a command line may be written for another machine, as the k8s manifests are)."""
-    try:
-        device = torch.device(text)
-    except (RuntimeError, ValueError):
-        device = None
-    if device is None or device.type not in ("cpu", "cuda", "mps"):
+    if not DEVICE.fullmatch(text):
         raise argparse.ArgumentTypeError(f"{text!r} is not a torch device ASAC runs on (cpu, cuda, cuda:1, mps)")
     return text
 
 
 def check_device(text: str) -> None:
     """:class:`UsageError` unless this machine has the ``--device``: before anything starts."""
+    if text.split(":")[0] == "cpu":
+        return  # every machine has one; torch need not be imported to say so
+    import torch
+
     device = torch.device(text)
     if device.type == "cuda":
         count = torch.cuda.device_count() if torch.cuda.is_available() else 0
@@ -201,6 +210,8 @@ def copy_model_file(task: Path, config: Config, run_dir: Path, explicit: bool) -
         return
     if target.exists():
         return
+    from algorithm.nn.user import model_builder
+
     try:
         model_builder(source)  # fail now, naming the file, rather than after the run directory exists
     except (ImportError, AttributeError) as e:
@@ -211,6 +222,8 @@ def copy_model_file(task: Path, config: Config, run_dir: Path, explicit: bool) -
 
 def run_model_builder(paths: RunDir) -> ModelBuilder:
     """Models as the run built them: from its copied model file when it has one."""
+    from algorithm.nn.user import model_builder
+
     try:
         return model_builder(paths.model_file if paths.model_file.exists() else None)
     except (ImportError, AttributeError) as e:
@@ -249,6 +262,11 @@ def setup_logging(run_dir: Path | None, in_file: bool) -> None:
 
 
 def play(args: argparse.Namespace) -> int:
+    from algorithm.checkpoint import list_checkpoints, load_for_resume
+    from algorithm.evaluation import evaluate
+    from algorithm.policy import Policy
+    from algorithm.trainer import seed_everything
+
     task_dir(args.env)  # validates the task name
     check_device(args.device)
     run_root = Path(args.model_root) / args.env
@@ -286,6 +304,8 @@ def play(args: argparse.Namespace) -> int:
 
 
 def _load_policy(sac: Policy, state: dict, ckpt: Path) -> None:
+    from algorithm.checkpoint import restoring
+
     with restoring(ckpt):
         sac.load_state_dict(state["sac"])
 
@@ -293,6 +313,8 @@ def _load_policy(sac: Policy, state: dict, ckpt: Path) -> None:
 def _play_rendered(
     config: Config, state: dict, run_dir: Path, step: str, episodes: int, limit: int | None, device: str
 ) -> int:
+    from algorithm.policy import Policy
+
     base = config.base_config
     headless = not os.environ.get("DISPLAY")
     env = make_env(

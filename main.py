@@ -30,12 +30,11 @@ from typing import Any
 
 import gymnasium
 
-from algorithm.checkpoint import CheckpointError
 from algorithm.config import ConfigError, apply_overrides, config_from_file, load_config
-from algorithm.learner_core import last_evaluation
+from algorithm.errors import CheckpointError
 from algorithm.random_params import draw_for_run
+from algorithm.run_dir import RunDir
 from algorithm.signals import stop_on_signals
-from algorithm.trainer import EmbeddedTrainer, RunDir
 from cli import (
     ArgumentParser,
     UsageError,
@@ -76,6 +75,9 @@ def train(args: argparse.Namespace) -> int:
     resolved = load_config(task, args.config, cli_overrides(args))
     config = resolved.config
     check_env(config)
+    # torch comes with the trainer, imported once the flags, the task and the config are known to be good
+    from algorithm.trainer import EmbeddedTrainer
+
     name_template = args.name or config.base_config.name
     stop = stop_on_signals()  # Ctrl-C and SIGTERM: finish the step, save, exit 130 / 143
     for repeat in range(args.repeat):
@@ -144,6 +146,8 @@ def report_finished(
 ) -> None:
     """The end of a finished run (or of re-running one): its last evaluation, its folder, how to play it."""
     if last_eval is None:  # checkpoints from before the counters kept it
+        from algorithm.learner_core import last_evaluation
+
         row = last_evaluation(RunDir(run_dir).evaluations)
         last_eval = None if row is None else row[1]
     result = "n/a (no evaluation)" if last_eval is None else f"{last_eval:.1f}"

@@ -22,15 +22,15 @@ import socket
 import sys
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-from algorithm.checkpoint import CheckpointError
 from algorithm.config import ConfigError, apply_overrides, config_from_file, config_to_yaml, load_config
-from algorithm.config_schema import Config
+from algorithm.config_schema import MAX_EXPLORATION_NOISE, Config
+from algorithm.errors import CheckpointError, RoleError
 from algorithm.files import WriteFailures, atomic_write
 from algorithm.logging import LogFileHandler
-from algorithm.policy import MAX_EXPLORATION_NOISE
+from algorithm.run_dir import RunDir
 from algorithm.signals import StopRequest, stop_on_signals
-from algorithm.trainer import RunDir
 from cli import (
     ArgumentParser,
     UsageError,
@@ -49,16 +49,12 @@ from cli import (
     run_model_builder,
 )
 from cli import task_dir as resolve_task
-from ds.actor.role import run_actor
-from ds.evolver.role import run_evolver
 from ds.evolver.state import EvolverStateError
 from ds.launch import k8s
-from ds.launch.local import run_local
-from ds.launch.local_summary import PlayableRun
-from ds.launch.role_context import RoleContext, RoleError
-from ds.learner.role import run_learner
 from ds.net import security
-from ds.replay.role import run_replay
+
+if TYPE_CHECKING:
+    from ds.launch.role_context import RoleContext
 
 ROLES = {"replay": "replay", "r": "replay", "learner": "learner", "l": "learner", "actor": "actor", "a": "actor",
          "evolver": "evolver", "e": "evolver", "local": "local"}  # fmt: skip
@@ -241,6 +237,10 @@ def run(args: argparse.Namespace) -> int:
     if role == "local" and args.evolver_host is not None:
         raise UsageError("local starts its own evolver; --evolver_host is for roles started one by one")
     config, run_dir = resolve(args)
+    # torch and the roles' code, imported once the flags, the task, the config and the credentials
+    # are known to be good (cli.py); each role process imports its own role's composition only
+    from ds.launch.role_context import RoleContext
+
     with removed_if_not_started(run_dir):
         copy_model_file(resolve_task(args.env), config, run_dir, explicit=args.nn is not None)
         setup_logging(run_dir, role, args.logger_in_file)
@@ -271,11 +271,19 @@ def run(args: argparse.Namespace) -> int:
 
 def run_role(role: str, context: RoleContext, args: argparse.Namespace) -> int:
     if role == "evolver":
+        from ds.evolver.role import run_evolver
+
         return run_evolver(context)
     if role == "replay":
+        from ds.replay.role import run_replay
+
         return run_replay(context)
     if role == "learner":
+        from ds.learner.role import run_learner
+
         return run_learner(context, args.ckpt, progress=not args.no_progress)
+    from ds.actor.role import run_actor
+
     return run_actor(context, args.noise, args.index)
 
 
@@ -284,6 +292,9 @@ def local(args: argparse.Namespace, config: Config, run_dir: Path, creds: securi
     ``base_config.evolver_enabled``: N defaults to 2), an evolver, N replays, N learners and the actors.
     Without ``net_config.token_file`` (nor ``--no_token``) the run gets a fresh token in ``<run>/token``
     (mode 0600), handed to every child as an explicit one is: ``--override net.token_file=<run>/token``."""
+    from ds.launch.local import run_local
+    from ds.launch.local_summary import PlayableRun
+
     learners = args.learners or (2 if config.base_config.evolver_enabled else None)
     token_flags: list[str] = []
     if config.net_config.token_file is None and not args.no_token:

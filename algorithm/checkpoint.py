@@ -33,7 +33,10 @@ from typing import Any
 import numpy as np
 import torch
 
+from algorithm.errors import CheckpointError
 from algorithm.files import atomic_write
+
+__all__ = ["CheckpointError"]  # defined in algorithm/errors.py (importable without torch), raised here
 
 # 2: with a digest of the contents. Checkpoints of format 1 (no digest) still load.
 FORMAT_VERSION = 2
@@ -41,11 +44,6 @@ _READABLE_VERSIONS = (1, 2)
 _DIGEST = "digest"
 _NAME = re.compile(r"^(\d+)\.pt$")
 _TEMP = re.compile(r"^\.\d+\.pt\..*\.tmp$")  # algorithm/files.py's temp names for <step>.pt
-
-
-class CheckpointError(RuntimeError):
-    """A checkpoint is missing, unreadable, damaged, or not one of ours (or not this run's: another
-    task's models); the message names the file."""
 
 
 def list_checkpoints(model_dir: Path) -> list[int]:

@@ -14,6 +14,11 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator, model_valida
 
 from algorithm.random_params import parse_random_params
 
+# The largest extra exploration noise (a std added before the tanh) acting accepts (algorithm/policy.py,
+# the learner's GetAction, main_ds.py --noise). Far past it tanh saturates every action anyway; near
+# 1e37 the float32 std overflows and log-probs become NaN.
+MAX_EXPLORATION_NOISE = 1e6
+
 
 class Section(BaseModel):
     """Base for every section: unknown keys are errors, assignments are validated, and no number may
@@ -274,8 +279,9 @@ class ActorConfig(Section):
     noise_increasing_rate: float = Field(
         0.0, ge=0.0, description="Distributed actor i explores with extra noise min(rate * i, noise_max)."
     )
-    # le: algorithm.policy.MAX_EXPLORATION_NOISE (acting refuses more; tanh saturates long before it).
-    noise_max: float = Field(0.1, ge=0.0, le=1e6, description="Ceiling of the per-actor exploration noise.")
+    noise_max: float = Field(
+        0.1, ge=0.0, le=MAX_EXPLORATION_NOISE, description="Ceiling of the per-actor exploration noise."
+    )
 
 
 class EvalConfig(Section):

@@ -30,10 +30,6 @@ from algorithm.nn.recurrent import RecurrentRepresentation
 from algorithm.nn.user import ModelBuilder
 from algorithm.spaces import EnvSpec
 
-# The largest extra exploration noise (a std added before the tanh) acting accepts. Far past it tanh
-# saturates every action anyway; near 1e37 the float32 std overflows and log-probs become NaN.
-MAX_EXPLORATION_NOISE = 1e6
-
 
 class Policy:
     """The models of one agent and what acting needs: the acting generators, the NumPy actor, the

@@ -1,6 +1,7 @@
 """The import direction of docs/architecture.md section 2: algorithm imports nothing of ours but
 itself, envs only algorithm.spaces, nothing imports main*.py, only they import cli.py (the command-line
-code they share); and every docs/*.md section the tree cites exists."""
+code they share), and they import torch only once a command is checked; and every docs/*.md
+section the tree cites exists."""
 
 from __future__ import annotations
 
@@ -54,6 +55,35 @@ def test_the_launchers_share_cli_and_not_each_other() -> None:
         imported = {n.split(".")[0] for n in imported_packages(ROOT / launcher)}
         assert "cli" in imported and not imported & {"main", "main_ds"} - {launcher[:-3]}, (launcher, imported)
     assert not {n.split(".")[0] for n in imported_packages(ROOT / "cli.py")} & {"main", "main_ds"}
+
+
+# Runs a launcher as `python LAUNCHER ARGS` would, then says its exit code and whether torch was imported.
+PROBE = """
+import runpy, sys
+sys.argv = {argv!r}
+try:
+    runpy.run_path({path!r}, run_name="__main__")
+except SystemExit as e:
+    print("exit", e.code, "torch" in sys.modules)
+"""
+
+
+def test_a_mistyped_command_is_answered_before_torch_is_imported() -> None:
+    """main.py, main_ds.py and cli.py import torch (~3 s of CPU on a laptop core, most of a bad
+    command's wait) only once the flags, the task and the config are known to be good."""
+    commands = (
+        ["main.py", "gym/pendlum"],
+        ["main.py", "gym/pendulum", "--override", "sac.gama=0.5"],
+        ["main.py", "gym/pendulum", "--device", "banana"],
+        ["main_ds.py", "gym/pendulum", "replay", "--override", "sac.gama=0.5"],
+        ["main_ds.py", "gym/pendulum", "actor", "--noise", "-1"],
+        ["main_ds.py", "gym/pendulum", "learner", "--actors", "2"],
+    )
+    for argv in commands:
+        code = PROBE.format(argv=argv, path=str(ROOT / argv[0]))
+        done = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=120)
+        assert "error:" in done.stderr, (argv, done.stderr)
+        assert done.stdout.split() == ["exit", "2", "False"], (argv, done.stdout, done.stderr)
 
 
 def test_protos_import_only_protos() -> None:

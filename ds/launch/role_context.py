@@ -39,6 +39,7 @@ import zmq
 from algorithm.actor import VectorEnvLike
 from algorithm.config import ConfigError
 from algorithm.config_schema import Config
+from algorithm.errors import RoleError
 from algorithm.nn.user import ModelBuilder, recurrent_state_size
 from algorithm.policy import Policy
 from algorithm.sac import SAC
@@ -52,10 +53,6 @@ from ds.replay.codec import message_limit_bytes
 from ds.replay.service import ReplayClient
 
 _T = TypeVar("_T")
-
-
-class RoleError(RuntimeError):
-    """A role cannot start (e.g. its port is taken); the message says what to change."""
 
 
 def listen(what: str, address: str, flag: str, start: Callable[[], _T]) -> _T:

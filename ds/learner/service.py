@@ -45,7 +45,8 @@ import numpy as np
 import torch
 from grpc_health.v1 import health, health_pb2_grpc
 
-from algorithm.policy import MAX_EXPLORATION_NOISE, Policy
+from algorithm.config_schema import MAX_EXPLORATION_NOISE
+from algorithm.policy import Policy
 from algorithm.spaces import EnvSpec
 from ds.net import rpc, security
 from ds.net.client import RpcClient
