@@ -93,11 +93,17 @@ def final_return(run: Path) -> float:
 
 
 @pytest.fixture(scope="module")
-def uninterrupted(tmp_path_factory: pytest.TempPathFactory) -> float:
+def whole(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The working directory of a run trained to MAX_STEP without interruption (``-n whole``)."""
     cwd = tmp_path_factory.mktemp("whole")
     done = run_main(cwd, *COMMON, "-n", "whole")
     assert done.returncode == 0, done.stderr
-    return final_return(cwd / "models/gym/pendulum/whole")
+    return cwd
+
+
+@pytest.fixture(scope="module")
+def uninterrupted(whole: Path) -> float:
+    return final_return(whole / "models/gym/pendulum/whole")
 
 
 # Interruption points, in this order in one run: during the warm-up (before min_size_to_sample), while
@@ -155,15 +161,13 @@ def test_resume_without_the_replay_does_not_hang_and_keeps_the_ratio(tmp_path: P
     assert 4 * (new_steps - 564) <= new_updates <= 4 * (new_steps - 500), (before, after)
 
 
-def test_a_finished_run_started_again_reports_its_result_and_how_to_play_it(tmp_path: Path) -> None:
-    args = [*COMMON, "-n", "done", "--override", "base.max_step=1200", "--override", "eval.eval_per_step=600"]
-    first = run_main(tmp_path, *args)
-    assert first.returncode == 0, first.stderr
-    rows = read_evaluations(tmp_path / "models/gym/pendulum/done/evaluations.csv")
-    again = run_main(tmp_path, *args, timeout=180)
+def test_a_finished_run_started_again_reports_its_result_and_how_to_play_it(whole: Path) -> None:
+    # the uninterrupted run above, started again by the same command (it changes nothing there)
+    rows = read_evaluations(whole / "models/gym/pendulum/whole/evaluations.csv")
+    again = run_main(whole, *COMMON, "-n", "whole", timeout=180)
     assert again.returncode == 0, again.stderr
-    assert f"already finished at 1200 env steps; last eval return {rows[-1]['return_mean']:.1f}" in again.stderr
+    assert f"already finished at {MAX_STEP} env steps; last eval return {rows[-1]['return_mean']:.1f}" in again.stderr
     command = re.search(r"play it with: python (main\.py .*--run)", again.stderr)
-    assert command is not None and "models/gym/pendulum/done" in again.stderr, again.stderr
-    played = run_main(tmp_path, *command.group(1).split()[1:], "--episodes", "2")
-    assert played.returncode == 0 and "checkpoint 1200: return" in played.stdout, played.stderr
+    assert command is not None and "models/gym/pendulum/whole" in again.stderr, again.stderr
+    played = run_main(whole, *command.group(1).split()[1:], "--episodes", "2")
+    assert played.returncode == 0 and f"checkpoint {MAX_STEP}: return" in played.stdout, played.stderr
