@@ -33,10 +33,10 @@ from typing import Any
 import numpy as np
 import torch
 
-from algorithm.errors import CheckpointError
+# CheckpointError is defined in algorithm/errors.py (importable without torch), raised here and
+# importable from here as before.
+from algorithm.errors import CheckpointError as CheckpointError
 from algorithm.files import atomic_write
-
-__all__ = ["CheckpointError"]  # defined in algorithm/errors.py (importable without torch), raised here
 
 # 2: with a digest of the contents. Checkpoints of format 1 (no digest) still load.
 FORMAT_VERSION = 2
