@@ -222,10 +222,20 @@ def copy_model_file(task: Path, config: Config, run_dir: Path, explicit: bool) -
 
 def run_model_builder(paths: RunDir) -> ModelBuilder:
     """Models as the run built them: from its copied model file when it has one."""
+    from algorithm.nn.builder import build_models
+
+    return run_model_file_builder(paths) or build_models
+
+
+def run_model_file_builder(paths: RunDir) -> ModelBuilder | None:
+    """The builder of the run's copied model file; None when it has none (the default models), in
+    which case nothing is imported: a replay or an evolver of such a run never imports torch."""
+    if not paths.model_file.exists():
+        return None
     from algorithm.nn.user import model_builder
 
     try:
-        return model_builder(paths.model_file if paths.model_file.exists() else None)
+        return model_builder(paths.model_file)
     except (ImportError, AttributeError) as e:
         raise UsageError(str(e)) from None
 
@@ -265,7 +275,7 @@ def play(args: argparse.Namespace) -> int:
     from algorithm.checkpoint import list_checkpoints, load_for_resume
     from algorithm.evaluation import evaluate
     from algorithm.policy import Policy
-    from algorithm.trainer import seed_everything
+    from algorithm.seeding import seed_everything
 
     task_dir(args.env)  # validates the task name
     check_device(args.device)

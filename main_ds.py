@@ -46,7 +46,7 @@ from cli import (
     positive,
     removed_if_not_started,
     run_directory,
-    run_model_builder,
+    run_model_file_builder,
 )
 from cli import task_dir as resolve_task
 from ds.evolver.state import EvolverStateError
@@ -248,13 +248,13 @@ def run(args: argparse.Namespace) -> int:
             config,
             run_dir,
             env_factory(config),
-            run_model_builder(RunDir(run_dir)),
+            None if role == "evolver" else run_model_file_builder(RunDir(run_dir)),  # it builds no model
             args.device,
             stop_on_signals("stopping"),
             credentials=credentials(config, role),
             overrides=tuple(cli_overrides(args)),
         )
-        if role != "evolver":  # the one role without models
+        if role not in ("evolver", "replay"):  # the roles without models (a replay needs only a state width)
             check_models(context)
         if role in ("local", "evolver") or (role == "learner" and not context.uses_evolver):
             run_dir.mkdir(parents=True, exist_ok=True)  # a population's learners write learner_<id>/config.yaml

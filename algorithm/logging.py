@@ -77,10 +77,18 @@ class MetricsWriter:
             self._add(summary_pb2.Summary(value=values), step)
 
     def text(self, name: str, text: str, step: int = 0) -> None:
-        from torch.utils.tensorboard.summary import text as text_summary
+        """``text`` under the tag ``<name>/text_summary`` in TensorBoard's text tab (the tag torch's
+        SummaryWriter gave it before; written here without importing torch: the evolver writes text)."""
+        summary_pb2 = _protos()[1]
+        from tensorboard.compat.proto import tensor_pb2, tensor_shape_pb2, types_pb2
 
         # TensorBoard renders markdown; a fenced block keeps YAML indentation readable.
-        self._add(text_summary(name, "```\n" + text + "\n```"), step)
+        fenced = ("```\n" + text + "\n```").encode()
+        one = tensor_shape_pb2.TensorShapeProto(dim=[tensor_shape_pb2.TensorShapeProto.Dim(size=1)])
+        tensor = tensor_pb2.TensorProto(dtype=types_pb2.DT_STRING, tensor_shape=one, string_val=[fenced])
+        plugin = summary_pb2.SummaryMetadata(plugin_data=summary_pb2.SummaryMetadata.PluginData(plugin_name="text"))
+        value = summary_pb2.Summary.Value(tag=f"{name}/text_summary", tensor=tensor, metadata=plugin)
+        self._add(summary_pb2.Summary(value=[value]), step)
 
     def flush(self) -> None:
         """Write what is held now (the data is with the OS after each write already)."""

@@ -19,7 +19,6 @@ run had collected.
 from __future__ import annotations
 
 import logging
-import random
 import threading
 from collections import deque
 from collections.abc import Callable
@@ -31,30 +30,20 @@ import numpy as np
 import torch
 
 from algorithm.actor import ActorLoop, VectorEnvLike
-from algorithm.checkpoint import CheckpointError, list_checkpoints
+from algorithm.checkpoint import list_checkpoints
 from algorithm.config_schema import Config
 from algorithm.files import WriteFailures
 from algorithm.learner_core import LearnerCore, UpdateBudget
 from algorithm.nn.user import model_builder
 from algorithm.policy import Policy
 from algorithm.replay import PrioritizedTable
-from algorithm.replay.persistence import snapshot_kept
+from algorithm.replay.persistence import load_replay_snapshot, snapshot_kept
 from algorithm.run_dir import EVAL_SEED_OFFSET, RunDir
 from algorithm.sac import SAC
+from algorithm.seeding import seed_everything
 
-__all__ = ["EVAL_SEED_OFFSET", "EmbeddedTrainer", "RunDir", "TrainSummary", "load_replay_snapshot", "seed_everything"]
+__all__ = ["EVAL_SEED_OFFSET", "EmbeddedTrainer", "RunDir", "TrainSummary"]
 log = logging.getLogger("asac")
-
-
-def load_replay_snapshot(table: PrioritizedTable, path: Path) -> None:
-    """``table.load(path)``, with a file that cannot be loaded (damaged, truncated, another task's)
-    as a :class:`CheckpointError`: the table and the file stay as they are."""
-    try:
-        table.load(path)
-    except ValueError as e:
-        raise CheckpointError(
-            f"replay snapshot {e}; nothing was overwritten: repair it, or move it away to start with an empty replay"
-        ) from None
 
 
 @dataclass
@@ -65,12 +54,6 @@ class TrainSummary:
     wall_seconds: float
     last_eval_mean: float | None
     interrupted: bool
-
-
-def seed_everything(seed: int) -> None:
-    random.seed(seed)
-    np.random.seed(seed % 2**32)  # noqa: NPY002 - user code and libraries may use the global RNG
-    torch.manual_seed(seed)
 
 
 class EmbeddedTrainer:

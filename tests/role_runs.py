@@ -28,8 +28,8 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
-from ds.launch.local import LOCAL_HOST, free_port
-from ds.net.rpc import RetryPolicy
+from ds.launch.local import free_port
+from ds.net.rpc import LOCAL_HOST, RetryPolicy
 from ds.replay.service import ReplayClient
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -81,6 +81,11 @@ def running(pid: int) -> bool:
     except FileNotFoundError:
         return False
     return state != "Z"
+
+
+def torch_is_loaded(pid: int) -> bool:
+    """Whether process ``pid`` has torch's library mapped (Linux: /proc/PID/maps)."""
+    return "libtorch" in Path(f"/proc/{pid}/maps").read_text()
 
 
 def rss_mb(pid: int) -> float | None:

@@ -19,7 +19,7 @@ from algorithm.replay import PrioritizedTable, RateLimiter, SampleTimeout
 from algorithm.sac import SAC
 from ds.actor.actor import DistributedActor
 from ds.actor.sink import LAST_INSERTS_WAIT_S
-from ds.learner.service import LearnerClient, Registration
+from ds.learner.client import LearnerClient, Registration
 from ds.replay.service import ReplayClient, serve_replay
 from envs.make import vector_env_factory
 from tests.ds.test_reconnect import CONFIG, FAST_RETRY, SPEC, Learner, free_port

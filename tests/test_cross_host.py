@@ -107,13 +107,18 @@ def test_roles_in_separate_network_namespaces_train_together(tmp_path: Path) -> 
         replay_addr, learner_addr = net["replay"].address, net["learner"].address
         peers = ["--replay_host", replay_addr, "--learner_host", learner_addr]
         logs = {name: tmp_path / f"{name}.log" for name in net}
-        # Reverse start order: the actor and learner must wait for their peers and say so.
+        # Reverse start order: the actor and the learner must wait for the replay and say so; it is
+        # started once both have (a replay starts in ~1.5 s, before they would ask for it otherwise).
         procs = {"actor": role(net["actor"], "actor", tmp_path / "actor_host", logs["actor"], *peers)}
-        time.sleep(2.0)
         procs["learner"] = role(net["learner"], "learner", tmp_path / "learner_host", logs["learner"], *peers)
-        time.sleep(2.0)
-        procs["replay"] = role(net["replay"], "replay", tmp_path / "replay_host", logs["replay"])
         try:
+            deadline = time.monotonic() + 120
+            for name in ("actor", "learner"):
+                while f"waiting for replay at {replay_addr}" not in logs[name].read_text():
+                    assert procs[name].poll() is None, logs[name].read_text()[-3000:]
+                    assert time.monotonic() < deadline, f"the {name} never said it waits for the replay"
+                    time.sleep(0.2)
+            procs["replay"] = role(net["replay"], "replay", tmp_path / "replay_host", logs["replay"])
             for name in ("actor", "learner"):
                 assert procs[name].wait(timeout=420) == 0, logs[name].read_text()[-3000:]
         finally:

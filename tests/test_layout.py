@@ -8,9 +8,15 @@ from __future__ import annotations
 import ast
 import os
 import re
+import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
+
+import pytest
+
+from tests.role_runs import torch_is_loaded
 
 ROOT = Path(__file__).resolve().parents[1]
 OURS = ("algorithm", "envs", "ds", "protos", "cli", "main", "main_ds")
@@ -84,6 +90,29 @@ def test_a_mistyped_command_is_answered_before_torch_is_imported() -> None:
         done = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=120)
         assert "error:" in done.stderr, (argv, done.stderr)
         assert done.stdout.split() == ["exit", "2", "False"], (argv, done.stdout, done.stderr)
+
+
+@pytest.mark.skipif(not Path("/proc/self/maps").exists(), reason="reads /proc/PID/maps (Linux)")
+@pytest.mark.parametrize("role", ["replay", "evolver"])
+def test_the_replay_and_the_evolver_serve_without_importing_torch(role: str, tmp_path: Path) -> None:
+    """A replay needs the table's layout (the spec, a recurrent state width) and an evolver relays
+    weights as arrays: neither builds a model, so neither loads torch (a replay of Pendulum started
+    in ~1.5 s of CPU and held ~140 MB instead of ~6.7 s and ~410 MB with it, docs/architecture.md
+    section 2)."""
+    command = [sys.executable, str(ROOT / "main_ds.py"), "gym/pendulum", role, "-n", "light", "--no_progress",
+               f"--{role}_port", "0"]  # fmt: skip
+    log = tmp_path / "role.log"
+    with log.open("w") as out:
+        proc = subprocess.Popen(command, cwd=tmp_path, stdout=out, stderr=subprocess.STDOUT)
+    try:
+        deadline = time.monotonic() + 60
+        while "serving on" not in log.read_text():
+            assert proc.poll() is None and time.monotonic() < deadline, log.read_text()
+            time.sleep(0.1)
+        assert not torch_is_loaded(proc.pid), f"the {role} role loaded torch"
+    finally:
+        proc.send_signal(signal.SIGINT)
+        assert proc.wait(timeout=30) == 130, log.read_text()
 
 
 def test_protos_import_only_protos() -> None:

@@ -25,7 +25,7 @@ from algorithm.evaluation import read_evaluations
 from ds.actor.role import AsksForIndex
 from ds.launch.local import plan
 from ds.launch.local_summary import python_command
-from ds.learner.service import LearnerClient
+from ds.learner.client import LearnerClient
 from tests.role_runs import ENV, TINY, child_pids, event_files, main_ds_command, no_process_mentions, running
 
 ROOT = Path(__file__).resolve().parents[1]

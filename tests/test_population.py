@@ -23,7 +23,7 @@ from ds.evolver.service import EvolverClient
 from ds.evolver.state import EvolverInfo
 from ds.launch.local import free_port
 from ds.net.rpc import RetryPolicy
-from tests.role_runs import TINY_OVERRIDES, running
+from tests.role_runs import TINY_OVERRIDES, running, torch_is_loaded
 
 ROOT = Path(__file__).resolve().parents[1]
 ENV = {**os.environ, "OMP_WAIT_POLICY": "PASSIVE", "OMP_NUM_THREADS": "1", "MUJOCO_GL": "egl"}
@@ -220,6 +220,11 @@ def test_a_sabotaged_learner_is_never_elite_and_is_fixed_by_elite_samples_or_ret
         return loaded is not None and EVAL_LINE.search(text, loaded.end()) is not None
 
     pop.wait_for("two CEM rounds, and the sabotaged learner retired or evaluated after a sample", settled, 300)
+    # after two CEM rounds (weights fetched, sampled and sent on) the evolver and the replays still have
+    # not loaded torch: neither builds a model (tests/test_layout.py checks them as they start)
+    for label, proc in pop.procs.items():
+        if label.startswith(("evolver", "replay")):
+            assert not torch_is_loaded(proc.pid), f"{label} loaded torch"
     state = pop.state()
     assert state is not None
     me = learner_of(state, sabotaged.pid)

@@ -14,7 +14,7 @@ from pathlib import Path
 import grpc
 import pytest
 
-from ds.learner.service import LearnerClient
+from ds.learner.client import LearnerClient
 from ds.net.rpc import RetryPolicy
 from ds.net.security import Credentials
 from ds.replay.service import ReplayClient, ReplayRpcError

@@ -15,14 +15,11 @@ unless asked — and positions before the window's first valid row leave the sta
 
 from __future__ import annotations
 
-from typing import Literal
-
 import torch
 from torch import Tensor, nn
 
 from algorithm.nn.models import Representation
-
-RnnType = Literal["gru", "lstm"]
+from algorithm.nn.shapes import RnnType, recurrent_state_width
 
 
 class RecurrentRepresentation(Representation):
@@ -38,12 +35,7 @@ class RecurrentRepresentation(Representation):
         cell: type[nn.GRUCell] | type[nn.LSTMCell] = nn.GRUCell if rnn_type == "gru" else nn.LSTMCell
         self.cell = cell(features.state_dim + action_size, hidden_size)
         self.state_dim = self.policy_state_dim = hidden_size
-        self.rnn_state_size = self.state_size(hidden_size, rnn_type)
-
-    @staticmethod
-    def state_size(hidden_size: int, rnn_type: RnnType) -> int:
-        """The flat state's width: ``h`` for a GRU, ``[h | c]`` for an LSTM."""
-        return hidden_size * (2 if rnn_type == "lstm" else 1)
+        self.rnn_state_size = recurrent_state_width(hidden_size, rnn_type)
 
     def forward(self, obs: list[Tensor]) -> Tensor:  # pragma: no cover - a recurrent model needs its state
         raise TypeError("RecurrentRepresentation needs the previous action and state: use step() or sequence()")

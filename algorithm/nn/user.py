@@ -25,6 +25,7 @@ from algorithm.config_schema import NNConfig, SacConfig
 from algorithm.nn.builder import build_models
 from algorithm.nn.models import Representation, SacModels
 from algorithm.nn.recurrent import RecurrentRepresentation
+from algorithm.nn.shapes import default_recurrent_state_size
 from algorithm.spaces import EnvSpec
 
 ModelBuilder = Callable[[EnvSpec, SacConfig, NNConfig], SacModels]
@@ -77,6 +78,6 @@ def recurrent_state_size(spec: EnvSpec, sac: SacConfig, nn: NNConfig, build: Mod
     default models, or a model file's ``build_representation``); a model file's own ``build_models``
     decides it itself, so its models are built once (no target copies, no optimizers)."""
     if build is build_models or isinstance(build, _AroundRepresentation):
-        return RecurrentRepresentation.state_size(nn.rnn_units, nn.rnn_type) if sac.use_rnn else 0
+        return default_recurrent_state_size(sac, nn)
     rep = build(spec, sac, nn).representation
     return rep.rnn_state_size if isinstance(rep, RecurrentRepresentation) else 0

@@ -13,10 +13,11 @@ from __future__ import annotations
 import json
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 
+from algorithm.errors import CheckpointError
 from algorithm.files import atomic_write, open_regular
 
 FORMAT = "asac-replay-v1"
@@ -39,6 +40,21 @@ def snapshot_kept(path: Path) -> str:
     if path.exists():
         return f"{path} keeps the previous snapshot"
     return "there is no earlier snapshot: what the replay holds now is in memory only"
+
+
+class _Loadable(Protocol):  # a PrioritizedTable (table.py imports this module)
+    def load(self, path: Path) -> None: ...
+
+
+def load_replay_snapshot(table: _Loadable, path: Path) -> None:
+    """``table.load(path)``, with a file that cannot be loaded (damaged, truncated, another task's)
+    as a :class:`CheckpointError`: the table and the file stay as they are."""
+    try:
+        table.load(path)
+    except ValueError as e:
+        raise CheckpointError(
+            f"replay snapshot {e}; nothing was overwritten: repair it, or move it away to start with an empty replay"
+        ) from None
 
 
 def read_checked(

@@ -54,7 +54,7 @@ from algorithm.policy import Policy
 from algorithm.replay import ReplayUnavailable
 from ds.actor.sink import LAST_INSERTS_WAIT_S, ReplaySink
 from ds.learner import service as learner_service
-from ds.learner.service import LearnerClient, LeaseExpired, Registration, RemotePolicy
+from ds.learner.client import LearnerClient, LeaseExpired, Registration, RemotePolicy
 from ds.net.params import ParamsError, ParamsSubscriber, decode_params, params_spec
 from ds.net.rpc import peer_unresponsive, wait_until_serving
 from ds.net.stream_key import StreamKey

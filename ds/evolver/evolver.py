@@ -84,7 +84,7 @@ from ds.evolver.state import (
     write_distribution,
     write_sample,
 )
-from ds.learner.service import LearnerClient
+from ds.learner.client import LearnerClient
 from ds.net.params import ParamsError, decode_params
 from ds.net.rpc import RetryPolicy
 from ds.net.security import NO_CREDENTIALS, Credentials

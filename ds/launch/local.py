@@ -53,11 +53,10 @@ from algorithm.signals import StopRequest, stop_on_signals
 from ds.evolver.service import EvolverClient
 from ds.evolver.state import LearnerInfo
 from ds.launch.local_summary import PlayableRun, summary
-from ds.net.rpc import RetryPolicy
+from ds.net.rpc import LOCAL_HOST, RetryPolicy
 from ds.net.security import NO_CREDENTIALS, Credentials
 
 log = logging.getLogger("asac.local")
-LOCAL_HOST = "127.0.0.1"
 NO_HEALTH_PORT = ("--override", "net.health_port=null")
 STOP_ORDER = ("learner", "actor", "replay", "evolver")
 """Who is told to stop first: a replay outlives the learner and actors it serves, the evolver all."""

@@ -22,7 +22,7 @@ from pathlib import Path
 
 from algorithm.checkpoint import list_checkpoints
 from algorithm.learner_core import last_evaluation
-from algorithm.trainer import RunDir
+from algorithm.run_dir import RunDir
 
 DEFAULT_MODEL_ROOT = "models"  # main.py's --model_root default: the play command leaves it out
 

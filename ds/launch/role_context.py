@@ -32,7 +32,7 @@ import threading
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TypeVar
+from typing import TYPE_CHECKING, TypeVar
 
 import zmq
 
@@ -40,17 +40,19 @@ from algorithm.actor import VectorEnvLike
 from algorithm.config import ConfigError
 from algorithm.config_schema import Config
 from algorithm.errors import RoleError
-from algorithm.nn.user import ModelBuilder, recurrent_state_size
-from algorithm.policy import Policy
-from algorithm.sac import SAC
+from algorithm.nn.shapes import default_recurrent_state_size
 from algorithm.spaces import EnvSpec
 from ds.evolver import service as evolver_service
 from ds.evolver.service import EvolverClient
-from ds.launch.local import LOCAL_HOST
-from ds.net.rpc import wait_until_serving
+from ds.net.rpc import LOCAL_HOST, wait_until_serving
 from ds.net.security import NO_CREDENTIALS, Credentials
 from ds.replay.codec import message_limit_bytes
 from ds.replay.service import ReplayClient
+
+if TYPE_CHECKING:  # torch: imported by the roles that build models, never by the replay or the evolver
+    from algorithm.nn.user import ModelBuilder
+    from algorithm.policy import Policy
+    from algorithm.sac import SAC
 
 _T = TypeVar("_T")
 
@@ -67,15 +69,17 @@ def listen(what: str, address: str, flag: str, start: Callable[[], _T]) -> _T:
 @dataclass
 class RoleContext:
     """What every role needs: the resolved config, its run directory, an env factory
-    ``make_env(num_envs, seed)``, the model builder of the run, the torch device, a stop event, the
-    role's credentials (ds/net/security.py: the run's shared secret of ``net_config.token_file``, which
-    signs parameters and authenticates rpcs, and its TLS certificates; none: plaintext, unsigned) and
-    this process's ``--override`` flags (applied again on top of the config an evolver gives)."""
+    ``make_env(num_envs, seed)``, the model builder of the run's model file (None: the default models,
+    imported when first built, so that the replay of a run without a model file never imports torch),
+    the torch device, a stop event, the role's credentials (ds/net/security.py: the run's shared secret
+    of ``net_config.token_file``, which signs parameters and authenticates rpcs, and its TLS
+    certificates; none: plaintext, unsigned) and this process's ``--override`` flags (applied again on
+    top of the config an evolver gives)."""
 
     config: Config
     run_dir: Path
     make_env: Callable[[int, int], VectorEnvLike]
-    build: ModelBuilder
+    build: ModelBuilder | None = None
     device: str = "cpu"
     stop: threading.Event = field(default_factory=threading.Event)
     credentials: Credentials = NO_CREDENTIALS
@@ -103,16 +107,33 @@ class RoleContext:
     def rnn_state_size(self, spec: EnvSpec) -> int:
         """The recurrent state width of this run's models, without building a SAC (a replay needs only this)."""
         cfg = self.config
+        if self.build is None:
+            return default_recurrent_state_size(cfg.sac_config, cfg.nn_config)
+        from algorithm.nn.user import recurrent_state_size
+
         return recurrent_state_size(spec, cfg.sac_config, cfg.nn_config, self.build)
+
+    @property
+    def models(self) -> ModelBuilder:
+        """The run's model builder: its model file's, else the default models'."""
+        if self.build is not None:
+            return self.build
+        from algorithm.nn.builder import build_models
+
+        return build_models
 
     def policy(self, spec: EnvSpec, device: str = "cpu") -> Policy:
         """The acting side alone (actors, the learner's GetAction copy): no optimizers, no targets."""
+        from algorithm.policy import Policy
+
         cfg = self.config
-        return Policy(spec, cfg.sac_config, cfg.nn_config, device=device, build=self.build)
+        return Policy(spec, cfg.sac_config, cfg.nn_config, device=device, build=self.models)
 
     def sac(self, spec: EnvSpec, device: str = "cpu") -> SAC:
+        from algorithm.sac import SAC
+
         cfg = self.config
-        return SAC(spec, cfg.sac_config, cfg.nn_config, cfg.replay_config, device=device, build=self.build)
+        return SAC(spec, cfg.sac_config, cfg.nn_config, cfg.replay_config, device=device, build=self.models)
 
     def address(self, role: str) -> str:
         net = self.config.net_config

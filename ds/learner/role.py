@@ -16,8 +16,9 @@ from dataclasses import replace
 
 from algorithm.config import config_to_yaml
 from algorithm.files import WriteFailures, atomic_write
+from algorithm.run_dir import EVAL_SEED_OFFSET, RunDir
 from algorithm.sac import SAC
-from algorithm.trainer import EVAL_SEED_OFFSET, RunDir, seed_everything
+from algorithm.seeding import seed_everything
 from ds.evolver.link import EvolverLink, Membership, WeightsSnapshot, exit_code, wait_for_replay
 from ds.evolver.population import Joined, LearnerAddress, SlotTaken, join_population, member_config
 from ds.evolver.service import EvolverClient
@@ -116,7 +117,7 @@ def _train(
     seed_everything(role.seed)
     spec = role.spec()
     sac = SAC(spec, cfg.sac_config, cfg.nn_config, cfg.replay_config, device=role.device,
-              compile=cfg.sac_config.compile, build=role.build)  # fmt: skip
+              compile=cfg.sac_config.compile, build=role.models)  # fmt: skip
     replays: list[ReplayClient] = []
 
     def connect(address: str | None = None) -> ReplayClient:

@@ -62,16 +62,18 @@ import hashlib
 import hmac
 import json
 import math
+import sys
 import time
 from collections.abc import Mapping, Sequence
-from typing import Any, NamedTuple
+from typing import TYPE_CHECKING, Any, NamedTuple
 
 import numpy as np
-import torch
 import zmq
-from torch import Tensor
 
 from ds.net.stream_key import StreamKey
+
+if TYPE_CHECKING:
+    from torch import Tensor
 
 FORMAT = "asac.params/1"
 MAC_BYTES = hashlib.sha256().digest_size
@@ -85,7 +87,7 @@ _ENTRY_FIELDS = frozenset(["name", "dtype", "shape", "nbytes"])
 _KEEP = 4  # valid-looking messages kept per drain, highest versions first: bounds memory
 _DRAIN_LIMIT = 1000  # messages read per latest() call: ends the drain under a fast flood
 
-Params = Mapping[str, Tensor | np.ndarray]
+Params = Mapping[str, "Tensor | np.ndarray"]
 ParamsSpec = Mapping[str, tuple[Any, Sequence[int]]]
 """Name -> (dtype, shape); dtype is anything ``np.dtype`` accepts or a ``torch.dtype``."""
 
@@ -150,13 +152,19 @@ def encode_params(
     return frames
 
 
+def _torch() -> Any:
+    """torch if this process has imported it, else None: only then can a value be a tensor or a dtype
+    a torch one. The evolver, which relays weights as numpy arrays, never imports it."""
+    return sys.modules.get("torch")
+
+
 def _as_array(name: str, value: Tensor | np.ndarray) -> np.ndarray:
-    if isinstance(value, Tensor):
-        value = value.detach().cpu()
+    if (torch := _torch()) is not None and isinstance(value, torch.Tensor):
+        tensor = value.detach().cpu()
         try:
-            value = value.numpy()
+            value = tensor.numpy()
         except TypeError:
-            raise ParamsError(f"{name}: dtype {value.dtype} cannot travel (allowed: {sorted(DTYPES)})") from None
+            raise ParamsError(f"{name}: dtype {tensor.dtype} cannot travel (allowed: {sorted(DTYPES)})") from None
     array = np.asarray(value)
     if array.dtype.name not in DTYPES:
         raise ParamsError(f"{name}: dtype {array.dtype} cannot travel (allowed: {sorted(DTYPES)})")
@@ -293,7 +301,9 @@ def _normalise_spec(spec: ParamsSpec) -> dict[str, tuple[np.dtype, tuple[int, ..
     """Native-order numpy dtypes and int tuples; a dtype that cannot travel raises :class:`ParamsError`."""
     out = {}
     for name, (dtype, shape) in spec.items():
-        empty = torch.empty(0, dtype=dtype) if isinstance(dtype, torch.dtype) else np.empty(0, dtype)
+        torch = _torch()
+        is_torch = torch is not None and isinstance(dtype, torch.dtype)
+        empty = torch.empty(0, dtype=dtype) if is_torch else np.empty(0, dtype)
         out[name] = (np.dtype(_as_array(name, empty).dtype.name), tuple(int(d) for d in shape))
     return out
 

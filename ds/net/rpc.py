@@ -40,6 +40,7 @@ from grpc_health.v1 import health, health_pb2, health_pb2_grpc
 
 _T = TypeVar("_T")
 log = logging.getLogger("asac.rpc")
+LOCAL_HOST = "127.0.0.1"  # where a client connects when no host is named (and every role of `local`)
 
 
 def channel_options(max_message_bytes: int) -> list[tuple[str, int]]:

@@ -22,8 +22,9 @@ from algorithm.config_schema import Config
 from algorithm.files import WriteFailures
 from algorithm.logging import MetricsWriter
 from algorithm.replay import PrioritizedTable
-from algorithm.replay.persistence import snapshot_kept
-from algorithm.trainer import RunDir, load_replay_snapshot, seed_everything
+from algorithm.replay.persistence import load_replay_snapshot, snapshot_kept
+from algorithm.run_dir import RunDir
+from algorithm.seeding import seed_python_and_numpy
 from ds.evolver.population import AssignmentKeeper, learner_dir, member_config, wait_for_assignment
 from ds.evolver.service import EvolverClient
 from ds.evolver.state import Assignment
@@ -90,7 +91,7 @@ def _table_layout(config: Config) -> tuple[object, ...]:
 
 def _serve_replay(role: RoleContext, keeper: AssignmentKeeper | None, metrics_every_s: float) -> int:
     cfg = role.config
-    seed_everything(role.seed)
+    seed_python_and_numpy(role.seed)  # no torch here: the table samples with numpy
     spec = role.spec()
     rnn = role.rnn_state_size(spec)  # no SAC: a replay needs no models, target copies or optimizers
     sac_cfg = cfg.sac_config

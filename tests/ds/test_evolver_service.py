@@ -36,7 +36,8 @@ from ds.evolver.state import (
     UnknownAssignment,
     UnknownLearner,
 )
-from ds.learner.service import ActorRegistry, LearnerClient, LearnerServicer, ParamsStore, serve_learner
+from ds.learner.client import LearnerClient
+from ds.learner.service import ActorRegistry, LearnerServicer, ParamsStore, serve_learner
 from ds.net.params import decode_params, encode_params, params_spec
 from ds.net.rpc import RetryPolicy
 from protos import evolver_pb2, evolver_pb2_grpc

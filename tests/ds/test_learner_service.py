@@ -19,17 +19,8 @@ from algorithm.config_schema import Config
 from algorithm.replay import PrioritizedTable
 from algorithm.sac import SAC
 from ds.actor.actor import DistributedActor, actor_noise
-from ds.learner.service import (
-    SERVICE_NAME,
-    ActorRegistry,
-    LearnerClient,
-    LearnerServicer,
-    LeaseExpired,
-    ParamsStore,
-    PublishedPolicy,
-    RemotePolicy,
-    serve_learner,
-)
+from ds.learner.client import LearnerClient, LeaseExpired, RemotePolicy
+from ds.learner.service import SERVICE_NAME, ActorRegistry, LearnerServicer, ParamsStore, PublishedPolicy, serve_learner
 from ds.net.params import ParamsPublisher, decode_params, params_spec
 from ds.net.rpc import RetryPolicy, set_serving
 from ds.net.stream_key import StreamKey

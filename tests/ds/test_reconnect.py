@@ -18,7 +18,8 @@ from algorithm.config import load_config
 from algorithm.replay import PrioritizedTable
 from algorithm.sac import SAC
 from ds.actor.actor import DistributedActor
-from ds.learner.service import SERVICE_NAME, ActorRegistry, LearnerClient, LearnerServicer, ParamsStore, serve_learner
+from ds.learner.client import LearnerClient
+from ds.learner.service import SERVICE_NAME, ActorRegistry, LearnerServicer, ParamsStore, serve_learner
 from ds.net.params import ParamsError, ParamsPublisher
 from ds.net.rpc import set_serving
 from ds.net.stream_key import StreamKey

@@ -32,7 +32,8 @@ from ds.evolver.evolver import Evolver
 from ds.evolver.service import EvolverClient, serve_evolver
 from ds.launch.local import free_port
 from ds.learner import service as learner_service
-from ds.learner.service import ActorRegistry, LearnerClient, LearnerServicer, ParamsStore, serve_learner
+from ds.learner.client import LearnerClient
+from ds.learner.service import ActorRegistry, LearnerServicer, ParamsStore, serve_learner
 from ds.net import security
 from ds.net.params import encode_params, params_spec
 from ds.net.rpc import RetryPolicy, set_serving, wait_until_serving
