@@ -293,9 +293,17 @@ def local(args: argparse.Namespace, config: Config, run_dir: Path, creds: securi
     Without ``net_config.token_file`` (nor ``--no_token``) the run gets a fresh token in ``<run>/token``
     (mode 0600), handed to every child as an explicit one is: ``--override net.token_file=<run>/token``."""
     from ds.launch.local import run_local
-    from ds.launch.local_summary import PlayableRun
+    from ds.launch.local_summary import PlayableRun, summary
 
     learners = args.learners or (2 if config.base_config.evolver_enabled else None)
+    here = Path(__file__).resolve()
+    playable = PlayableRun(args.env, config.base_config.name, run_dir, args.model_root, here.with_name("main.py"))
+    if learners is None and args.ckpt is None and (done := finished_at(config, run_dir)) is not None:
+        # started again on a finished run: say so without starting the roles (the learner would only
+        # find the same and stop; a population's learners each decide for themselves)
+        log.info("already finished at %d env steps; nothing to train, no role started", done)
+        print("\n".join(summary(playable, "finished", None)), flush=True)
+        return 0
     token_flags: list[str] = []
     if config.net_config.token_file is None and not args.no_token:
         security.write_token_file(run_dir / "token")
@@ -313,11 +321,24 @@ def local(args: argparse.Namespace, config: Config, run_dir: Path, creds: securi
         "learner": [] if args.ckpt is None else ["--ckpt", str(args.ckpt)],
         "actor": [] if args.noise is None else ["--noise", str(args.noise)],
     }
-    here = Path(__file__).resolve()
     command = [sys.executable, str(here), args.env]
-    playable = PlayableRun(args.env, config.base_config.name, run_dir, args.model_root, here.with_name("main.py"))
     return run_local(command, child_args(args, config) + token_flags, args.actors, extra, learners=learners,
                      credentials=creds, run=playable)  # fmt: skip
+
+
+def finished_at(config: Config, run_dir: Path) -> int | None:
+    """The env steps of a run whose latest checkpoint has spent the config's budget; None for a new
+    or unfinished run. A damaged latest checkpoint is a CheckpointError naming it (as the learner's)."""
+    from algorithm.checkpoint import list_checkpoints, load_for_resume, restoring
+    from algorithm.learner_core import RunCounters, budget_spent
+
+    model = RunDir(run_dir).model
+    if not list_checkpoints(model):
+        return None
+    path, state = load_for_resume(model)
+    with restoring(path):
+        counters = RunCounters.from_checkpoint(state["counters"], RunCounters())
+    return counters.env_steps if budget_spent(config.base_config, counters) else None
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -48,7 +48,7 @@ from algorithm.checkpoint import (
     save_checkpoint,
 )
 from algorithm.config import config_to_yaml
-from algorithm.config_schema import Config
+from algorithm.config_schema import BaseConfig, Config
 from algorithm.evaluation import EvalResult, append_evaluations, evaluate, evaluation_row, read_evaluations
 from algorithm.files import WriteFailures, atomic_write
 from algorithm.logging import MetricsWriter, ProgressLine, RateMeter, Timers
@@ -90,6 +90,14 @@ class RunCounters:
         if unknown:
             raise KeyError(f"unknown counters {sorted(unknown)}")
         return cls(**{**asdict(defaults), **saved})
+
+
+def budget_spent(base: BaseConfig, counters: RunCounters) -> bool:
+    """Whether a run with these counters has spent its budget (``max_step`` env steps or
+    ``max_iter`` iterations; -1: unbounded): a finished run, which a restart leaves as it is."""
+    return (base.max_step >= 0 and counters.env_steps >= base.max_step) or (
+        base.max_iter >= 0 and counters.iterations >= base.max_iter
+    )
 
 
 class UpdateBudget:
@@ -219,10 +227,7 @@ class LearnerCore:
             self.bar = ProgressLine(self.config.base_config.max_step)
 
     def done(self) -> bool:
-        base, c = self.config.base_config, self.counters
-        return (base.max_step >= 0 and c.env_steps >= base.max_step) or (
-            base.max_iter >= 0 and c.iterations >= base.max_iter
-        )
+        return budget_spent(self.config.base_config, self.counters)
 
     def tick(self, recent_return: float | None = None) -> None:
         """Between updates: wall clock, evaluation and checkpoint when due, the progress line."""

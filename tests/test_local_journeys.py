@@ -370,6 +370,7 @@ def test_ctrl_c_then_the_same_command_resumes_and_a_third_run_of_the_finished_ru
                            stderr=subprocess.STDOUT, timeout=120)  # fmt: skip
     assert third.returncode == 0, third.stdout[-4000:]
     assert f"already finished at {counters['env_steps']} env steps" in third.stdout, third.stdout[-4000:]
+    assert "started " not in third.stdout, third.stdout[-4000:]  # the launcher knew: no role was started
     assert sorted(p.name for p in run.glob("model/*.pt")) == checkpoints
     outcome, lines = summary_of(third.stdout)
     assert outcome == "finished" and "run folder: models/gym/pendulum/resumed" in lines, lines
