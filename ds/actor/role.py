@@ -108,6 +108,7 @@ def _act(
     finally:
         replay.close()
         learner.close()
-    log.info("actor %d %s after %d env steps, %d episodes", summary.index,
-             "stopped" if summary.interrupted else "finished", summary.env_steps, summary.episodes)  # fmt: skip
+    who = "actor (stopped before a learner gave it an index)" if summary.index < 0 else f"actor {summary.index}"
+    log.info("%s %s after %d env steps, %d episodes", who, "stopped" if summary.interrupted else "finished",
+             summary.env_steps, summary.episodes)  # fmt: skip
     return 130 if summary.interrupted else 0
