@@ -274,6 +274,10 @@ DAMAGED_RUNS: list[tuple[str, Callable[[Path], None], list[str], str]] = [
      ["main.py", "--override", "eval.eval_episodes=3"],
      f"checkpoint {RUN}/model/40.pt is damaged: its contents do not match the digest written with them; nothing "
      "was overwritten: to use an older checkpoint, pass --ckpt 20"),
+    ("latest checkpoint flipped, local", lambda r: flip_in_largest_record(r / "model/40.pt"),
+     ["main_ds.py", "local"],  # the launcher reads it (is the run finished?) before it starts a role
+     f"checkpoint {RUN}/model/40.pt is damaged: its contents do not match the digest written with them; nothing "
+     "was overwritten: to use an older checkpoint, pass --ckpt 20"),
     ("latest checkpoint of another task", lambda r: wrong_shapes(r / "model/40.pt"), ["main.py"],
      f"checkpoint {RUN}/model/40.pt does not fit this run's models and state (RuntimeError: Error(s) in loading"),
     ("checkpoint truncated, played", lambda r: truncate(r / "model/40.pt"), ["main.py", "--run"],
