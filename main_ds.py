@@ -184,12 +184,18 @@ def credentials(config: Config, role: str) -> security.Credentials:
     return loaded
 
 
-def check_models(context: RoleContext) -> None:
+def check_models(context: RoleContext, role: str) -> None:
     """Build the run's models once on the CPU: a config that fits the schema but not the task (an
     unknown ``critic_only`` sensor, say) is a :class:`ConfigError` before anything starts, as in
-    main.py, not a traceback in a role that already runs."""
+    main.py, not a traceback in a role that already runs. An actor builds what it acts with (no
+    optimizers: creating one imports torch's compiler, ~2.5 s of CPU); the learner, and ``local``
+    before it starts any role, the whole learner side."""
     try:
-        context.sac(context.spec())
+        spec = context.spec()
+        if role == "actor":
+            context.policy(spec)
+        else:
+            context.sac(spec)
     except (ValueError, TypeError) as e:
         raise ConfigError(f"cannot build the models of this config: {type(e).__name__}: {e}") from None
 
@@ -255,7 +261,7 @@ def run(args: argparse.Namespace) -> int:
             overrides=tuple(cli_overrides(args)),
         )
         if role not in ("evolver", "replay"):  # the roles without models (a replay needs only a state width)
-            check_models(context)
+            check_models(context, role)
         if role in ("local", "evolver") or (role == "learner" and not context.uses_evolver):
             run_dir.mkdir(parents=True, exist_ok=True)  # a population's learners write learner_<id>/config.yaml
             path, text = RunDir(run_dir).config, config_to_yaml(config).encode()  # a full disk keeps the old file

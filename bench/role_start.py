@@ -1,5 +1,6 @@
-"""What a role process costs to start: CPU seconds until it logs that it serves, and its resident
-memory then; for the replay and the evolver also whether torch is loaded (Linux: /proc/PID/maps).
+"""What a role process costs to start: CPU seconds until it is ready (a replay or an evolver logs
+that it serves; an actor, pointed at a port where no replay listens, that it waits for the replay)
+and its resident memory then, and whether torch is loaded (Linux: /proc/PID/maps).
 
 Run: ``python -m bench.role_start [--rounds 3] [--baseline DIR]``. ``--baseline`` names another
 checkout (e.g. ``git archive <commit>`` unpacked) whose ``main_ds.py`` is measured in the same run,
@@ -20,24 +21,30 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-ROLES = {"replay": "--replay_port", "evolver": "--evolver_port"}
+# role -> (its flags, the log line that says it is ready)
+ROLES = {
+    "replay": (["--replay_port", "0"], "serving on"),
+    "evolver": (["--evolver_port", "0"], "serving on"),
+    "actor": (["--replay_port", "1"], "waiting for replay"),
+}
 TICKS = os.sysconf("SC_CLK_TCK")
 
 
 def start_cost(checkout: Path, role: str) -> tuple[float, float, bool]:
-    """(CPU seconds, resident MB, torch loaded) of ``main_ds.py gym/pendulum ROLE`` once it serves."""
+    """(CPU seconds, resident MB, torch loaded) of ``main_ds.py gym/pendulum ROLE`` once it is ready."""
     with tempfile.TemporaryDirectory() as cwd:
         log = Path(cwd) / "role.log"
+        flags, ready = ROLES[role]
         command = [sys.executable, str(checkout / "main_ds.py"), "gym/pendulum", role, "-n", "start",
-                   "--no_progress", ROLES[role], "0"]  # fmt: skip
+                   "--no_progress", *flags]  # fmt: skip
         env = {**os.environ, "OMP_WAIT_POLICY": "PASSIVE"}
         with log.open("w") as out:
             proc = subprocess.Popen(command, cwd=cwd, env=env, stdout=out, stderr=subprocess.STDOUT)
         try:
             deadline = time.monotonic() + 120
-            while "serving on" not in log.read_text():
+            while ready not in log.read_text():
                 if proc.poll() is not None or time.monotonic() > deadline:
-                    raise RuntimeError(f"{role} did not serve:\n{log.read_text()[-2000:]}")
+                    raise RuntimeError(f"{role} did not get ready:\n{log.read_text()[-2000:]}")
                 time.sleep(0.05)
             stat = Path(f"/proc/{proc.pid}/stat").read_text().rsplit(")", 1)[1].split()
             cpu = (int(stat[11]) + int(stat[12])) / TICKS  # utime + stime (fields 14 and 15)
@@ -61,7 +68,7 @@ def main() -> None:
         for role in ROLES:
             for name, checkout in checkouts.items():
                 got.setdefault((name, role), []).append(start_cost(checkout, role))
-    print("| role | checkout | CPU s to serving (median) | resident MB | torch loaded |")
+    print("| role | checkout | CPU s until ready (median) | resident MB | torch loaded |")
     print("|---|---|---|---|---|")
     for (name, role), runs in got.items():
         cpu = statistics.median(r[0] for r in runs)

@@ -212,6 +212,7 @@ MAIN_DS_CASES = [
     (["local", "--learners", "0"], "argument --learners: '0' is not a positive integer"),
     (["actor", "--override", "actor.noise_max=1e9"], "noise_max"),
     (["learner", "--override", "nn.critic_only=[nope]"], "critic_only names unknown sensors ['nope']"),
+    (["actor", "--override", "nn.critic_only=[nope]"], "critic_only names unknown sensors ['nope']"),  # its policy
     (["local", "--override", "nn.critic_only=[nope]"], "critic_only names unknown sensors ['nope']"),
 ]
 
