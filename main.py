@@ -127,18 +127,29 @@ def train(args: argparse.Namespace) -> int:
             log.info("resumed at %d env steps, %d updates", trainer.env_steps, trainer.updates)
         summary = trainer.run(stop=stop)
         if summary.interrupted:
-            log.info("interrupted after %d env steps, %d updates, %.0f s: saved; the same command resumes",
-                     summary.env_steps, summary.updates, summary.wall_seconds)  # fmt: skip
+            # a name made from the start time ('{time}', the default) is a new run next time: name it
+            how = (
+                f"resume it with: {run_command(args, run_dir)}"
+                if "{time}" in name_template
+                else "the same command resumes"
+            )
+            log.info("interrupted after %d env steps, %d updates, %.0f s: saved; %s",
+                     summary.env_steps, summary.updates, summary.wall_seconds, how)  # fmt: skip
             return stop.exit_code
         report_finished(run_dir, args, summary.env_steps, summary.last_eval_mean, already=False)
     return 0
 
 
-def play_command(args: argparse.Namespace, run_dir: Path) -> str:
-    """The command that plays ``run_dir``'s latest checkpoint, as the user would type it here."""
+def run_command(args: argparse.Namespace, run_dir: Path) -> str:
+    """The command that trains ``run_dir`` on (resumes it), as the user would type it here."""
     name = run_dir.relative_to(Path(args.model_root) / args.env)
     root = "" if args.model_root == "models" else f" --model_root {args.model_root}"
-    return f"python main.py {args.env} -n {name}{root} --run"
+    return f"python main.py {args.env} -n {name}{root}"
+
+
+def play_command(args: argparse.Namespace, run_dir: Path) -> str:
+    """The command that plays ``run_dir``'s latest checkpoint, as the user would type it here."""
+    return f"{run_command(args, run_dir)} --run"
 
 
 def report_finished(

@@ -147,40 +147,36 @@ def test_run_without_training_is_a_clear_error(tmp_path: Path) -> None:
 
 
 @pytest.mark.fault
-def test_sigint_saves_and_the_same_command_resumes(tmp_path: Path) -> None:
+def test_sigint_saves_and_says_how_to_resume_a_run_named_by_its_start_time(tmp_path: Path) -> None:
+    """The default name is the start time ('{time}'), so the same command would start another run:
+    the interrupted run names the command that resumes it, and that command does (a run with a fixed
+    name says 'the same command resumes': tests/test_journeys.py)."""
+    import re
     import signal
     import time
 
-    args = [
-        sys.executable,
-        str(ROOT / "main.py"),
-        "gym/pendulum",
-        "-n",
-        "stopped",
-        *TINY,
-        "--override",
-        "base.max_step=-1",
-        "--override",
-        "replay.save_replay=true",
-    ]
+    args = [sys.executable, str(ROOT / "main.py"), "gym/pendulum", *TINY, "--override", "base.max_step=-1",
+            "--override", "replay.save_replay=true"]  # fmt: skip
     env = {**os.environ, "OMP_WAIT_POLICY": "PASSIVE", "OMP_NUM_THREADS": "1"}
     proc = subprocess.Popen(args, cwd=tmp_path, env=env, text=True, stderr=subprocess.PIPE)
-    log_dir = tmp_path / "models/gym/pendulum/stopped/log"
+    runs = tmp_path / "models/gym/pendulum"
     deadline = time.monotonic() + 120
-    while time.monotonic() < deadline and not (log_dir.exists() and any(log_dir.iterdir())):
+    while time.monotonic() < deadline and not any(d.is_dir() and any(d.iterdir()) for d in runs.glob("*/log")):
         time.sleep(0.2)
     time.sleep(3)  # let it train for a while
     proc.send_signal(signal.SIGINT)
     _, stderr = proc.communicate(timeout=60)
     assert proc.returncode == 130, stderr
-    model = tmp_path / "models/gym/pendulum/stopped/model"
+    said = re.search(r"saved; resume it with: python main\.py gym/pendulum -n (\d{14})$", stderr, re.M)
+    assert said is not None, stderr
+    name = said.group(1)
+    assert [d.name for d in runs.iterdir()] == [name]
+    model = runs / name / "model"
     steps = [int(p.stem) for p in model.glob("*.pt")]
     assert steps and max(steps) > 0
-    assert (tmp_path / "models/gym/pendulum/stopped/replay/replay.npz").is_file()
+    assert (runs / name / "replay/replay.npz").is_file()
 
-    done = run_main(
-        "gym/pendulum", "-n", "stopped", *TINY, "--override", f"base.max_step={max(steps) + 50}", cwd=tmp_path
-    )
+    done = run_main("gym/pendulum", "-n", name, *TINY, "--override", f"base.max_step={max(steps) + 50}", cwd=tmp_path)
     assert done.returncode == 0, done.stderr
     assert f"resumed at {max(steps)} env steps" in done.stderr
     assert (model / f"{max(steps) + 50}.pt").is_file()
