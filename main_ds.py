@@ -299,11 +299,13 @@ def local(args: argparse.Namespace, config: Config, run_dir: Path, creds: securi
     Without ``net_config.token_file`` (nor ``--no_token``) the run gets a fresh token in ``<run>/token``
     (mode 0600), handed to every child as an explicit one is: ``--override net.token_file=<run>/token``."""
     from ds.launch.local import run_local
-    from ds.launch.local_summary import PlayableRun, summary
+    from ds.launch.local_summary import PlayableRun, resume_argv, summary
 
     learners = args.learners or (2 if config.base_config.evolver_enabled else None)
     here = Path(__file__).resolve()
-    playable = PlayableRun(args.env, config.base_config.name, run_dir, args.model_root, here.with_name("main.py"))
+    name = config.base_config.name
+    playable = PlayableRun(args.env, name, run_dir, args.model_root, here.with_name("main.py"),
+                           resume=resume_argv(here, args.command_line, name))  # fmt: skip
     if learners is None and args.ckpt is None and (done := finished_at(config, run_dir)) is not None:
         # started again on a finished run: say so without starting the roles (the learner would only
         # find the same and stop; a population's learners each decide for themselves)
@@ -349,6 +351,7 @@ def finished_at(config: Config, run_dir: Path) -> int | None:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    args.command_line = list(sys.argv[1:] if argv is None else argv)  # what local's summary says resumes it
     try:
         return run(args)
     except (UsageError, ConfigError, CheckpointError, EvolverStateError) as e:

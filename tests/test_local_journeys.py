@@ -24,7 +24,7 @@ import torch
 from algorithm.evaluation import read_evaluations
 from ds.actor.role import AsksForIndex
 from ds.launch.local import plan
-from ds.launch.local_summary import python_command
+from ds.launch.local_summary import python_command, resume_argv
 from ds.learner.client import LearnerClient
 from tests.role_runs import ENV, TINY, child_pids, event_files, main_ds_command, no_process_mentions, running
 
@@ -63,7 +63,8 @@ LAUNCHER = textwrap.dedent(
     from ds.launch.local import run_local
     from ds.launch.local_summary import PlayableRun
     folder = Path(sys.argv[2])
-    run = PlayableRun("gym/pendulum", "standin", folder, "models", Path("main.py"))
+    resume = ("main_ds.py", "gym/pendulum", "local", "-n", "standin")
+    run = PlayableRun("gym/pendulum", "standin", folder, "models", Path("main.py"), resume)
     finish = {"learner": ["--finish"]} if sys.argv[3] == "finish" else {}
     sys.exit(run_local([sys.executable, sys.argv[1]], [], 2, finish, grace_s=10.0, run=run))
     """
@@ -114,7 +115,9 @@ def test_a_normal_finish_stops_actors_then_the_replay_and_ends_with_the_summary(
     ], out
 
 
-def test_sigterm_to_the_launcher_stops_learner_then_actors_then_replay_and_exits_143(tmp_path: Path) -> None:
+def test_sigterm_to_the_launcher_stops_learner_then_actors_then_replay_and_exits_143(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
     """SIGTERM to the launcher: the learner is told first and has stopped (saved) before the actors
     are told, and they have before the replay is; exit 143; the summary says interrupted."""
     launcher = launch_stand_ins(tmp_path, "wait")
@@ -133,7 +136,21 @@ def test_sigterm_to_the_launcher_stops_learner_then_actors_then_replay_and_exits
     for k in (0, 1):
         assert at(lines, f"[actor-{k}] actor stopped") < at(lines, "[replay] replay got SIGINT")
     assert "got SIGTERM" not in out, "a child got SIGTERM: " + out
-    assert lines[-4] == "== local run interrupted (SIGTERM) ==", out
+    assert lines[-5] == "== local run interrupted (SIGTERM) ==", out
+    monkeypatch.chdir(tmp_path)  # the launcher's working directory: how it shows the interpreter's path
+    resume = shlex.join([python_command(), "main_ds.py", "gym/pendulum", "local", "-n", "standin"])
+    assert lines[-1] == f"resume it: {resume}", out  # a finished run's summary has no such line (above)
+
+
+def test_the_resume_command_names_the_run_and_restores_the_latest_checkpoint(tmp_path: Path) -> None:
+    """Every way of giving ``-n`` is replaced by the run's name (a ``{time}`` name, the default, is
+    the start time: the same words would start a new run); ``--ckpt`` (restore that checkpoint) is
+    left out, so the resumed run continues from its latest; everything else is kept as typed."""
+    script = tmp_path / "main_ds.py"
+    for typed in (["-n", "{time}"], ["--name", "x"], ["--name=x"], ["-nx"], [], ["--ckpt", "500"], ["--ckpt=500"]):
+        argv = ["gym/pendulum", "local", *typed, "--actors", "2", "--override", "sac.seed=3"]
+        kept = ("gym/pendulum", "local", "--actors", "2", "--override", "sac.seed=3")
+        assert resume_argv(script, argv, "20261128041500") == (str(script), *kept, "-n", "20261128041500"), typed
 
 
 def test_actor_k_is_started_asking_for_index_k() -> None:
@@ -318,19 +335,21 @@ def test_a_population_labels_each_learner_and_replay_with_the_evolver_id(tmp_pat
 @pytest.mark.slow
 @pytest.mark.grpc
 @pytest.mark.fault
-def test_ctrl_c_then_the_same_command_resumes_and_a_third_run_of_the_finished_run_changes_nothing(
+def test_ctrl_c_then_the_command_it_prints_resumes_and_a_third_run_of_the_finished_run_changes_nothing(
     tmp_path: Path,
 ) -> None:
-    """SIGINT mid-run, then the same command: the learner resumes from its checkpoint and the replay
-    from the snapshot it saved at the stop (save_replay_on_stop, the default); the run ends at its
-    budget, at most a chunk per actor past it, with the updates the config asks for (1 per env step
-    once min_size_to_sample steps are stored: TINY's samples_per_insert is null). The SIGINT leaves no
-    role running; every role wrote TensorBoard events."""
-    args = command("gym/pendulum", "local", "--actors", "2", "-n", "resumed", *TINY, "--override", "sac.seed=0",
-                   "--override", "base.max_step=1600")  # fmt: skip
+    """SIGINT mid-run of a run named by its start time (the default name): the summary prints the
+    command that resumes it (the same words would start a new run), and that command does: the learner
+    resumes from its checkpoint and the replay from the snapshot it saved at the stop
+    (save_replay_on_stop, the default); the run ends at its budget, at most a chunk per actor past
+    it, with the updates the config asks for (1 per env step once min_size_to_sample steps are
+    stored: TINY's samples_per_insert is null). The SIGINT leaves no role running; every role wrote
+    TensorBoard events."""
+    first_args = command("gym/pendulum", "local", "--actors", "2", *TINY, "--override", "sac.seed=0",
+                         "--override", "base.max_step=1600")  # fmt: skip
     log = tmp_path / "first.log"
     with log.open("w") as sink:
-        proc = subprocess.Popen(args, cwd=tmp_path, env=ENV, stdout=sink, stderr=subprocess.STDOUT)
+        proc = subprocess.Popen(first_args, cwd=tmp_path, env=ENV, stdout=sink, stderr=subprocess.STDOUT)
     deadline = time.monotonic() + 90
     while not re.search(r"eval at (6|7|8|9)\d\d env steps", log.read_text()):
         assert proc.poll() is None, log.read_text()[-4000:]
@@ -340,8 +359,14 @@ def test_ctrl_c_then_the_same_command_resumes_and_a_third_run_of_the_finished_ru
     assert set(pids) == {"replay", "learner", "actor-0", "actor-1"}
     proc.send_signal(signal.SIGINT)  # what Ctrl-C in a terminal sends the launcher
     assert proc.wait(timeout=60) == 130, log.read_text()[-4000:]
-    assert not any(map(running, pids.values())) and no_process_mentions("resumed"), log.read_text()[-4000:]
-    run = tmp_path / "models/gym/pendulum/resumed"
+    outcome, lines = summary_of(log.read_text())
+    assert outcome == "interrupted (SIGINT)", lines
+    said = re.fullmatch(r"resume it: (.+ -n (\d{14}))", lines[-1])
+    assert said, lines
+    args, name = shlex.split(said.group(1)), said.group(2)
+    assert args[1:] == [*first_args[1:], "-n", name], args  # the launcher's own, named by its start time
+    assert not any(map(running, pids.values())) and no_process_mentions(name), log.read_text()[-4000:]
+    run = tmp_path / "models/gym/pendulum" / name
     assert (run / "replay/replay.npz").is_file(), "the replay did not save at the stop"
     stopped = max(int(p.stem) for p in run.glob("model/*.pt"))
     assert stopped < 1600
@@ -373,4 +398,4 @@ def test_ctrl_c_then_the_same_command_resumes_and_a_third_run_of_the_finished_ru
     assert "started " not in third.stdout, third.stdout[-4000:]  # the launcher knew: no role was started
     assert sorted(p.name for p in run.glob("model/*.pt")) == checkpoints
     outcome, lines = summary_of(third.stdout)
-    assert outcome == "finished" and "run folder: models/gym/pendulum/resumed" in lines, lines
+    assert outcome == "finished" and f"run folder: models/gym/pendulum/{name}" in lines, lines

@@ -1,6 +1,8 @@
 """The few lines ``main_ds.py TASK local`` prints last: how the run ended, its final evaluation
 return, where it lies and the command that plays it (``main.py --run``, which finds a run as
-``<model_root>/<task>/<name>/``, a population's learner k as ``-n <name>/learner_<k>``).
+``<model_root>/<task>/<name>/``, a population's learner k as ``-n <name>/learner_<k>``); a run that
+did not finish also gets the command that resumes it (the launcher's own, naming the run: a name made
+from the start time, ``{time}``, the default, would start a new run).
 
 Usage (ds/launch/local.py, once every child has stopped)::
 
@@ -37,6 +39,7 @@ class PlayableRun:
     folder: Path
     model_root: str
     main_py: Path
+    resume: tuple[str, ...] = ()  # the launcher's command line that continues this run (resume_argv)
 
 
 def summary(run: PlayableRun, outcome: str, learner_ids: list[int] | None) -> list[str]:
@@ -44,12 +47,30 @@ def summary(run: PlayableRun, outcome: str, learner_ids: list[int] | None) -> li
     and, for the run or each of ``learner_ids`` (a population), its final return and play command."""
     lines = [f"== local run {outcome} ==", f"run folder: {run.folder}"]
     if learner_ids is None:
-        return lines + _member_lines(run, run.folder, run.name, "")
-    if not learner_ids:
-        return lines + ["no learner registered with the evolver: nothing to play"]
-    for k in sorted(learner_ids):
+        lines += _member_lines(run, run.folder, run.name, "")
+    elif not learner_ids:
+        lines += ["no learner registered with the evolver: nothing to play"]
+    for k in sorted(learner_ids or ()):
         lines += _member_lines(run, run.folder / f"learner_{k}", f"{run.name}/learner_{k}", f"learner {k}: ")
+    if outcome != "finished" and run.resume:
+        lines.append(f"resume it: {shlex.join([python_command(), *run.resume])}")
     return lines
+
+
+def resume_argv(script: Path, argv: list[str], name: str) -> tuple[str, ...]:
+    """The launcher's command line (``script`` and its arguments ``argv``) that continues the run
+    called ``name``: ``-n``/``--name`` set to it (a ``{time}`` name is the start time, so the same
+    words would start a new run), ``--ckpt`` left out (it restores that checkpoint, not the latest)."""
+    kept: list[str] = []
+    skip = False
+    for arg in argv:
+        if skip:
+            skip = False
+        elif arg in ("-n", "--name", "--ckpt"):
+            skip = True
+        elif not arg.startswith(("--name=", "--ckpt=")) and not (arg.startswith("-n") and not arg.startswith("--")):
+            kept.append(arg)
+    return (_shown(script), *kept, "-n", name)
 
 
 def _member_lines(run: PlayableRun, folder: Path, name: str, who: str) -> list[str]:
@@ -84,4 +105,4 @@ def _shown(path: Path) -> str:
         return str(absolute)
 
 
-__all__ = ["PlayableRun", "python_command", "summary"]
+__all__ = ["PlayableRun", "python_command", "resume_argv", "summary"]
