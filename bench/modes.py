@@ -48,6 +48,8 @@ import time
 from collections.abc import Iterable
 from pathlib import Path
 
+from bench.rows import append_row
+
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "bench" / "results" / "modes.csv"
 FIELDS = ["task", "mode", "actors", "seed", "steps", "threshold", "reached_at", "reached_wall_s", "best", "last",
@@ -154,13 +156,7 @@ def stop(proc: subprocess.Popen[bytes]) -> int:
 
 
 def append(row: dict[str, object], path: Path = RESULTS) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    new = not path.exists()
-    with path.open("a", newline="") as f:
-        writer = csv.DictWriter(f, FIELDS)
-        if new:
-            writer.writeheader()
-        writer.writerow(row)
+    append_row(path, FIELDS, row)
 
 
 # --- report ---------------------------------------------------------------------------------------

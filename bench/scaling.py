@@ -32,6 +32,7 @@ import time
 from pathlib import Path
 
 from bench.distributed import first_at_threshold, interrupt
+from bench.rows import append_row
 
 ROOT = Path(__file__).resolve().parents[1]
 TASK = "mujoco/half_cheetah"
@@ -143,15 +144,10 @@ def main() -> None:
     args.out.parent.mkdir(parents=True, exist_ok=True)
     log_dir = args.logs or args.out.parent
     log_dir.mkdir(parents=True, exist_ok=True)
-    new = not args.out.exists()
-    with args.out.open("a", newline="") as f, tempfile.TemporaryDirectory() as root:
-        writer = csv.DictWriter(f, fieldnames=FIELDS)
-        if new:
-            writer.writeheader()
+    with tempfile.TemporaryDirectory() as root:
         for actors in args.actors:
             row = run_one(args, actors, root, log_dir)
-            writer.writerow(row)
-            f.flush()
+            append_row(args.out, FIELDS, row)
             print(" | ".join(f"{k} {v}" for k, v in row.items()), flush=True)
 
 

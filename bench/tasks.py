@@ -32,6 +32,7 @@ from pathlib import Path  # noqa: E402
 from algorithm.config import load_config  # noqa: E402
 from algorithm.evaluation import read_evaluations  # noqa: E402
 from algorithm.trainer import EmbeddedTrainer  # noqa: E402
+from bench.rows import append_row  # noqa: E402
 from envs.make import vector_env_factory  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -102,22 +103,7 @@ def main() -> None:
 
 
 def append(row: dict[str, object], path: Path = RESULTS) -> None:
-    """Append ``row``; a file written before a column was added is rewritten with the new header first
-    (its rows keep their values, the new column left empty)."""
-    old: list[dict[str, str]] = []
-    rewrite = not path.exists()
-    if not rewrite:
-        with path.open(newline="") as f:
-            reader = csv.DictReader(f)
-            rewrite = reader.fieldnames != FIELDS
-            old = list(reader) if rewrite else []
-    if rewrite:
-        with path.open("w", newline="") as f:
-            writer = csv.DictWriter(f, FIELDS)
-            writer.writeheader()
-            writer.writerows({k: r.get(k, "") for k in FIELDS} for r in old)
-    with path.open("a", newline="") as f:
-        csv.DictWriter(f, FIELDS).writerow(row)
+    append_row(path, FIELDS, row)
 
 
 if __name__ == "__main__":
