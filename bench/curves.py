@@ -16,7 +16,8 @@ from pathlib import Path
 
 import numpy as np
 
-from bench.vs_sb3 import MUJOCO_TASKS, RESULTS, SUITE_TASKS, curve_path, read_summary
+from bench.suite import RESULTS, SUITE_TASKS, curve_path, read_summary
+from bench.systems import MUJOCO_TASKS
 
 STYLE = {"asac": ("ASAC", "tab:blue"), "sb3": ("SB3 SAC", "tab:orange")}
 

@@ -24,11 +24,11 @@ import argparse
 import csv
 import os
 import shutil
-import signal
 import statistics
-import subprocess
 import sys
 from pathlib import Path
+
+from bench.children import Children, default_runs
 
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = Path(os.environ.get("ASAC_LONG_RUNS_RESULTS", ROOT / "bench" / "results" / "long_runs"))
@@ -54,29 +54,16 @@ def train(
     task: str, sections: list[str], seeds: list[int], steps: int, every: int, runs: Path, overrides: list[str]
 ) -> int:
     RESULTS.mkdir(parents=True, exist_ok=True)
-    running: list[subprocess.Popen[bytes]] = []
-    stopping: list[bool] = []
-
-    def stop(signum: int, _frame: object) -> None:
-        # A terminal's Ctrl-C reaches the child too (one process group); SIGTERM reaches only this
-        # driver and is passed on as the SIGINT that makes main.py save. Never a second one: main.py
-        # reads a second SIGINT as "stop without saving".
-        if signum == signal.SIGTERM and running and not stopping:
-            running[-1].send_signal(signal.SIGINT)
-        stopping.append(True)
-
-    signal.signal(signal.SIGINT, stop)
-    signal.signal(signal.SIGTERM, stop)
+    children = Children()
     for section in sections:
         for seed in seeds:
             args = command(task, section, seed, steps, every, runs, overrides)
             print(" ".join(args[1:]), flush=True)
-            running.append(subprocess.Popen(args, cwd=ROOT))
-            code = running[-1].wait()
+            code = children.run(args, cwd=ROOT)
             evaluations = runs / task / run_name(section, seed, steps) / "evaluations.csv"
             if evaluations.is_file():
                 shutil.copyfile(evaluations, result_file(task, section, seed, steps))
-            if code != 0 or stopping:
+            if code != 0 or children.stopping:
                 print(f"{task} {section} seed {seed}: stopped (exit {code}); the same command resumes it", flush=True)
                 return code
     return 0
@@ -118,8 +105,7 @@ def main() -> int:
     p.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
     p.add_argument("--steps", type=int, default=100_000)
     p.add_argument("--every", type=int, default=5_000)
-    default_runs = os.environ.get("ASAC_BENCH_RUNS", str(Path.home() / "asac_long_runs"))
-    p.add_argument("--runs", type=Path, default=Path(default_runs), help="where the run folders go")
+    p.add_argument("--runs", type=Path, default=default_runs(), help="where the run folders go")
     p.add_argument("--override", action="append", default=[], help="passed on to main.py (every run)")
     p.add_argument("--report", action="store_true", help="print the results so far")
     a = p.parse_args()

@@ -4,7 +4,8 @@
 # so that edits in the working tree never reach a run that is going on. Results go to this
 # checkout's bench/results/mujoco/ (runs already in its summary.csv are skipped); every row records
 # the commit. One run at a time; the log is /tmp/mujoco_suite.log (LOG=...), the driver's pid
-# /tmp/mujoco_suite.pid. Killing the driver lets the run in progress finish and starts no other.
+# /tmp/mujoco_suite.pid. SIGTERM to the driver (kill $(cat /tmp/mujoco_suite.pid)) saves ASAC's run in
+# progress (an SB3 run is dropped) and starts no other; the same command resumes it.
 #
 #   bash bench/mujoco_suite.sh [COMMIT] [suite arguments, e.g. --tasks hopper --seeds 0 1 2]
 set -euo pipefail

@@ -1,0 +1,218 @@
+"""The MuJoCo comparison with SB3 SAC (issue 15, item 3): one run per (task, system, seed), each with
+its learning curve, and the suite of them; the command line is bench/vs_sb3.py's ``mujoco`` and
+``suite`` (its docstring).
+
+Each run writes its curve to OUT/<task>_<asac|sb3>_seed<k>.csv as evaluations come and, when it
+ends, a row to OUT/summary.csv (return, wall seconds, of which evaluating, overrides, code version);
+runs already there are skipped. ASAC's runs train in a folder of their own under ``--runs``
+(``$ASAC_BENCH_RUNS``, else ``~/asac_long_runs``): SIGINT or SIGTERM saves the run in progress (its
+checkpoint and replay) and the same command resumes it; an SB3 run stopped so is started again.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import functools
+import os
+import re
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from algorithm.run_dir import RunDir
+from algorithm.signals import stop_on_signals
+from bench.children import Children
+from bench.systems import EVAL_EPISODES, MUJOCO_TASKS, ROOT, RunResult, RunStopped, run_ours, run_sb3
+
+RESULTS = ROOT / "bench" / "results"
+SUITE_TASKS = ("hopper", "walker2d", "ant", "half_cheetah")  # the suite's order; HalfCheetah had 5 seeds already
+SUITE_OVERRIDES = ("sac.compute_dtype=bfloat16",)  # as HalfCheetah's reported runs (and `auto` on this CPU)
+SUMMARY_FIELDS = ("task", "system", "seed", "steps", "return", "wall_s", "eval_s", "overrides", "code", "finished")
+CURVE_FIELDS = ("env_steps", "return_mean", "return_std", "wall_seconds")
+LAST = 3  # the report also averages each run's last LAST evaluations (90k-100k of 100k)
+
+
+def run_folder(runs: Path, task: str, seed: int, steps: int, overrides: str) -> Path:
+    """Where ASAC's run of ``task`` and ``seed`` trains (the overrides are part of its name)."""
+    label = re.sub(r"[^A-Za-z0-9.=_-]+", "_", overrides)
+    return runs / "mujoco_suite" / task / (f"asac_s{seed}_{steps // 1000}k" + (f"_{label}" if label else ""))
+
+
+def code_version() -> str:
+    """The commit the run's code is at (ASAC_BENCH_CODE when set, e.g. by a run from an exported
+    snapshot), with +dirty when algorithm/, envs/ or bench/ differ from it."""
+    if os.environ.get("ASAC_BENCH_CODE"):
+        return os.environ["ASAC_BENCH_CODE"]
+    try:
+        head = subprocess.run(
+            ["git", "-C", str(ROOT), "rev-parse", "--short", "HEAD"], capture_output=True, text=True, check=True
+        ).stdout.strip()
+        dirty = subprocess.run(
+            ["git", "-C", str(ROOT), "status", "--porcelain", "--", "algorithm", "envs", "bench"],
+            capture_output=True,
+            text=True,
+            check=True,
+        ).stdout.strip()
+    except (OSError, subprocess.CalledProcessError):
+        return "unknown"
+    return head + ("+dirty" if dirty else "")
+
+
+def curve_path(out: Path, task: str, system: str, seed: int) -> Path:
+    return out / f"{task}_{system}_seed{seed}.csv"
+
+
+def write_curve(path: Path, result: RunResult) -> None:
+    tmp = path.with_suffix(".csv.tmp")
+    with tmp.open("w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(CURVE_FIELDS)
+        w.writerows([s, f"{m:.1f}", f"{sd:.1f}", f"{wall:.0f}"] for s, m, sd, wall in result.curve)
+    tmp.replace(path)
+
+
+def read_summary(out: Path) -> list[dict[str, str]]:
+    path = out / "summary.csv"
+    return list(csv.DictReader(path.open(newline=""))) if path.exists() else []
+
+
+def finished(out: Path, task: str, system: str, seed: int, steps: int, overrides: str) -> bool:
+    return any(
+        (r["task"], r["system"], r["seed"], r["steps"], r["overrides"])
+        == (task, system, str(seed), str(steps), overrides)
+        for r in read_summary(out)
+    )
+
+
+def mujoco(args: argparse.Namespace) -> None:
+    """Runs of one task (``--which`` ours/sb3/both, seed by seed, ours first); see the module docstring."""
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    if args.report:
+        report(out, args.task)
+        return
+    torch.set_num_threads(args.threads)
+    label = " ".join(args.override)
+    stop = stop_on_signals("saving the run: the same command resumes it")
+    for seed in args.seeds:
+        for system in {"both": ["asac", "sb3"], "ours": ["asac"], "sb3": ["sb3"]}[args.which]:
+            overrides = label if system == "asac" else ""
+            if finished(out, args.task, system, seed, args.steps, overrides) and not args.force:
+                print(f"{args.task} {system} seed {seed}: in {out / 'summary.csv'} already, skipped", flush=True)
+                continue
+            path = curve_path(out, args.task, system, seed)
+            code, start = code_version(), time.perf_counter()
+            folder = run_folder(args.runs, args.task, seed, args.steps, overrides)
+            if args.force and folder.exists():
+                shutil.rmtree(folder)
+            try:
+                if system == "asac":
+                    result = run_ours(args.task, seed, args.steps, args.override, args.every,
+                                      functools.partial(write_curve, path), run_dir=folder, stop=stop)  # fmt: skip
+                    RunDir(folder).replay.unlink(missing_ok=True)  # an interrupted part's snapshot: done with
+                else:
+                    result = run_sb3(args.task, seed, args.steps, args.every, functools.partial(write_curve, path),
+                                     stop=stop)  # fmt: skip
+            except RunStopped as e:
+                then = f"saved in {folder}; the same command resumes it" if system == "asac" else "not resumable"
+                print(f"{args.task} {system} seed {seed}: stopped at {e.env_steps} env steps, {then}", flush=True)
+                sys.exit(130)
+            wall = time.perf_counter() - start + result.earlier_wall_s
+            summary = out / "summary.csv"
+            new = not summary.exists()
+            with summary.open("a", newline="") as f:
+                w = csv.writer(f)
+                if new:
+                    w.writerow(SUMMARY_FIELDS)
+                w.writerow(
+                    [
+                        args.task,
+                        system,
+                        seed,
+                        args.steps,
+                        f"{result.final:.1f}",
+                        f"{wall:.0f}",
+                        f"{result.eval_seconds:.0f}",
+                        overrides,
+                        code,
+                        time.strftime("%Y-%m-%d %H:%M"),
+                    ]
+                )
+            print(
+                f"{args.task} {system} seed {seed}: return {result.final:.1f} after {args.steps} steps,"
+                f" {wall:.0f} s ({result.eval_seconds:.0f} s evaluating)",
+                flush=True,
+            )
+
+
+def report(out: Path, task: str | None = None) -> None:
+    """Per task: one row per seed (the latest run of each system), then the means and the ratio."""
+    rows = read_summary(out)
+    for name in [t for t in MUJOCO_TASKS if t == task or task is None]:
+        runs = {(r["system"], int(r["seed"])): r for r in rows if r["task"] == name}  # the latest wins
+        if not runs:
+            continue
+        seeds = sorted({s for _, s in runs})
+        print(f"\n{MUJOCO_TASKS[name]}, deterministic return ({EVAL_EPISODES} episodes) after N env steps")
+        print("| seed | steps | ASAC | ASAC wall s | SB3 | SB3 wall s |\n|---|---|---|---|---|---|")
+        for s in seeds:
+            o, t = runs.get(("asac", s)), runs.get(("sb3", s))
+            steps = (o or t or {}).get("steps", "")
+            print(
+                f"| {s} | {steps} | {o['return'] if o else 'not run'} | {o['wall_s'] if o else ''}"
+                f" | {t['return'] if t else 'not run'} | {t['wall_s'] if t else ''} |"
+            )
+        means: dict[str, float] = {}
+        lasts: dict[str, float] = {}
+        for system in ("asac", "sb3"):
+            rets = [float(r["return"]) for (sy, _), r in runs.items() if sy == system]
+            if not rets:
+                continue
+            means[system] = float(np.mean(rets))
+            # less noisy than one evaluation: each seed's mean of its last LAST evaluations
+            last = [last_evaluations(curve_path(out, name, sy, s)) for (sy, s) in runs if sy == system]
+            lasts[system] = float(np.mean(last))
+            print(
+                f"{system}: mean {means[system]:.1f}, min {min(rets):.1f}, max {max(rets):.1f} over {len(rets)} seeds;"
+                f" mean of the last {LAST} evaluations {lasts[system]:.1f} ({' / '.join(f'{v:.1f}' for v in last)})"
+            )
+        if len(means) == 2 and means["sb3"] != 0:
+            print(
+                f"ASAC / SB3 means: {means['asac'] / means['sb3']:.2f}x;"
+                f" of the last {LAST} evaluations {lasts['asac'] / lasts['sb3']:.2f}x"
+            )
+
+
+def last_evaluations(path: Path) -> float:
+    with path.open(newline="") as f:
+        rows = list(csv.DictReader(f))
+    return float(np.mean([float(r["return_mean"]) for r in rows[-LAST:]]))
+
+
+def suite(args: argparse.Namespace) -> None:
+    """The whole comparison, one run at a time, interleaved (task by task; per seed ASAC then SB3),
+    each run its own process; runs already in OUT/summary.csv are skipped, so a stopped suite is
+    resumed by starting it again (SIGTERM to it saves ASAC's run in progress: bench/children.py)."""
+    out = Path(args.out)
+    overrides = args.override or list(SUITE_OVERRIDES)
+    children = Children()
+    for task in args.tasks:
+        for seed in args.seeds:
+            for which, system in (("ours", "asac"), ("sb3", "sb3")):
+                extra = overrides if system == "asac" else []
+                if finished(out, task, system, seed, args.steps, " ".join(extra)):
+                    continue
+                cmd = [sys.executable, "-m", "bench.vs_sb3", "mujoco", task, "--seeds", str(seed), "--which", which]
+                cmd += ["--steps", str(args.steps), "--every", str(args.every), "--threads", str(args.threads)]
+                cmd += ["--out", str(out), "--runs", str(args.runs), *[a for o in extra for a in ("--override", o)]]
+                print(time.strftime("%H:%M:%S"), " ".join(cmd[1:]), flush=True)
+                rc = children.run(cmd, cwd=ROOT)
+                print(time.strftime("%H:%M:%S"), f"{task} {system} seed {seed}: exit {rc}", flush=True)
+                if rc != 0 or children.stopping:
+                    sys.exit(rc)

@@ -1,0 +1,39 @@
+"""bench/suite.py's ASAC runs outlast a working session: a run stopped (as SIGTERM to the suite does)
+saves its folder and the same call resumes it to its budget, its curve whole (real Hopper-v5 envs
+and trainer, tiny networks, a few hundred steps)."""
+
+from __future__ import annotations
+
+import threading
+from pathlib import Path
+
+import pytest
+
+from algorithm.run_dir import RunDir
+from bench.suite import run_folder
+from bench.systems import RunResult, RunStopped, run_ours
+
+TINY = ["nn.hidden_units=[16,16]", "replay.batch_size=16", "actor.random_steps=100", "replay.min_size_to_sample=100",
+        "sac.compute_dtype=float32"]  # fmt: skip
+
+
+def test_a_stopped_run_is_saved_and_the_same_call_resumes_it_to_its_budget(tmp_path: Path) -> None:
+    folder = run_folder(tmp_path, "hopper", 0, 600, " ".join(TINY))
+    stop = threading.Event()
+    evaluated: list[int] = []
+
+    def after_the_first_evaluation(result: RunResult) -> None:
+        evaluated.append(result.curve[-1][0])
+        stop.set()  # as the suite's signal handler does
+
+    with pytest.raises(RunStopped) as stopped:
+        run_ours("hopper", 0, 600, TINY, every=200, on_eval=after_the_first_evaluation, run_dir=folder, stop=stop)
+    assert evaluated == [200] and stopped.value.env_steps == 200
+    saved = RunDir(folder)
+    assert [int(p.stem) for p in saved.model.glob("*.pt")] == [200], list(saved.model.iterdir())
+    assert saved.replay.is_file()  # what was collected comes back with the run
+
+    result = run_ours("hopper", 0, 600, TINY, every=200, run_dir=folder)
+    assert [at for at, *_ in result.curve] == [200, 400, 600]  # the first part's evaluation kept, none twice
+    assert result.final == result.curve[-1][1]
+    assert result.earlier_wall_s > 0  # the summary's wall time counts the first part too
