@@ -191,6 +191,9 @@ class SacConfig(Section):
     curiosity_inverse: bool = Field(False, description="Learn curiosity features with an inverse model (ICM).")
     use_rnd: bool = Field(False, description="Act with the most novel of rnd_n_sample policy actions (RND).")
     rnd_n_sample: int = Field(10, ge=1, description="Policy actions drawn per step to pick the most novel from.")
+    rnd_strength: float = Field(
+        0.0, ge=0.0, description="Scale of RND's novelty as an intrinsic reward, in targets only (0: none)."
+    )
     action_noise_color: float = Field(
         0.0,
         ge=0.0,

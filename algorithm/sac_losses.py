@@ -263,8 +263,8 @@ class SacLosses:
     # -- features -------------------------------------------------------------------------------
 
     def _exploration_terms(self, window: Window, state: Tensor, metrics: Metrics) -> tuple[Tensor, Tensor]:
-        """Curiosity (Pathak et al. 2017) and RND (Burda et al. 2018): the rewards with curiosity's
-        intrinsic bonus added (targets only) and the exploration models' training loss."""
+        """Curiosity (Pathak et al. 2017) and RND (Burda et al. 2018): the rewards with their
+        intrinsic bonuses added (targets only) and the exploration models' training loss."""
         sac, rewards = self.sac, window.rewards
         aux_loss = torch.zeros((), device=self.device)
         if self.models.curiosity is not None:
@@ -284,6 +284,14 @@ class SacLosses:
             novelty = self.models.rnd.novelty(state.detach(), window.actions[:, 0])
             aux_loss = aux_loss + novelty.mean()
             metrics["learner/rnd_novelty"] = novelty.detach()
+            if sac.rnd_strength > 0:  # novelty as reward, as Burda et al. use it: it fades once pairs are known
+                states = window.online_states()
+                b, p = states.shape[:2]
+                with torch.no_grad():
+                    every = self.models.rnd.novelty(states[:, :-1].flatten(0, 1), window.actions.flatten(0, 1))
+                intrinsic = sac.rnd_strength * torch.where(window.valid, every.view(b, p - 1), 0.0)
+                rewards = rewards + intrinsic
+                metrics["learner/rnd_reward"] = intrinsic[:, 0]
         return rewards, aux_loss
 
     def _vtrace(

@@ -10,7 +10,9 @@ agent's actions can influence (the ICM of the paper).
 RND (``sac_config.use_rnd``; Burda et al. 2018, arXiv:1810.12894, applied to state-action pairs
 as the revived system did): a frozen random network ``f*(s, a)`` and a predictor ``f(s, a)``
 trained on replayed pairs; ``||f - f*||^2`` is high for pairs seldom seen. At acting time the
-policy draws ``rnd_n_sample`` actions per env and takes the most novel one.
+policy draws ``rnd_n_sample`` actions per env and takes the most novel one (the revived system's
+use); with ``rnd_strength`` > 0 the novelty, scaled, is also an intrinsic reward added to the Q
+targets only (the paper's use), which fades as the pairs become familiar.
 """
 
 from __future__ import annotations

@@ -72,6 +72,25 @@ def test_rnd_target_stays_frozen_its_predictor_learns_and_both_are_checkpointed(
         assert torch.equal(value, sac.models.rnd.state_dict()[name]), name
 
 
+def test_rnd_strength_adds_novelty_to_the_target_only_and_it_fades_as_the_pairs_become_familiar() -> None:
+    batch = make_batch(b=32)
+    rewards_before = batch.rewards.copy()
+    plain = make_sac(use_rnd=True, learning_rate=3e-3).update(batch, with_metrics=True).metrics
+    rewarded_sac = make_sac(use_rnd=True, rnd_strength=50.0, learning_rate=3e-3)
+    rewarded = rewarded_sac.update(batch, with_metrics=True).metrics
+    np.testing.assert_array_equal(batch.rewards, rewards_before)  # stored rewards never change
+    assert rewarded["learner/rnd_reward"] == pytest.approx(50.0 * rewarded["learner/rnd_novelty"], rel=1e-5)
+    # one-step windows: y = r + 50 * novelty(o_0, a_0) + gamma V(o_1), with everything else identical
+    assert rewarded["learner/target_mean"] == pytest.approx(
+        plain["learner/target_mean"] + rewarded["learner/rnd_reward"], rel=1e-5
+    )
+    first = rewarded["learner/rnd_reward"]
+    for _ in range(100):
+        last = rewarded_sac.update(batch, with_metrics=True).metrics["learner/rnd_reward"]
+    assert last < 0.5 * first
+    assert "learner/rnd_reward" not in plain  # rnd_strength 0 (the default): no bonus
+
+
 def test_rnd_acting_picks_more_novel_actions_than_the_policy_alone() -> None:
     with_rnd, without = make_sac(use_rnd=True, rnd_n_sample=10), make_sac(use_rnd=True, rnd_n_sample=1)
     without.load_state_dict(copy.deepcopy(with_rnd.state_dict()))
