@@ -19,7 +19,9 @@ import re
 import shutil
 import subprocess
 import sys
+import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -90,6 +92,19 @@ def finished(out: Path, task: str, system: str, seed: int, steps: int, overrides
     )
 
 
+def asac_run(
+    args: argparse.Namespace, seed: int, on_eval: Callable[[RunResult], None], stop: threading.Event
+) -> RunResult:
+    """ASAC's run of ``args.task`` and ``seed`` in its folder under ``args.runs``: resumed from what
+    a stopped run saved there, from scratch with ``--force``."""
+    folder = run_folder(args.runs, args.task, seed, args.steps, " ".join(args.override))
+    if args.force and folder.exists():
+        shutil.rmtree(folder)
+    result = run_ours(args.task, seed, args.steps, args.override, args.every, on_eval, run_dir=folder, stop=stop)
+    RunDir(folder).replay.unlink(missing_ok=True)  # an interrupted part's snapshot: done with
+    return result
+
+
 def mujoco(args: argparse.Namespace) -> None:
     """Runs of one task (``--which`` ours/sb3/both, seed by seed, ours first); see the module docstring."""
     out = Path(args.out)
@@ -108,19 +123,14 @@ def mujoco(args: argparse.Namespace) -> None:
                 continue
             path = curve_path(out, args.task, system, seed)
             code, start = code_version(), time.perf_counter()
-            folder = run_folder(args.runs, args.task, seed, args.steps, overrides)
-            if args.force and folder.exists():
-                shutil.rmtree(folder)
             try:
                 if system == "asac":
-                    result = run_ours(args.task, seed, args.steps, args.override, args.every,
-                                      functools.partial(write_curve, path), run_dir=folder, stop=stop)  # fmt: skip
-                    RunDir(folder).replay.unlink(missing_ok=True)  # an interrupted part's snapshot: done with
+                    result = asac_run(args, seed, functools.partial(write_curve, path), stop)
                 else:
                     result = run_sb3(args.task, seed, args.steps, args.every, functools.partial(write_curve, path),
                                      stop=stop)  # fmt: skip
             except RunStopped as e:
-                then = f"saved in {folder}; the same command resumes it" if system == "asac" else "not resumable"
+                then = "saved; the same command resumes it" if system == "asac" else "not resumable"
                 print(f"{args.task} {system} seed {seed}: stopped at {e.env_steps} env steps, {then}", flush=True)
                 sys.exit(130)
             wall = time.perf_counter() - start + result.earlier_wall_s
