@@ -150,6 +150,13 @@ class SacConfig(Section):
         "backpropagation through time and cannot learn what to remember (gym/pendulum_novel: -950 vs -190).",
     )
     n_step: int = Field(1, ge=1)
+    train_every_step: bool = Field(
+        False,
+        description="Train every stored step of a sampled window as the sampled one is, each with its n-step target "
+        "cut at the window's end (R2D2's way with sequences), not the sampled step alone: use_rnn with burn-in "
+        "trains burn_in_step + n_step steps per window (only the n_step after the burn-in without "
+        "burn_in_gradient), at about the cost of one. Priorities stay the sampled step's.",
+    )
     use_rnn: bool = Field(False, description="Recurrent representation (nn_config.rnn_type, rnn_units).")
     tau: float = Field(0.005, gt=0.0, le=1.0)
     update_target_per_step: int = Field(1, ge=1)

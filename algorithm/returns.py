@@ -113,3 +113,49 @@ def vtrace_target(
     y = rewards[:, 0] + gamma * torch.where(terminated[:, 0], 0.0, v_1)
     rho = torch.where(weighted, rho_all, 0.0)
     return y, rho
+
+
+class StepWindows:
+    """``sac_config.train_every_step``: one window of ``L`` steps read as a batch of shorter windows, one
+    starting at each stored step ``t >= first``, each holding steps ``t..t+n-1`` and obs positions
+    ``t..t+n`` (cut at the window's end, so the last ``n - 1`` have shorter targets; padding past it
+    is masked). Every function of this module then gives each step its own target unchanged.
+
+    ``select [B, T]`` marks the pairs ``(b, t)`` that start at a stored step (``mask``); the batch of
+    short windows is those pairs in row-major order, ``M`` of them. Training every step of a
+    sequence rather than one is R2D2's (Kapturowski et al. 2019); with burn-in gradients the burn-in
+    steps are trained too, since their states carry gradients anyway.
+    """
+
+    def __init__(self, mask: Tensor, first: int, n_step: int, sampled: int) -> None:
+        window = mask.shape[1]
+        self.n_step = n_step
+        self.starts = torch.arange(first, window, device=mask.device)
+        self.select = mask[:, first:]
+        # the row, among the M short windows, of each window's sampled step (always stored: Batch's contract)
+        rows = self.select.flatten().long().cumsum(0).view_as(self.select) - 1
+        self.sampled_rows = rows[:, sampled - first]
+
+    def steps(self, x: Tensor) -> Tensor:
+        """``x [B, L, ...]`` per step -> ``[M, n, ...]``."""
+        return self._cut(x, self.n_step)
+
+    def positions(self, x: Tensor) -> Tensor:
+        """``x [B, L + 1, ...]`` per obs position -> ``[M, n + 1, ...]``."""
+        return self._cut(x, self.n_step + 1)
+
+    def spread(self, x: Tensor) -> Tensor:
+        """``x [B, ...]``, one value per window (an importance weight) -> ``[M, ...]``."""
+        return x[:, None].expand(-1, self.select.shape[1], *x.shape[1:])[self.select]
+
+    def per_step(self, x: Tensor) -> Tensor:
+        """``x [B, T, ...]``, one value per short window (noise drawn for each) -> ``[M, ...]``."""
+        return x[self.select]
+
+    def _cut(self, x: Tensor, length: int) -> Tensor:
+        b, have = x.shape[:2]
+        need = int(self.starts[-1]) + length
+        if need > have:
+            x = torch.cat([x, x.new_zeros((b, need - have, *x.shape[2:]))], dim=1)
+        index = self.starts[:, None] + torch.arange(length, device=x.device)[None, :]  # [T, length]
+        return x[:, index][self.select]

@@ -179,10 +179,7 @@ class SAC(SacLosses, Policy):
         if self._noisy:
             reset_noise(self.models, self._learn_rng)
             reset_noise(self.target_q, self._learn_rng)
-        samples = sac.n_step + 2 if sac.use_n_step_is else 2  # see _losses
-        noise = torch.randn(
-            batch.batch_size, samples, self.spec.action.continuous_dim, generator=self._learn_rng, device=dev
-        )
+        noise = self._noise(batch, self._learn_rng)
         self._anneal_target_entropy()
         losses = self._batch_losses(batch, weights, noise, self._subset(), self._subset())
 
@@ -275,13 +272,22 @@ class SAC(SacLosses, Policy):
         for ``sac_config.insert_td_priorities``. Its noise comes from a generator of its own, so
         scoring does not change the updates' random stream."""
         self._check_batch(batch)
-        samples = self.sac.n_step + 2 if self.sac.use_n_step_is else 2
-        noise = torch.randn(
-            batch.batch_size, samples, self.spec.action.continuous_dim, generator=self._score_rng, device=self.device
-        )
+        noise = self._noise(batch, self._score_rng)
         with torch.no_grad():
             td_abs = self._batch_losses(batch, None, noise, None, None).td_abs
         return torch.nan_to_num(td_abs.float(), nan=0.0, posinf=0.0, neginf=0.0).cpu().numpy()
+
+    def _noise(self, batch: Batch, generator: torch.Generator) -> Tensor:
+        """The standard normal draws one pass over ``batch`` turns into policy samples (see
+        :meth:`_losses`): ``[B, samples, A]``, or ``[B, T, samples, A]`` with one draw per trained step
+        (``train_every_step``: the ``T`` window steps from the first trained one)."""
+        sac = self.sac
+        samples = sac.n_step + 2 if sac.use_n_step_is else 2
+        trained: tuple[int, ...] = ()
+        if sac.train_every_step:
+            trained = (batch.window - (0 if sac.burn_in_gradient else sac.burn_in_step),)
+        shape = (batch.batch_size, *trained, samples, self.spec.action.continuous_dim)
+        return torch.randn(shape, generator=generator, device=self.device)
 
     def _batch_losses(
         self,

@@ -36,7 +36,14 @@ from algorithm.losses import (
 from algorithm.nn.models import MASKED_LOG_PROB, SacModels
 from algorithm.nn.prediction import prediction_losses
 from algorithm.nn.recurrent import RecurrentRepresentation
-from algorithm.returns import bootstrap_index, gather_positions, n_step_target, valid_steps, vtrace_target
+from algorithm.returns import (
+    StepWindows,
+    bootstrap_index,
+    gather_positions,
+    n_step_target,
+    valid_steps,
+    vtrace_target,
+)
 from algorithm.spaces import EnvSpec
 
 
@@ -144,16 +151,24 @@ class SacLosses:
         Batch tensors are ``[B, L(+1), ...]``; the trained step is step ``burn_in_step`` of each
         window (the sampled key; earlier steps only warm up a recurrent state). ``noise [B,
         n_step + 2, A]`` feeds the action samples: position 0 the policy loss's, 1.. the target's
-        (only ``noise[:, 1]`` without V-trace, the value at the bootstrap observation)."""
+        (only ``noise[:, 1]`` without V-trace, the value at the bootstrap observation).
+
+        With ``train_every_step`` each stored step of a window is trained as the sampled one is
+        (:class:`~algorithm.returns.StepWindows`): ``noise`` is ``[B, T, n_step + 2, A]``, one draw per
+        trained step, the losses are means over every trained step, and ``td_abs`` is the sampled
+        step's (its priority)."""
         sac = self.sac
         alpha = self.log_alpha.detach().exp()
         alpha_d = self.log_alpha_discrete.detach().exp()
         metrics: Metrics = {"learner/alpha": alpha}
         if alpha_d.numel():
             metrics["learner/alpha_discrete"] = alpha_d
-        window, fed_states = self._window(
+        window, fed_states, every_step = self._window(
             obs, actions, prev_actions, rewards, terminated, truncated, mask, behaviour_logp, rnn_state
         )
+        if every_step is not None:
+            weights = None if weights is None else every_step.spread(weights)
+            noise = every_step.per_step(noise)
         state = window.states_at(0, False)  # the trained step's online state, with gradients for the critic
         rewards, aux_loss = self._exploration_terms(window, state, metrics)
         action0 = window.actions[:, 0]
@@ -179,6 +194,8 @@ class SacLosses:
         pi_loss, pi_metrics = policy_loss(q_pi, pi, alpha, alpha_d, self._branches)
         a_loss = self._temperature_loss(pi)
         metrics.update({**q_metrics, **pi_metrics, "learner/next_value": v, "learner/auxiliary_loss": aux_loss})
+        if every_step is not None:
+            td_abs = td_abs[every_step.sampled_rows]
         return Losses(q_loss, pi_loss, a_loss, aux_loss, predictions, td_abs, metrics, fed_states)
 
     def _temperature_loss(self, pi: PolicySample) -> Tensor:
@@ -207,19 +224,28 @@ class SacLosses:
         mask: Tensor,
         behaviour_logp: Tensor,
         rnn_state: Tensor | None,
-    ) -> tuple[Window, Tensor | None]:
-        """The batch from the trained step on, and the online recurrent state fed in at each window
-        step ``[B, L, S]`` (None without ``use_rnn``). A recurrent representation runs over the whole
-        window (burn-in first); a feed-forward one only where states are asked for."""
+    ) -> tuple[Window, Tensor | None, StepWindows | None]:
+        """The batch from the trained step on, the online recurrent state fed in at each window
+        step ``[B, L, S]`` (None without ``use_rnn``) and, with ``train_every_step``, how the window
+        was cut into one short window per trained step (the :class:`Window` is then their batch). A
+        recurrent representation runs over the whole window (burn-in first); a feed-forward one only
+        where states are asked for."""
         burn_in = self.sac.burn_in_step
+        every_step = None
+        if self.sac.train_every_step:
+            first = 0 if self.sac.burn_in_gradient else burn_in  # burn-in states carry gradients only then
+            every_step = StepWindows(mask, first, self.sac.n_step, burn_in)
+            cut_steps, cut_positions = every_step.steps, every_step.positions
+        else:
+            cut_steps = cut_positions = lambda x: x[:, burn_in:]  # noqa: E731
         sequences, fed_states = None, None
         if rnn_state is not None:
             online, target, fed = self._sequence_states(obs, actions, prev_actions, mask, rnn_state)
             fed_states = fed[:, :-1]
-            sequences = (online[:, burn_in:], target[:, burn_in:])
-        obs = [o[:, burn_in:] for o in obs]
+            sequences = (cut_positions(online), cut_positions(target))
+        obs = [cut_positions(o) for o in obs]
         actions, rewards, terminated, truncated, mask, behaviour_logp = (
-            x[:, burn_in:] for x in (actions, rewards, terminated, truncated, mask, behaviour_logp)
+            cut_steps(x) for x in (actions, rewards, terminated, truncated, mask, behaviour_logp)
         )
         window = Window(
             obs=obs,
@@ -234,7 +260,7 @@ class SacLosses:
             target_representation=self.target_representation,
             sequences=sequences,
         )
-        return window, fed_states
+        return window, fed_states, every_step
 
     def _sequence_states(
         self, obs: list[Tensor], actions: Tensor, prev_actions: Tensor, mask: Tensor, rnn_state: Tensor
