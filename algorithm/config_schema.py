@@ -201,6 +201,11 @@ class SacConfig(Section):
     rnd_strength: float = Field(
         0.0, ge=0.0, description="Scale of RND's novelty as an intrinsic reward, in targets only (0: none)."
     )
+    rnd_normalize: bool = Field(
+        False,
+        description="Divide RND's novelty reward by a running mean of the replayed pairs' novelty, so that "
+        "rnd_strength is the average bonus per step and pairs newer than the rest get more.",
+    )
     action_noise_color: float = Field(
         0.0,
         ge=0.0,
@@ -240,6 +245,8 @@ class SacConfig(Section):
     def _check_ensemble(self) -> SacConfig:
         if self.ensemble_q_sample > self.ensemble_q_num:
             raise ValueError("ensemble_q_sample must be <= ensemble_q_num")
+        if self.rnd_normalize and not (self.use_rnd and self.rnd_strength > 0):
+            raise ValueError("rnd_normalize scales RND's novelty reward: it needs use_rnd: true and rnd_strength > 0")
         if self.burn_in_step and not self.use_rnn:
             raise ValueError("burn_in_step > 0 needs use_rnn: true (burn-in warms up a recurrent state)")
         return self

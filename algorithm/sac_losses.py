@@ -315,7 +315,10 @@ class SacLosses:
                 b, p = states.shape[:2]
                 with torch.no_grad():
                     every = self.models.rnd.novelty(states[:, :-1].flatten(0, 1), window.actions.flatten(0, 1))
-                intrinsic = sac.rnd_strength * torch.where(window.valid, every.view(b, p - 1), 0.0)
+                    every = every.view(b, p - 1)
+                    if sac.rnd_normalize:
+                        every = self.models.rnd.relative(every, window.valid)
+                intrinsic = sac.rnd_strength * torch.where(window.valid, every, 0.0)
                 rewards = rewards + intrinsic
                 metrics["learner/rnd_reward"] = intrinsic[:, 0]
         return rewards, aux_loss

@@ -70,7 +70,11 @@ def build_models(
     curiosity = None
     if sac.use_curiosity:
         curiosity = Curiosity(rep.state_dim, act.size, nn.hidden_units, sac.curiosity_inverse)
-    rnd = RandomNetworkDistillation(rep.state_dim, act.size, nn.hidden_units) if sac.use_rnd else None
+    rnd = (
+        RandomNetworkDistillation(rep.state_dim, act.size, nn.hidden_units, normalize=sac.rnd_normalize)
+        if sac.use_rnd
+        else None
+    )
     prediction = None
     if sac.use_prediction:
         targets = observation_targets(spec.sensors, nn.critic_only, sac.use_extra_data)

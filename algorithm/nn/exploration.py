@@ -12,7 +12,11 @@ as the revived system did): a frozen random network ``f*(s, a)`` and a predictor
 trained on replayed pairs; ``||f - f*||^2`` is high for pairs seldom seen. At acting time the
 policy draws ``rnd_n_sample`` actions per env and takes the most novel one (the revived system's
 use); with ``rnd_strength`` > 0 the novelty, scaled, is also an intrinsic reward added to the Q
-targets only (the paper's use), which fades as the pairs become familiar.
+targets only (the paper's use), which fades as the pairs become familiar; with ``rnd_normalize``
+it is divided by a running mean of the replayed pairs' novelty first, so that ``rnd_strength`` is the
+average bonus per step whatever the novelty's scale (the paper divides by a running deviation of
+the intrinsic return; with replay and targets formed at learning time a per-pair mean is the
+simpler scale), and only pairs newer than the rest stand out.
 """
 
 from __future__ import annotations
@@ -61,11 +65,29 @@ class RandomNetworkDistillation(nn.Module):
     """``novelty(s, a) = ||f(s, a) - f*(s, a)||^2 / 2`` with ``f*`` random and frozen (its weights are
     still in ``state_dict``, so a checkpoint restores the same target)."""
 
-    def __init__(self, state_dim: int, action_dim: int, hidden_units: Sequence[int], out_features: int = 32) -> None:
+    def __init__(
+        self,
+        state_dim: int,
+        action_dim: int,
+        hidden_units: Sequence[int],
+        out_features: int = 32,
+        normalize: bool = False,
+    ) -> None:
         super().__init__()
         self.target = _net(state_dim + action_dim, hidden_units, out_features).requires_grad_(False)
         self.predictor = _net(state_dim + action_dim, hidden_units, out_features)
+        if normalize:  # only then, so that checkpoints of runs without it keep their keys
+            self.register_buffer("novelty_mean", torch.zeros(()))
 
     def novelty(self, state: Tensor, action: Tensor) -> Tensor:
         x = torch.cat([state, action], dim=-1)
         return 0.5 * (self.predictor(x) - self.target(x)).pow(2).sum(dim=-1)
+
+    def relative(self, novelty: Tensor, counted: Tensor, momentum: float = 0.01) -> Tensor:
+        """``novelty`` of replayed pairs over the running mean of such novelty, which the pairs where
+        ``counted`` is True update first (an exponential average at rate ``momentum``, started at the
+        first batch's mean)."""
+        mean: Tensor = self.novelty_mean
+        batch_mean = novelty.detach()[counted].mean()
+        mean.copy_(torch.where(mean > 0, torch.lerp(mean, batch_mean, momentum), batch_mean))
+        return novelty / mean.clamp_min(1e-12)
