@@ -203,8 +203,8 @@ class SacConfig(Section):
     )
     rnd_normalize: bool = Field(
         False,
-        description="Divide RND's novelty reward by a running mean of the replayed pairs' novelty, so that "
-        "rnd_strength is the average bonus per step and pairs newer than the rest get more.",
+        description="RND's novelty reward as rnd_strength x (novelty / m - 1), m a running mean of the replayed "
+        "pairs' novelty: a scale that does not fade, zero on average, pairs newer than the rest rewarded.",
     )
     action_noise_color: float = Field(
         0.0,

@@ -12,11 +12,14 @@ as the revived system did): a frozen random network ``f*(s, a)`` and a predictor
 trained on replayed pairs; ``||f - f*||^2`` is high for pairs seldom seen. At acting time the
 policy draws ``rnd_n_sample`` actions per env and takes the most novel one (the revived system's
 use); with ``rnd_strength`` > 0 the novelty, scaled, is also an intrinsic reward added to the Q
-targets only (the paper's use), which fades as the pairs become familiar; with ``rnd_normalize``
-it is divided by a running mean of the replayed pairs' novelty first, so that ``rnd_strength`` is the
-average bonus per step whatever the novelty's scale (the paper divides by a running deviation of
-the intrinsic return; with replay and targets formed at learning time a per-pair mean is the
-simpler scale), and only pairs newer than the rest stand out.
+targets only (the paper's use), which fades as the pairs become familiar. With ``rnd_normalize``
+the bonus is ``rnd_strength x (novelty / m - 1)``, ``m`` a running mean of the replayed pairs'
+novelty: its scale no longer depends on how far the predictor has come (the paper divides by a
+running deviation of the intrinsic return; here targets are formed at learning time from replay,
+and a per-pair mean is the simpler scale), and it is zero on average, so pairs newer than the rest
+are rewarded and the familiar ones cost a little. An uncentred positive bonus would pay an agent
+for every step it does not end its episode, which on a goal task (MountainCar) is a pay for not
+reaching the goal; the paper avoids that with a non-episodic intrinsic value head instead.
 """
 
 from __future__ import annotations
@@ -84,10 +87,10 @@ class RandomNetworkDistillation(nn.Module):
         return 0.5 * (self.predictor(x) - self.target(x)).pow(2).sum(dim=-1)
 
     def relative(self, novelty: Tensor, counted: Tensor, momentum: float = 0.01) -> Tensor:
-        """``novelty`` of replayed pairs over the running mean of such novelty, which the pairs where
-        ``counted`` is True update first (an exponential average at rate ``momentum``, started at the
-        first batch's mean)."""
+        """``novelty / m - 1`` for replayed pairs, ``m`` the running mean of such novelty, which the
+        pairs where ``counted`` is True update first (an exponential average at rate ``momentum``,
+        started at the first batch's mean)."""
         mean: Tensor = self.novelty_mean
         batch_mean = novelty.detach()[counted].mean()
         mean.copy_(torch.where(mean > 0, torch.lerp(mean, batch_mean, momentum), batch_mean))
-        return novelty / mean.clamp_min(1e-12)
+        return novelty / mean.clamp_min(1e-12) - 1.0

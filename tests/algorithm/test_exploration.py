@@ -111,18 +111,19 @@ def test_rnd_acting_picks_more_novel_actions_than_the_policy_alone() -> None:
     np.testing.assert_array_equal(deterministic_a, deterministic_b)  # evaluation ignores novelty
 
 
-def test_rnd_normalize_divides_the_bonus_by_a_running_mean_of_replayed_novelty_which_is_checkpointed() -> None:
+def test_rnd_normalize_centres_the_bonus_on_a_running_mean_of_replayed_novelty_which_is_checkpointed() -> None:
     batch = make_batch(b=32)
     sac = make_sac(use_rnd=True, rnd_strength=0.5, rnd_normalize=True, learning_rate=3e-3)
     assert sac.models.rnd is not None
     first = sac.update(batch, with_metrics=True).metrics
-    assert first["learner/rnd_reward"] == pytest.approx(0.5, rel=1e-5)  # the first batch is its own mean
+    assert first["learner/rnd_reward"] == pytest.approx(0.0, abs=1e-6)  # the first batch is its own mean
     mean = float(sac.models.rnd.novelty_mean)
     for _ in range(30):  # one-step windows: the bonus's pairs are the novelty metric's
         metrics = sac.update(batch, with_metrics=True).metrics
         mean = mean + 0.01 * (metrics["learner/rnd_novelty"] - mean)
         assert float(sac.models.rnd.novelty_mean) == pytest.approx(mean, rel=1e-4)
-        assert metrics["learner/rnd_reward"] == pytest.approx(0.5 * metrics["learner/rnd_novelty"] / mean, rel=1e-4)
+        expected = 0.5 * (metrics["learner/rnd_novelty"] / mean - 1.0)
+        assert metrics["learner/rnd_reward"] == pytest.approx(expected, rel=1e-3, abs=1e-6)
     restored = make_sac(use_rnd=True, rnd_strength=0.5, rnd_normalize=True, seed=9)
     restored.load_state_dict(copy.deepcopy(sac.state_dict()))
     assert float(restored.models.rnd.novelty_mean) == float(sac.models.rnd.novelty_mean)  # type: ignore[union-attr]
