@@ -270,11 +270,17 @@ class SAC(SacLosses, Policy):
         """``|TD| [B]`` float32 of each window's trained step under the current weights (mean over all
         Q heads, as :meth:`update` reports it), without training: how the learner scores new data
         for ``sac_config.insert_td_priorities``. Its noise comes from a generator of its own, so
-        scoring does not change the updates' random stream."""
+        scoring does not change the updates' random stream, and RND's running novelty mean
+        (``rnd_normalize``), which the losses move, is put back: it follows trained batches only."""
         self._check_batch(batch)
         noise = self._noise(batch, self._score_rng)
+        rnd = self.models.rnd
+        mean = rnd.get_buffer("novelty_mean") if rnd is not None and self.sac.rnd_normalize else None
+        kept = None if mean is None else mean.clone()
         with torch.no_grad():
             td_abs = self._batch_losses(batch, None, noise, None, None).td_abs
+            if mean is not None and kept is not None:
+                mean.copy_(kept)
         return torch.nan_to_num(td_abs.float(), nan=0.0, posinf=0.0, neginf=0.0).cpu().numpy()
 
     def _noise(self, batch: Batch, generator: torch.Generator) -> Tensor:

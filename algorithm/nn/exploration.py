@@ -90,7 +90,7 @@ class RandomNetworkDistillation(nn.Module):
         """``novelty / m - 1`` for replayed pairs, ``m`` the running mean of such novelty, which the
         pairs where ``counted`` is True update first (an exponential average at rate ``momentum``,
         started at the first batch's mean)."""
-        mean: Tensor = self.novelty_mean
+        mean = self.get_buffer("novelty_mean")
         batch_mean = novelty.detach()[counted].mean()
         mean.copy_(torch.where(mean > 0, torch.lerp(mean, batch_mean, momentum), batch_mean))
         return novelty / mean.clamp_min(1e-12) - 1.0

@@ -131,3 +131,14 @@ def test_rnd_normalize_centres_the_bonus_on_a_running_mean_of_replayed_novelty_w
     assert not any("novelty_mean" in k for k in make_sac(use_rnd=True, rnd_strength=0.5).state_dict()["models"])
     with pytest.raises(ValueError, match="rnd_strength > 0"):
         SacConfig(use_rnd=True, rnd_normalize=True)
+
+
+def test_scoring_new_data_leaves_the_rnd_running_mean_alone() -> None:
+    """``td_errors`` (``insert_td_priorities``) runs the losses, which move RND's running novelty mean;
+    the mean follows trained batches only, so scoring puts it back."""
+    sac = make_sac(use_rnd=True, rnd_strength=0.5, rnd_normalize=True)
+    assert sac.models.rnd is not None
+    sac.update(make_batch(b=32))
+    mean = float(sac.models.rnd.novelty_mean)
+    sac.td_errors(make_batch(b=16, seed=5))
+    assert float(sac.models.rnd.novelty_mean) == mean
