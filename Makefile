@@ -40,7 +40,7 @@ test: install
 lint: install
 	$(PY) -m ruff check .
 	$(PY) -m ruff format --check .
-	$(PY) -m mypy algorithm envs ds main.py main_ds.py cli.py
+	$(PY) -m mypy algorithm envs ds bench main.py main_ds.py cli.py
 
 bench: install
 	$(PY) -m pip install --quiet -e '.[test,bench]'

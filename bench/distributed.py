@@ -248,7 +248,7 @@ def time_to_threshold(command: list[str], evaluations: Path, threshold: float, l
     return result
 
 
-def interrupt(proc: subprocess.Popen) -> None:  # type: ignore[type-arg]
+def interrupt(proc: subprocess.Popen) -> None:
     """SIGINT to ``proc``'s process group if it still runs (it saves and stops), SIGKILL after 60 s."""
     if proc.poll() is None:
         os.killpg(proc.pid, signal.SIGINT)
@@ -280,9 +280,9 @@ def bench_pendulum(args: argparse.Namespace) -> None:
     print("| run | median wall s (from launch) | median env steps | each seed (s / steps) |\n|---|---|---|---|")
     for name, values in results.items():
         wall = statistics.median(v[0] for v in values)
-        steps = statistics.median(v[1] for v in values)
+        median_steps = statistics.median(v[1] for v in values)
         each = ", ".join(f"{w:.0f} / {s}" for w, s in values)
-        print(f"| {name} | {wall:.1f} | {steps:.0f} | {each} |")
+        print(f"| {name} | {wall:.1f} | {median_steps:.0f} | {each} |")
 
 
 def main() -> None:

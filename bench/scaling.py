@@ -79,7 +79,7 @@ def warmup_rate(rows: list[dict[str, float]]) -> float:
     return warmup[-1]["env_steps"] / warmup[-1]["wall_seconds"] if warmup else float("nan")
 
 
-def _copy(stream, log) -> None:  # type: ignore[no-untyped-def]
+def _copy(stream, log) -> None:  # noqa: ANN001
     for raw in stream:
         log.write(raw.decode(errors="replace"))
 

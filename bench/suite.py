@@ -38,6 +38,7 @@ SUITE_OVERRIDES = ("sac.compute_dtype=bfloat16",)  # as HalfCheetah's reported r
 SUMMARY_FIELDS = ("task", "system", "seed", "steps", "return", "wall_s", "eval_s", "overrides", "code", "finished")
 CURVE_FIELDS = ("env_steps", "return_mean", "return_std", "wall_seconds")
 LAST = 3  # the report also averages each run's last LAST evaluations (90k-100k of 100k)
+INTERVAL = 0.9  # the report's interval of the ratio of means over resampled seeds
 
 
 def run_folder(runs: Path, task: str, seed: int, steps: int, overrides: str) -> Path:
@@ -180,11 +181,12 @@ def report(out: Path, task: str | None = None) -> None:
             )
         means: dict[str, float] = {}
         lasts: dict[str, float] = {}
+        finals: dict[str, list[float]] = {}
         for system in ("asac", "sb3"):
             rets = [float(r["return"]) for (sy, _), r in runs.items() if sy == system]
             if not rets:
                 continue
-            means[system] = float(np.mean(rets))
+            means[system], finals[system] = float(np.mean(rets)), rets
             # less noisy than one evaluation: each seed's mean of its last LAST evaluations
             last = [last_evaluations(curve_path(out, name, sy, s)) for (sy, s) in runs if sy == system]
             lasts[system] = float(np.mean(last))
@@ -193,10 +195,27 @@ def report(out: Path, task: str | None = None) -> None:
                 f" mean of the last {LAST} evaluations {lasts[system]:.1f} ({' / '.join(f'{v:.1f}' for v in last)})"
             )
         if len(means) == 2 and means["sb3"] != 0:
+            low, high = ratio_interval(finals["asac"], finals["sb3"])
             print(
-                f"ASAC / SB3 means: {means['asac'] / means['sb3']:.2f}x;"
+                f"ASAC / SB3 means: {means['asac'] / means['sb3']:.2f}x (seeds resampled: {INTERVAL:.0%} of draws"
+                f" between {low:.2f}x and {high:.2f}x);"
                 f" of the last {LAST} evaluations {lasts['asac'] / lasts['sb3']:.2f}x"
             )
+
+
+def ratio_interval(ours: list[float], theirs: list[float], draws: int = 10_000) -> tuple[float, float]:
+    """The central ``INTERVAL`` of mean(ours) / mean(theirs) when each side's seeds are drawn again with
+    replacement (a percentile bootstrap, fixed generator): how far the ratio of a few seeds' means
+    moves with the seeds alone. Three seeds give a crude interval, but one that shows whether a
+    ratio's distance from 1 is more than the seeds' spread."""
+    rng = np.random.default_rng(0)
+    a, b = np.asarray(ours, dtype=np.float64), np.asarray(theirs, dtype=np.float64)
+    mean_a = a[rng.integers(0, a.size, (draws, a.size))].mean(axis=1)
+    mean_b = b[rng.integers(0, b.size, (draws, b.size))].mean(axis=1)
+    ratios = mean_a[mean_b != 0] / mean_b[mean_b != 0]
+    tail = (1.0 - INTERVAL) / 2
+    low, high = np.quantile(ratios, [tail, 1.0 - tail])
+    return float(low), float(high)
 
 
 def last_evaluations(path: Path) -> float:

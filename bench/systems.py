@@ -82,6 +82,8 @@ def sb3_model(env_id: str, seed: int, learning_starts: int, buffer_size: int = 1
 class SB3Policy:
     """Adapts an SB3 model to our Policy protocol so both are evaluated by the same code."""
 
+    rnn_state_size = 0  # SB3's SAC is feedforward: evaluation calls act only
+
     def __init__(self, model) -> None:  # noqa: ANN001
         self.model = model
         space = model.action_space
@@ -91,6 +93,11 @@ class SB3Policy:
         env_action, _ = self.model.predict(obs[0], deterministic=deterministic)
         unit = 2.0 * (env_action - self.low) / (self.high - self.low) - 1.0
         return unit.astype(np.float32), np.zeros(len(unit), np.float32)
+
+    def act_recurrent(
+        self, obs: list[np.ndarray], prev_actions: np.ndarray, rnn_state: np.ndarray, deterministic: bool = False
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        raise NotImplementedError("SB3's SAC has no recurrent policy")
 
 
 @dataclass

@@ -157,12 +157,12 @@ def pendulum(args: argparse.Namespace) -> None:
         t = next(r for r in table if r[0] == "SB3" and r[1] == seed)
         print(f"| {seed} | {o[2]} | {_fmt(o[3])} | {t[2]} | {_fmt(t[3])} |")
     for name in ("ASAC", "SB3"):
-        steps = [r[2] for r in table if r[0] == name and r[2] is not None]
+        reached = [r[2] for r in table if r[0] == name and r[2] is not None]
         walls = [r[3] for r in table if r[0] == name and r[3] is not None]
-        if steps:
+        if reached:
             print(
-                f"{name}: median {statistics.median(steps):.0f} steps, {statistics.median(walls):.1f} s"
-                f" ({len(steps)}/{len(args.seeds)} seeds reached -200)"
+                f"{name}: median {statistics.median(reached):.0f} steps, {statistics.median(walls):.1f} s"
+                f" ({len(reached)}/{len(args.seeds)} seeds reached -200)"
             )
 
 

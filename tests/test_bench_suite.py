@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 
 from algorithm.run_dir import RunDir
-from bench.suite import run_folder
+from bench.suite import ratio_interval, run_folder
 from bench.systems import RunResult, RunStopped, run_ours
 
 TINY = ["nn.hidden_units=[16,16]", "replay.batch_size=16", "actor.random_steps=100", "replay.min_size_to_sample=100",
@@ -37,3 +37,11 @@ def test_a_stopped_run_is_saved_and_the_same_call_resumes_it_to_its_budget(tmp_p
     assert [at for at, *_ in result.curve] == [200, 400, 600]  # the first part's evaluation kept, none twice
     assert result.final == result.curve[-1][1]
     assert result.earlier_wall_s > 0  # the summary's wall time counts the first part too
+
+
+def test_the_ratio_interval_widens_with_the_seeds_spread_and_holds_the_ratio_of_means() -> None:
+    tight = ratio_interval([100.0, 101.0, 99.0], [100.0, 100.5, 99.5])
+    spread = ratio_interval([300.0, 2600.0, 500.0], [350.0, 450.0, 2900.0])
+    assert tight[0] <= 1.0 <= tight[1] and tight[1] - tight[0] < 0.05
+    assert spread[0] < 0.5 and spread[1] > 2.0  # one seed far above the others on each side
+    assert ratio_interval([200.0] * 3, [100.0] * 3) == (2.0, 2.0)
