@@ -327,6 +327,10 @@ def _play_rendered(
 
     base = config.base_config
     headless = not os.environ.get("DISPLAY")
+    if headless:  # pygame's init (classic-control renderers) would look for a display and a sound card and
+        # print errors about both (XDG_RUNTIME_DIR, ALSA); rgb_array frames need neither
+        os.environ.setdefault("SDL_VIDEODRIVER", "dummy")
+        os.environ.setdefault("SDL_AUDIODRIVER", "dummy")
     env = make_env(
         base.build_path,
         seed=int(config.sac_config.seed or 0),
@@ -364,6 +368,9 @@ def _play_rendered(
         import imageio.v2 as imageio
 
         video = run_dir / f"play_{step}.mp4"
-        imageio.mimwrite(video, list(frames), fps=int(env.metadata.get("render_fps", 30)))
+        # H.264 in yuv420p (imageio-ffmpeg's default) needs even sizes; its default block of 16 would
+        # rescale e.g. Pendulum's 500x500 frames to 512x512 and warn about it on every play.
+        fps = int(env.metadata.get("render_fps", 30))
+        imageio.mimwrite(video, list(frames), fps=fps, macro_block_size=2)
         print(f"no display: frames saved to {video}")
     return 0

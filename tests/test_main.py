@@ -76,6 +76,13 @@ def test_run_render_headless_writes_a_video(trained: Path) -> None:
     assert done.returncode == 0, done.stderr
     video = trained / "models/gym/pendulum/tiny/play_250.mp4"
     assert video.is_file() and video.stat().st_size > 1000
+    import imageio.v2 as imageio
+
+    reader = imageio.get_reader(video)
+    assert reader.get_data(0).shape == (500, 500, 3)  # Pendulum's frames as rendered, not rescaled
+    reader.close()
+    output = done.stdout + done.stderr  # no display and no sound card: nothing to complain about
+    assert "XDG_RUNTIME_DIR" not in output and "ALSA" not in output and "WARNING" not in output, output
 
 
 def test_same_name_resumes(trained: Path) -> None:
