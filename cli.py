@@ -331,13 +331,18 @@ def _play_rendered(
         # print errors about both (XDG_RUNTIME_DIR, ALSA); rgb_array frames need neither
         os.environ.setdefault("SDL_VIDEODRIVER", "dummy")
         os.environ.setdefault("SDL_AUDIODRIVER", "dummy")
-    env = make_env(
-        base.build_path,
-        seed=int(config.sac_config.seed or 0),
-        env_kwargs=base.env_kwargs,
-        max_episode_steps=limit,
-        render_mode="rgb_array" if headless else "human",
-    )
+        # MuJoCo renders off-screen through EGL (libEGL, with or without a GPU) unless told otherwise;
+        # read when mujoco is first imported, which making the env does
+        os.environ.setdefault("MUJOCO_GL", "egl")
+        logging.getLogger("OpenGL").setLevel(logging.WARNING)  # PyOpenGL's INFO line about its C accelerator
+    with _off_screen_rendering(headless):  # an off-screen GL library is loaded here, when the env is made
+        env = make_env(
+            base.build_path,
+            seed=int(config.sac_config.seed or 0),
+            env_kwargs=base.env_kwargs,
+            max_episode_steps=limit,
+            render_mode="rgb_array" if headless else "human",
+        )
     venv = VectorEnv([env])  # sensors split and actions mapped exactly as in training
     spec = venv.spec
     sac = Policy(spec, config.sac_config, config.nn_config, device=device, build=run_model_builder(RunDir(run_dir)))
@@ -359,7 +364,8 @@ def _play_rendered(
             total += float(result.rewards[0])
             done = bool(result.terminated[0] or result.truncated[0])
             if headless:
-                frames.append(np.asarray(env.render()))
+                with _off_screen_rendering(headless):  # and a context is made at the first frame
+                    frames.append(np.asarray(env.render()))
         returns.append(total)
     env.close()
     mean, std = float(np.mean(returns)), float(np.std(returns))
@@ -374,3 +380,18 @@ def _play_rendered(
         imageio.mimwrite(video, list(frames), fps=fps, macro_block_size=2)
         print(f"no display: frames saved to {video}")
     return 0
+
+
+@contextmanager
+def _off_screen_rendering(headless: bool) -> Iterator[None]:
+    """Without a display, a renderer that cannot start becomes a UsageError saying what it needs."""
+    try:
+        yield
+    except Exception as e:  # the renderers raise their own types (mujoco.FatalError, AttributeError, ...)
+        if not headless:
+            raise
+        raise UsageError(
+            f"--render: no display (DISPLAY unset) and off-screen rendering failed: {one_line(e)}. MuJoCo renders "
+            "off-screen with MUJOCO_GL=egl (needs libEGL; Debian: libegl1) or osmesa (libOSMesa; Debian: "
+            f"libosmesa6), here {os.environ.get('MUJOCO_GL')!r}; or play without --render"
+        ) from e

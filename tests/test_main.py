@@ -26,9 +26,17 @@ TINY_OVERRIDES = [
 TINY = [arg for override in TINY_OVERRIDES for arg in ("--override", override)] + ["--no_progress"]
 
 
-def run_main(*args: str, cwd: Path, timeout: float = 180) -> subprocess.CompletedProcess[str]:
+def run_main(
+    *args: str, cwd: Path, timeout: float = 180, env_changes: dict[str, str | None] | None = None
+) -> subprocess.CompletedProcess[str]:
+    """``main.py ARGS`` without a display; ``env_changes`` sets (or, with None, removes) variables."""
     env = {**os.environ, "OMP_WAIT_POLICY": "PASSIVE", "OMP_NUM_THREADS": "1", "MUJOCO_GL": "egl"}
     env.pop("DISPLAY", None)
+    for key, value in (env_changes or {}).items():
+        if value is None:
+            env.pop(key, None)
+        else:
+            env[key] = value
     return subprocess.run(
         [sys.executable, str(ROOT / "main.py"), *args],
         cwd=cwd,
@@ -83,6 +91,24 @@ def test_run_render_headless_writes_a_video(trained: Path) -> None:
     reader.close()
     output = done.stdout + done.stderr  # no display and no sound card: nothing to complain about
     assert "XDG_RUNTIME_DIR" not in output and "ALSA" not in output and "WARNING" not in output, output
+
+
+def test_render_of_a_mujoco_task_needs_no_setting_and_a_broken_renderer_is_one_line(tmp_path: Path) -> None:
+    tiny = ["--override", "actor.random_steps=64", "--override", "base.max_step_each_iter=30"]
+    done = run_main("mujoco/inverted_pendulum", "-n", "tiny", *TINY, *tiny, cwd=tmp_path)
+    assert done.returncode == 0, done.stderr
+    play = ["mujoco/inverted_pendulum", "-n", "tiny", "--run", "--render", "--episodes", "1"]
+
+    shown = run_main(*play, cwd=tmp_path, env_changes={"MUJOCO_GL": None})  # a user's shell sets nothing
+    assert shown.returncode == 0, shown.stderr
+    assert (tmp_path / "models/mujoco/inverted_pendulum/tiny/play_250.mp4").stat().st_size > 1000
+    assert "OpenGL" not in shown.stdout + shown.stderr, shown.stderr  # no INFO line from PyOpenGL
+
+    broken = run_main(*play, cwd=tmp_path, env_changes={"MUJOCO_GL": "no-such-backend"})
+    assert broken.returncode == 2, broken.stderr
+    assert "Traceback" not in broken.stderr
+    assert "--render: no display" in broken.stderr and "'no-such-backend'" in broken.stderr, broken.stderr
+    assert "play without --render" in broken.stderr
 
 
 def test_same_name_resumes(trained: Path) -> None:
