@@ -14,7 +14,7 @@ import pytest
 
 from ds.net.security import ROLES
 from tests.pki import Pki
-from tests.role_runs import ENV, TINY, event_files, main_ds_command
+from tests.role_runs import ENV, TINY, TINY_OVERRIDES, RoleRun, event_files, flags, main_ds_command
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -130,6 +130,29 @@ def test_replay_learner_and_two_actors_learn_pendulum(tmp_path: Path) -> None:
     assert int(best["env_steps"]) <= BUDGET + 100  # the learner may read the counter a chunk late
     print(f"reached {float(best['return_mean']):.1f} at {best['env_steps']} env steps in "
           f"{time.monotonic() - started:.0f} s wall")  # fmt: skip
+
+
+@pytest.mark.grpc
+def test_roles_started_by_hand_stop_at_the_budget_and_the_replay_says_the_run_is_finished(tmp_path: Path) -> None:
+    """The journey of README's "one role per terminal": replay, learner and an actor started one by one
+    finish a 600-step budget; the learner and the actor exit 0 on their own, and the replay, which
+    nothing tells that no learner will come back, says once that the run looks finished and how to stop
+    it, then stops and saves on Ctrl-C (exit 130)."""
+    run = RoleRun(tmp_path, "by_hand", flags(*TINY_OVERRIDES, "base.max_step=600", "net.lease_s=3"))
+    for label in ("replay", "learner", "actor"):
+        run.start(label, label)
+    try:
+        assert run.procs["learner"].wait(timeout=240) == 0, run.logs()
+        assert run.procs["actor"].wait(timeout=60) == 0, run.logs()
+        run.ended.update({"learner", "actor"})  # their exits were expected
+        assert run.procs["replay"].poll() is None  # it serves on: a resumed learner may come
+        notice = run.wait_for_line("replay", r"the run looks finished.*Ctrl-C stops it \(and saves it\)", 30)
+        time.sleep(4)  # another quiet spell: the line is not repeated
+        assert len(re.findall("the run looks finished", run.text("replay"))) == 1, notice
+    finally:
+        codes = run.stop_all()
+    assert codes["replay"] == 130, run.logs()
+    assert (run.run / "replay" / "replay.npz").is_file()  # saved at the stop, as save_replay_on_stop says
 
 
 # ---------------------------------------------------------------------- security
