@@ -94,9 +94,9 @@ def build_parser() -> argparse.ArgumentParser:
         description="Run one role of distributed ASAC, or all of them as local subprocesses.",
         epilog="examples:\n  python main_ds.py gym/pendulum local --actors 2\n"
         "  python main_ds.py gym/pendulum local --learners 3 --actors 6   # a population with an evolver\n"
-        "  python main_ds.py gym/pendulum replay\n"
-        "  python main_ds.py gym/pendulum learner --replay_host=10.0.0.2\n"
-        "  python main_ds.py gym/pendulum actor --learner_host=10.0.0.3 --replay_host=10.0.0.2 --noise 0.1",
+        "  python main_ds.py gym/pendulum replay -n myrun       # one role per host: the same -n on each\n"
+        "  python main_ds.py gym/pendulum learner -n myrun --replay_host=10.0.0.2\n"
+        "  python main_ds.py gym/pendulum actor -n myrun --learner_host=10.0.0.3 --replay_host=10.0.0.2 --noise 0.1",
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     add_common_args(p)
@@ -144,7 +144,8 @@ def resolve(args: argparse.Namespace) -> tuple[Config, Path]:
     check_device(args.device)
     overrides = cli_overrides(args)
     config = load_config(task, args.config, overrides).config
-    name = (args.name or config.base_config.name).replace("{time}", time.strftime("%Y%m%d%H%M%S"))
+    template = args.name or config.base_config.name
+    name = template.replace("{time}", time.strftime("%Y%m%d%H%M%S"))
     run_dir = run_directory(args.model_root, args.env, name)
     check_writable(run_dir, args.model_root)
     saved = RunDir(run_dir).config
@@ -173,6 +174,15 @@ def resolve(args: argparse.Namespace) -> tuple[Config, Path]:
     credentials(config, ROLES[args.role])  # a missing secret or a bad certificate stops here, before anything starts
     if ROLES[args.role] != "evolver":  # the one role without envs
         check_env(config)
+    if "{time}" in template and args.role != "local":
+        # Each role would name the run by its own start time: their files in as many folders, and the
+        # same commands again a new run instead of a resumed one. Checked last: what is wrong with the
+        # config, the model root or the env is said first.
+        raise UsageError(
+            f"{args.role}: name the run with -n NAME, the same on every role of it (the name here, "
+            f"{template!r}, is each process's start time), so that their files go to one run folder and "
+            "the same commands resume it"
+        )
     return config, run_dir
 
 

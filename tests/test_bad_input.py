@@ -211,8 +211,13 @@ MAIN_DS_CASES = [
     (["actor", "--noise", "1e9"], "argument --noise: '1e9' is not a noise level (a number in [0, 1000000])"),
     (["local", "--learners", "0"], "argument --learners: '0' is not a positive integer"),
     (["actor", "--override", "actor.noise_max=1e9"], "noise_max"),
-    (["learner", "--override", "nn.critic_only=[nope]"], "critic_only names unknown sensors ['nope']"),
-    (["actor", "--override", "nn.critic_only=[nope]"], "critic_only names unknown sensors ['nope']"),  # its policy
+    (["learner", "-n", "r", "--override", "nn.critic_only=[nope]"], "critic_only names unknown sensors ['nope']"),
+    (["actor", "-n", "r", "--override", "nn.critic_only=[nope]"], "critic_only names unknown sensors ['nope']"),
+    # roles started one by one must share a name: each one's start time would scatter the run's files
+    *[
+        ([role], f"{role}: name the run with -n NAME, the same on every role")
+        for role in ("replay", "learner", "actor", "evolver")
+    ],
     (["local", "--override", "nn.critic_only=[nope]"], "critic_only names unknown sensors ['nope']"),
 ]
 

@@ -65,7 +65,7 @@ def test_a_taken_port_is_a_clear_error(tmp_path: Path) -> None:
         taken.bind(("127.0.0.1", 0))
         taken.listen()
         port = taken.getsockname()[1]
-        done = run_ds("gym/pendulum", "replay", "--replay_port", str(port), cwd=tmp_path, timeout=120)
+        done = run_ds("gym/pendulum", "replay", "-n", "port", "--replay_port", str(port), cwd=tmp_path, timeout=120)
     assert done.returncode == 1, done.stderr
     assert f"replay cannot listen on 127.0.0.1:{port}" in done.stderr and "--replay_port" in done.stderr
     assert "Traceback" not in done.stderr
@@ -80,8 +80,8 @@ def test_in_k8s_pairs_learner_k_with_replay_k_by_pod_name(tmp_path: Path) -> Non
     for extra, expected in (([], "waiting for replay at asac-replay-2.asac-replay:61002"),
                             (["--replay_host", "10.9.9.9"], "waiting for replay at 10.9.9.9:61002")):  # fmt: skip
         with log.open("wb") as out:
-            proc = subprocess.Popen(command("gym/pendulum", "learner", "--in_k8s", "--no_progress", *extra),
-                                    cwd=tmp_path, env=env, stdout=out, stderr=subprocess.STDOUT)  # fmt: skip
+            learner = command("gym/pendulum", "learner", "-n", "k8s", "--in_k8s", "--no_progress", *extra)
+            proc = subprocess.Popen(learner, cwd=tmp_path, env=env, stdout=out, stderr=subprocess.STDOUT)
         try:
             deadline = time.monotonic() + 120
             while expected not in log.read_text() and time.monotonic() < deadline and proc.poll() is None:
