@@ -12,6 +12,7 @@ from pathlib import Path
 
 import pytest
 
+from ds.launch.local import free_port
 from ds.net.security import ROLES
 from tests.pki import Pki
 from tests.role_runs import ENV, TINY, TINY_OVERRIDES, RoleRun, event_files, flags, main_ds_command
@@ -69,6 +70,28 @@ def test_a_taken_port_is_a_clear_error(tmp_path: Path) -> None:
     assert done.returncode == 1, done.stderr
     assert f"replay cannot listen on 127.0.0.1:{port}" in done.stderr and "--replay_port" in done.stderr
     assert "Traceback" not in done.stderr
+
+
+@pytest.mark.grpc
+def test_a_port_another_replay_serves_is_a_clear_error(tmp_path: Path) -> None:
+    """A replay started on the port of one that still runs (a forgotten earlier run's, say) must not
+    share it: with gRPC's default SO_REUSEPORT both bound, and the kernel spread a run's learner and
+    actors over two replays that each waited for the other's clients."""
+    port = free_port()
+    log = tmp_path / "first.log"
+    first = start_ds("gym/pendulum", "replay", "-n", "first", "--replay_port", str(port), cwd=tmp_path, log=log)
+    try:
+        deadline = time.monotonic() + 60
+        while f"replay serving on 127.0.0.1:{port}" not in log.read_text():
+            assert first.poll() is None and time.monotonic() < deadline, log.read_text()
+            time.sleep(0.2)
+        second = run_ds("gym/pendulum", "replay", "-n", "second", "--replay_port", str(port), cwd=tmp_path, timeout=60)
+        assert second.returncode == 1, second.stderr
+        assert f"replay cannot listen on 127.0.0.1:{port}" in second.stderr and "--replay_port" in second.stderr
+        assert first.poll() is None  # the first one serves on
+    finally:
+        first.send_signal(signal.SIGINT)
+        first.wait(timeout=60)
 
 
 @pytest.mark.grpc

@@ -214,7 +214,12 @@ def new_server(
     ``interceptors`` run after those checks (tests inject faults with them)."""
     guard = [_Guard(service, callers, credentials)] if credentials.secured else []
     executor = futures.ThreadPoolExecutor(max_workers=max_workers, thread_name_prefix=f"{what}-rpc")
-    return grpc.server(executor, options=list(options), interceptors=[*guard, *interceptors])
+    # gRPC sets SO_REUSEPORT on Linux by default, so a second server on a port already served would bind
+    # as well and the kernel would spread connections over both (measured: a new run's learner sampled
+    # from a forgotten earlier run's replay while its actor inserted into the new one, and both waited
+    # forever). Off, the second bind fails and the role says the port is taken.
+    exclusive = [("grpc.so_reuseport", 0), *options]
+    return grpc.server(executor, options=exclusive, interceptors=[*guard, *interceptors])
 
 
 def listen(
