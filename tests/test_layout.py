@@ -84,6 +84,7 @@ def test_a_mistyped_command_is_answered_before_torch_is_imported() -> None:
         ["main_ds.py", "gym/pendulum", "replay", "--override", "sac.gama=0.5"],
         ["main_ds.py", "gym/pendulum", "actor", "--noise", "-1"],
         ["main_ds.py", "gym/pendulum", "learner", "--actors", "2"],
+        ["main_ds.py", "gym/pendulum", "actor"],  # a role started by hand needs -n NAME
     )
     for argv in commands:
         code = PROBE.format(argv=argv, path=str(ROOT / argv[0]))
