@@ -14,9 +14,7 @@ import logging
 import socket
 import threading
 import time
-from collections.abc import Mapping
 from dataclasses import replace
-from typing import Any
 
 from grpc_health.v1 import health
 
@@ -132,7 +130,7 @@ def _serve_replay(role: RoleContext, keeper: AssignmentKeeper | None, metrics_ev
     try:
         while not role.stop.wait(1.0):
             now = time.monotonic()
-            finished.check(table.info(), now, saving_at_stop)
+            finished.check(table.rate_limiter.inserted, table.rate_limiter.sampled, now, saving_at_stop)
             if keeper is not None and halt.is_set() and not role.stop.is_set():
                 job = keeper.job
                 moved = member_config(job.config_yaml, job.learner_id, role.config, role.overrides)
@@ -167,22 +165,22 @@ class FinishedRunNotice:
     tells a replay that the learner will not come back (a resumed or second learner may), so it
     serves on and says so instead of sitting silent; ``local`` and Kubernetes stop it themselves."""
 
-    def __init__(self, max_step: int, quiet_s: float = 30.0) -> None:
+    def __init__(self, max_step: int, quiet_s: float) -> None:
         self.max_step, self.quiet_s = max_step, quiet_s
         self._sampled, self._since, self._told = -1, 0.0, False
 
-    def check(self, info: Mapping[str, Any], now: float, saves_at_stop: bool) -> bool:
-        """True when it logs (once per quiet spell: sampling again re-arms it)."""
-        if self.max_step < 0 or info["inserted_steps"] < self.max_step:
-            return False
-        if info["sampled_windows"] != self._sampled:
-            self._sampled, self._since, self._told = info["sampled_windows"], now, False
-            return False
+    def check(self, inserted_steps: int, sampled_windows: int, now: float, saves_at_stop: bool) -> None:
+        """Called about once a second with the table's counters; logs once per quiet spell (sampling
+        again re-arms it)."""
+        if self.max_step < 0 or inserted_steps < self.max_step:
+            return
+        if sampled_windows != self._sampled:
+            self._sampled, self._since, self._told = sampled_windows, now, False
+            return
         if self._told or now - self._since < self.quiet_s:
-            return False
+            return
         self._told = True
         log.info("the run's budget is in (%d+ env steps, base_config.max_step %d) and no learner has sampled for "
                  "%.0f s: the run looks finished, this replay serves on for a learner that resumes; Ctrl-C stops "
-                 "it%s", info["inserted_steps"], self.max_step, self.quiet_s,
+                 "it%s", inserted_steps, self.max_step, self.quiet_s,
                  " (and saves it)" if saves_at_stop else "")  # fmt: skip
-        return True
