@@ -39,18 +39,20 @@ class Chunk(_message.Message):
     def __init__(self, obs: _Optional[_Iterable[_Union[Tensor, _Mapping]]] = ..., actions: _Optional[_Union[Tensor, _Mapping]] = ..., prev_actions: _Optional[_Union[Tensor, _Mapping]] = ..., rewards: _Optional[_Union[Tensor, _Mapping]] = ..., terminated: _Optional[_Union[Tensor, _Mapping]] = ..., truncated: _Optional[_Union[Tensor, _Mapping]] = ..., behaviour_logp: _Optional[_Union[Tensor, _Mapping]] = ..., rnn_state: _Optional[_Union[Tensor, _Mapping]] = ..., priorities: _Optional[_Union[Tensor, _Mapping]] = ...) -> None: ...
 
 class InsertRequest(_message.Message):
-    __slots__ = ("chunks", "timeout_s", "producer", "sequence", "acked_below")
+    __slots__ = ("chunks", "timeout_s", "producer", "sequence", "acked_below", "producer_stopping")
     CHUNKS_FIELD_NUMBER: _ClassVar[int]
     TIMEOUT_S_FIELD_NUMBER: _ClassVar[int]
     PRODUCER_FIELD_NUMBER: _ClassVar[int]
     SEQUENCE_FIELD_NUMBER: _ClassVar[int]
     ACKED_BELOW_FIELD_NUMBER: _ClassVar[int]
+    PRODUCER_STOPPING_FIELD_NUMBER: _ClassVar[int]
     chunks: _containers.RepeatedCompositeFieldContainer[Chunk]
     timeout_s: float
     producer: int
     sequence: _containers.RepeatedScalarFieldContainer[int]
     acked_below: int
-    def __init__(self, chunks: _Optional[_Iterable[_Union[Chunk, _Mapping]]] = ..., timeout_s: _Optional[float] = ..., producer: _Optional[int] = ..., sequence: _Optional[_Iterable[int]] = ..., acked_below: _Optional[int] = ...) -> None: ...
+    producer_stopping: bool
+    def __init__(self, chunks: _Optional[_Iterable[_Union[Chunk, _Mapping]]] = ..., timeout_s: _Optional[float] = ..., producer: _Optional[int] = ..., sequence: _Optional[_Iterable[int]] = ..., acked_below: _Optional[int] = ..., producer_stopping: _Optional[bool] = ...) -> None: ...
 
 class InsertReply(_message.Message):
     __slots__ = ("keys", "duplicate", "inserted_steps")

@@ -103,8 +103,9 @@ class ReplayServiceServicer:
         a chunk is longer than capacity - 1 steps, timeout_s < 0, or sequence is not one distinct
         number per chunk with a producer, or not empty without one; nothing is stored), DEADLINE_EXCEEDED
         (the rate limiter held the insert back for timeout_s or until the call's deadline; nothing is
-        stored), RESOURCE_EXHAUSTED (message over the server's size limit, or a new producer past the
-        replay's replay_config.max_producers, which the message names; nothing is stored).
+        stored; never for a request with producer_stopping, whose chunks are then stored anyway),
+        RESOURCE_EXHAUSTED (message over the server's size limit, or a new producer past the replay's
+        replay_config.max_producers, which the message names; nothing is stored).
         The ids of at most replay_config.max_producers producers are kept (default 1024; every actor
         process started over the replay's life takes a place, restarts included). A producer is never
         forgotten while a chunk it had stored may still be sent again, only once it has acknowledged

@@ -212,12 +212,15 @@ def stop_took_s(output: str) -> float:
     return max(stamps) - time.mktime(time.strptime(finished, "%Y-%m-%d %H:%M:%S"))
 
 
-def check_unsent_within_the_bound(output: str) -> None:
-    """What actors could not insert at a Ctrl-C: logged once per actor at most, and never more than
-    an actor may hold ((inserts_in_flight + 1) * chunks_per_insert = 2 chunks with one env)."""
-    unsent = re.findall(r"^\[actor-(\d+)\] .*\d+ collected steps \((\d+) chunks\) were not inserted", output, re.M)
-    assert len({k for k, _ in unsent}) == len(unsent), unsent
-    assert all(int(chunks) <= 2 for _, chunks in unsent), unsent
+def check_nothing_collected_was_lost(output: str) -> None:
+    """At a Ctrl-C the learner stops first and draws no more, so the rate limiter holds the actors'
+    last inserts back; they are stored anyway: every env step the actors say they collected is in the
+    replay they saved, and no actor says it could not insert some."""
+    assert "were not inserted" not in output, output[-4000:]
+    collected = re.findall(r"^\[actor-\d\] .*actor \d (?:finished|stopped) after (\d+) env steps", output, re.M)
+    saved = re.findall(r"^\[replay\] .*replay saved to .*: (\d+) env steps inserted", output, re.M)
+    assert len(collected) == 2 and len(saved) == 1, output[-4000:]
+    assert sum(map(int, collected)) == int(saved[0]), output[-4000:]
 
 
 def check_actor_labels(output: str) -> None:
@@ -301,7 +304,7 @@ def test_ctrl_c_mid_run_stops_the_learner_before_the_replay_and_says_interrupted
     assert first(r"^\[learner\] .*learner stopped after", out) < first(r"^\[replay\] .*SIGINT: stopping", out)
     assert first(r"^\[learner\] .*learner stopped after", out) < first(r"^\[actor-\d\] .*SIGINT: stopping", out)
     assert "Traceback" not in out and "SIGKILL" not in out, out[-4000:]
-    check_unsent_within_the_bound(out)  # the learner stopped first: the actors' last tries do not wait
+    check_nothing_collected_was_lost(out)
     check_actor_labels(out)
     outcome, lines = summary_of(out)
     assert outcome == "interrupted (SIGINT)", lines

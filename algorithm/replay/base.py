@@ -68,6 +68,7 @@ class ReplayInfo(TypedDict):
     priority_updates_ignored: int
     rnn_state_updates: int
     duplicates: int  # chunks sent again and answered without storing them twice
+    stored_past_limiter: int  # steps of stopping producers stored while the rate limiter held inserts back
     rate_limiter_surplus: float  # windows the learner may still draw now (-1: no ratio)
     insert_waits: float
     sample_waits: float
@@ -98,10 +99,13 @@ class ReplayTable(Protocol):
         ids: ChunkIds,
         priorities: Sequence[np.ndarray | None] | None = None,
         timeout: float | None = None,
+        producer_stopping: bool = False,
     ) -> Inserted:
         """Store chunks all or nothing, except those already stored under their ids (producer,
         sequence number), which are answered with their keys and not stored again: a producer
-        that missed an answer sends the same chunks again safely (algorithm/replay/dedup.py)."""
+        that missed an answer sends the same chunks again safely (algorithm/replay/dedup.py).
+        ``producer_stopping``: its last tries; stored after ``timeout`` even if the rate limiter
+        still holds inserts back."""
         ...
 
     def sample(self, batch_size: int, timeout: float | None = None) -> Batch:

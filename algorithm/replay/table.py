@@ -37,7 +37,7 @@ from algorithm.normalizer import RunningMeanStd
 from algorithm.replay import persistence
 from algorithm.replay.base import NormalizerStats, ReplayInfo
 from algorithm.replay.dedup import FORGOTTEN, MAX_PRODUCERS, ChunkIds, ChunkLedger, Inserted
-from algorithm.replay.rate_limiter import RateLimiter
+from algorithm.replay.rate_limiter import InsertTimeout, RateLimiter
 from algorithm.replay.sum_tree import SumTree
 from algorithm.spaces import SensorSpec
 from algorithm.types import Batch, Chunk
@@ -164,6 +164,7 @@ class PrioritizedTable:
                 "priority_updates_ignored",
                 "rnn_state_updates",
                 "duplicates",
+                "stored_past_limiter",
             ),
             0,
         )
@@ -246,6 +247,7 @@ class PrioritizedTable:
         ids: ChunkIds,
         priorities: Sequence[np.ndarray | None] | None = None,
         timeout: float | None = None,
+        producer_stopping: bool = False,
     ) -> Inserted:
         """:meth:`insert_many` for a producer that sends a chunk again when it missed the answer:
         a chunk already stored under ``(ids.producer, ids.seqs[i])`` is not stored again but
@@ -254,10 +256,17 @@ class PrioritizedTable:
         what that guarantees and how little it keeps). A request of duplicates only is never held
         back by the rate limiter. Bad ``ids`` raise ``ValueError`` and store nothing; a new producer
         that would exceed ``max_producers`` raises
-        :class:`~algorithm.replay.dedup.ProducerLimitReached` and stores nothing."""
+        :class:`~algorithm.replay.dedup.ProducerLimitReached` and stores nothing.
+
+        ``producer_stopping``: these are the producer's last tries (it is stopping). When the rate
+        limiter still holds them back after ``timeout`` they are stored anyway (their steps counted
+        in ``info()["stored_past_limiter"]``) instead of raising ``InsertTimeout``: at a Ctrl-C of a
+        whole run the learner stops first and draws no more, and what the actors collected is worth
+        more in the table (for a resumed run) than thrown away. The overshoot is bounded by what a
+        stopping producer holds (``ds/actor/sink.py``)."""
         checked = self._check_many(chunks, priorities)
         ids.check(len(checked))
-        return self._insert(checked, ids, timeout)
+        return self._insert(checked, ids, timeout, producer_stopping)
 
     def _check_many(
         self, chunks: Sequence[Chunk], priorities: Sequence[np.ndarray | None] | None
@@ -277,7 +286,11 @@ class PrioritizedTable:
         return checked
 
     def _insert(
-        self, checked: list[tuple[Chunk, int, np.ndarray | None]], ids: ChunkIds | None, timeout: float | None
+        self,
+        checked: list[tuple[Chunk, int, np.ndarray | None]],
+        ids: ChunkIds | None,
+        timeout: float | None,
+        producer_stopping: bool = False,
     ) -> Inserted:
         with self._lock:
             known: list[int | None] = [None] * len(checked)
@@ -286,7 +299,12 @@ class PrioritizedTable:
                 known = self._ledger.lookup(ids)
             steps = sum(t for (_, t, _), first in zip(checked, known, strict=True) if first is None)
             if steps:
-                self.rate_limiter.await_insert(steps, timeout)
+                try:
+                    self.rate_limiter.await_insert(steps, timeout)
+                except InsertTimeout:
+                    if not producer_stopping:
+                        raise
+                    self._counters["stored_past_limiter"] += steps
                 if ids is not None:  # the wait released the lock: a copy of this request may have been
                     self._ledger.settle(ids)  # stored, or (nothing of it stored) its producer forgotten
                     known = self._ledger.lookup(ids)

@@ -62,8 +62,11 @@ class ReplaySink:
     and nothing is retried: each chunk still here gets one last try; the last tries wait in the rate
     limiter until one deadline ``last_try_wait_s()`` seconds after the first (0 by default; at the
     end of a run the learner goes on training until the actors have left, so their last inserts are
-    let in: see ds/actor/actor.py), and after the first sign that the replay is gone no more are sent. What
-    was not stored is counted in ``unsent_steps`` / ``unsent_chunks`` and logged once, by
+    let in within the ratio: see ds/actor/actor.py), and then the replay stores them anyway (they are
+    sent with ``producer_stopping``: after a Ctrl-C the learner has stopped first and draws no more,
+    and what was collected is kept for a resumed run). After the first sign that the replay is gone
+    no more are sent. What was not stored (the replay gone, or one from before ``producer_stopping``
+    that still refuses) is counted in ``unsent_steps`` / ``unsent_chunks`` and logged once, by
     :meth:`flush`, which waits for everything on its way. Chunks may be stored out of order after a
     retry; each is self-contained (no window spans two chunks), so order does not matter.
 
@@ -151,7 +154,7 @@ class ReplaySink:
         if self.unsent_steps > self._reported_unsent:
             unsent, chunks = self.unsent_steps, self.unsent_chunks
             log.warning(
-                "%d collected steps (%d chunks) were not inserted (stopped while replay was busy)", unsent, chunks
+                "%d collected steps (%d chunks) were not inserted (the replay was gone or refused them)", unsent, chunks
             )
             self._reported_unsent = self.unsent_steps
 
@@ -195,7 +198,7 @@ class ReplaySink:
             if self._last_tries_until is None:
                 self._last_tries_until = time.monotonic() + self.last_try_wait_s()
             timeout = max(0.0, self._last_tries_until - time.monotonic())
-        pending = self.replay.insert_async(chunks, timeout=timeout, ids=ids)
+        pending = self.replay.insert_async(chunks, timeout=timeout, ids=ids, producer_stopping=final)
         pending.final = final
         self._pending.append(pending)
         self.requests += 1

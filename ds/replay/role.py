@@ -153,7 +153,9 @@ def _serve_replay(role: RoleContext, keeper: AssignmentKeeper | None, metrics_ev
         replay_service.set_serving(checker, False)
         server.stop(grace=2.0).wait()
         if saving_at_stop and snapshots.attempt(path, lambda: table.save(path), final=True):
-            log.info("replay saved to %s", path)
+            info = table.info()
+            log.info("replay saved to %s: %d env steps inserted (%d of them stopping actors' last, past the rate "
+                     "limiter)", path, info["inserted_steps"], info["stored_past_limiter"])  # fmt: skip
         writer.close()
     return code
 

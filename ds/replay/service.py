@@ -153,7 +153,7 @@ class ReplayServicer(replay_pb2_grpc.ReplayServiceServicer):
             wait = _wait_seconds(request, context)
             if request.producer:
                 ids = ChunkIds(request.producer, tuple(request.sequence), request.acked_below)
-                inserted = self.table.insert_once(chunks, ids, priorities, wait)
+                inserted = self.table.insert_once(chunks, ids, priorities, wait, request.producer_stopping)
                 return replay_pb2.InsertReply(
                     keys=[to_tensor(k) for k in inserted.keys],
                     duplicate=inserted.duplicate,
@@ -431,22 +431,32 @@ class ReplayClient(RpcClient):
         ids: ChunkIds,
         priorities: Sequence[np.ndarray | None] | None = None,
         timeout: float | None = None,
+        producer_stopping: bool = False,
     ) -> Inserted:
         """Store chunks unless already stored under their ids; see :meth:`PrioritizedTable.insert_once`.
         Retrying UNAVAILABLE is harmless here: a copy that was stored comes back as a duplicate."""
         request = self._insert_request(chunks, priorities, ids)
+        request.producer_stopping = producer_stopping
         reply = self._blocking("Insert", self._stub.Insert, request, timeout, InsertTimeout)
         return _inserted(reply, chunks, ids)
 
-    def insert_async(self, chunks: Sequence[Chunk], timeout: float = 0.0, ids: ChunkIds | None = None) -> PendingInsert:
+    def insert_async(
+        self,
+        chunks: Sequence[Chunk],
+        timeout: float = 0.0,
+        ids: ChunkIds | None = None,
+        producer_stopping: bool = False,
+    ) -> PendingInsert:
         """Send one insert of ``chunks`` (all or nothing) without waiting for the answer: the
         caller goes on (an actor steps its envs) and collects it with :meth:`PendingInsert.result`.
         One attempt, no retries: the caller keeps the chunks until the result says they are stored,
         and sends them again with the same ``ids`` if it does not (then a copy that was stored is
         answered as a duplicate, not stored twice). ``timeout`` is how long the server's rate
-        limiter may hold the insert back."""
+        limiter may hold the insert back; with ``producer_stopping`` (and ``ids``) the chunks are
+        stored after it even if the limiter still holds inserts back."""
         request = self._insert_request(chunks, None, ids)
         request.timeout_s = max(0.0, float(timeout))
+        request.producer_stopping = producer_stopping
         future = self._stub.Insert.future(request, timeout=request.timeout_s + self.rpc_timeout_s)
         return PendingInsert(self.address, future, list(chunks), ids)
 

@@ -44,6 +44,7 @@ from tests.algorithm.replay.test_table_dedup import (  # noqa: F401
     test_a_new_producer_forgotten_while_it_waits_in_the_rate_limiter_comes_back_in,
     test_a_request_of_duplicates_only_is_not_held_back_by_the_rate_limiter,
     test_a_snapshot_with_a_bad_ledger_is_refused,
+    test_a_stopping_producers_last_tries_are_stored_past_the_rate_limiter_once,
     test_a_table_loaded_from_a_snapshot_knows_the_chunks_the_snapshot_holds,
     test_acknowledged_numbers_are_forgotten_and_a_stale_copy_is_not_stored,
     test_bad_ids_are_named_and_store_nothing,

@@ -84,6 +84,24 @@ def test_a_request_of_duplicates_only_is_not_held_back_by_the_rate_limiter(conne
     assert (info["inserted_steps"], info["duplicates"]) == (5, 1)
 
 
+def test_a_stopping_producers_last_tries_are_stored_past_the_rate_limiter_once(connect: Connect) -> None:
+    # Nobody samples (the learner stopped first, at a Ctrl-C of the whole run): after 5 steps the
+    # rate limiter holds inserts back. A producer's last tries (producer_stopping) are stored after
+    # the wait all the same, counted, and a copy of one sent again is still stored only once.
+    tab = connect(table(rate_limiter=RateLimiter(1.0, min_size_to_sample=4, tolerance=0.0)))
+    tab.insert_once([make_chunk(5, 0)], ChunkIds(PRODUCER, (0,)), timeout=0)
+    with pytest.raises(InsertTimeout):  # not stopping: held back as before
+        tab.insert_once([make_chunk(4, 10)], ChunkIds(PRODUCER, (1,)), timeout=0)
+    last = [make_chunk(4, 10), make_chunk(3, 20)]
+    inserted = tab.insert_once(last, ChunkIds(PRODUCER, (1, 2)), timeout=0.05, producer_stopping=True)
+    assert inserted.duplicate == [False, False] and [len(k) for k in inserted.keys] == [4, 3]
+    again = tab.insert_once(last[:1], ChunkIds(PRODUCER, (1,)), timeout=0, producer_stopping=True)
+    assert again.duplicate == [True]
+    info = tab.info()
+    assert (info["inserted_steps"], info["stored_past_limiter"], info["duplicates"]) == (12, 7, 1)
+    assert stored_observations(tab) == [0.0, 1.0, 2.0, 3.0, 4.0, 10.0, 11.0, 12.0, 13.0, 20.0, 21.0, 22.0]
+
+
 def test_copies_waiting_in_the_rate_limiter_store_the_chunk_once(connect: Connect) -> None:
     # The limiter holds every copy back; while they wait the lock is free, so each must look again
     # once admitted: exactly one stores the chunk, the others are duplicates.
