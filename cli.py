@@ -31,6 +31,7 @@ import numpy as np
 
 from algorithm.config import ConfigError, apply_overrides, config_from_file
 from algorithm.config_schema import Config
+from algorithm.folder_lock import FolderInUse
 from algorithm.logging import LogFileHandler
 from algorithm.run_dir import RunDir
 from envs.make import VectorEnv, make_env, vector_env_factory
@@ -178,6 +179,8 @@ def removed_if_not_started(run_dir: Path) -> Iterator[None]:
     created = next((p for p in reversed((run_dir, *run_dir.parents)) if not p.exists()), None)
     try:
         yield
+    except FolderInUse:
+        raise  # the folder is another live process's run, made by it: never removed
     except BaseException:
         if created is not None and created.exists() and all(_written_by_setup(p) for p in created.rglob("*")):
             shutil.rmtree(created)

@@ -32,6 +32,7 @@ import gymnasium
 
 from algorithm.config import ConfigError, apply_overrides, config_from_file, load_config
 from algorithm.errors import CheckpointError
+from algorithm.folder_lock import FolderInUse, hold_folder
 from algorithm.random_params import draw_for_run
 from algorithm.run_dir import RunDir
 from algorithm.signals import stop_on_signals
@@ -88,19 +89,20 @@ def train(args: argparse.Namespace) -> int:
         run_dir = run_directory(args.model_root, args.env, name)
         check_writable(run_dir, args.model_root)
         saved_config = RunDir(run_dir).config
-        if saved_config.exists():
-            # Resuming: the run's own resolved config (seed included) wins; command-line overrides still apply.
-            run_config = apply_overrides(config_from_file(saved_config), cli_overrides(args))
-        else:
-            if run_config.sac_config.seed is None:
-                run_config.sac_config.seed = random.SystemRandom().randrange(2**31)  # recorded in config.yaml
-            elif args.repeat > 1:
-                run_config.sac_config.seed = int(run_config.sac_config.seed) + repeat
-            # As the original did for every standalone run; the values land in config.yaml, so a
-            # resume runs with them (random_params emptied) instead of drawing again.
-            run_config, drawn = draw_for_run(run_config, run_config.sac_config.seed)
-        run_config.base_config.name = name
         with removed_if_not_started(run_dir):
+            lock = hold_folder(run_dir, "run")  # one process trains a run: a second one stops here
+            if saved_config.exists():
+                # Resuming: the run's own resolved config (seed included) wins; command-line overrides still apply.
+                run_config = apply_overrides(config_from_file(saved_config), cli_overrides(args))
+            else:
+                if run_config.sac_config.seed is None:
+                    run_config.sac_config.seed = random.SystemRandom().randrange(2**31)  # recorded in config.yaml
+                elif args.repeat > 1:
+                    run_config.sac_config.seed = int(run_config.sac_config.seed) + repeat
+                # As the original did for every standalone run; the values land in config.yaml, so a
+                # resume runs with them (random_params emptied) instead of drawing again.
+                run_config, drawn = draw_for_run(run_config, run_config.sac_config.seed)
+            run_config.base_config.name = name
             copy_model_file(task, run_config, run_dir, explicit=args.nn is not None)
             setup_logging(run_dir, args.logger_in_file)
             try:
@@ -122,6 +124,7 @@ def train(args: argparse.Namespace) -> int:
             log.info("random_params drew %s (recorded in config.yaml)", values)
         if trainer.done():
             report_finished(run_dir, args, trainer.env_steps, trainer.last_eval_mean, already=True)
+            lock.release()
             continue
         if trainer.env_steps:
             log.info("resumed at %d env steps, %d updates", trainer.env_steps, trainer.updates)
@@ -137,6 +140,7 @@ def train(args: argparse.Namespace) -> int:
                      summary.env_steps, summary.updates, summary.wall_seconds, how)  # fmt: skip
             return stop.exit_code
         report_finished(run_dir, args, summary.env_steps, summary.last_eval_mean, already=False)
+        lock.release()
     return 0
 
 
@@ -171,7 +175,7 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         return play(args) if args.run else train(args)
-    except (UsageError, ConfigError, CheckpointError) as e:
+    except (UsageError, ConfigError, CheckpointError, FolderInUse) as e:
         print(f"error: {one_line(e)}", file=sys.stderr)
         return 2
 

@@ -28,6 +28,7 @@ from algorithm.config import ConfigError, apply_overrides, config_from_file, con
 from algorithm.config_schema import MAX_EXPLORATION_NOISE, Config
 from algorithm.errors import CheckpointError, RoleError
 from algorithm.files import WriteFailures, atomic_write
+from algorithm.folder_lock import FolderInUse, hold_folder
 from algorithm.logging import LogFileHandler
 from algorithm.run_dir import RunDir
 from algorithm.signals import StopRequest, stop_on_signals
@@ -258,6 +259,9 @@ def run(args: argparse.Namespace) -> int:
     from ds.launch.role_context import RoleContext
 
     with removed_if_not_started(run_dir):
+        # local drives the whole run, as main.py does: a second launcher on it stops here (the roles
+        # started one by one are kept apart by their ports, which only one process can serve)
+        lock = hold_folder(run_dir, "run") if role == "local" else None
         copy_model_file(resolve_task(args.env), config, run_dir, explicit=args.nn is not None)
         setup_logging(run_dir, role, args.logger_in_file)
         context = RoleContext(
@@ -277,7 +281,11 @@ def run(args: argparse.Namespace) -> int:
             path, text = RunDir(run_dir).config, config_to_yaml(config).encode()  # a full disk keeps the old file
             WriteFailures("run config", log).attempt(path, lambda: atomic_write(path, lambda f: f.write(text)))
     if role == "local":
-        return local(args, config, run_dir, context.credentials)
+        try:
+            return local(args, config, run_dir, context.credentials)
+        finally:
+            assert lock is not None
+            lock.release()
     log.info("%s of run %s (seed %s)", role, run_dir, config.sac_config.seed)
     security.warn_without_token(role, context.credentials)
     code = run_role(role, context, args)
@@ -364,7 +372,7 @@ def main(argv: list[str] | None = None) -> int:
     args.command_line = list(sys.argv[1:] if argv is None else argv)  # what local's summary says resumes it
     try:
         return run(args)
-    except (UsageError, ConfigError, CheckpointError, EvolverStateError) as e:
+    except (UsageError, ConfigError, CheckpointError, EvolverStateError, FolderInUse) as e:
         print(f"error: {one_line(e)}", file=sys.stderr)
         return 2
     except RoleError as e:

@@ -171,3 +171,36 @@ def test_a_finished_run_started_again_reports_its_result_and_how_to_play_it(whol
     assert command is not None and "models/gym/pendulum/whole" in again.stderr, again.stderr
     played = run_main(whole, *command.group(1).split()[1:], "--episodes", "2")
     assert played.returncode == 0 and f"checkpoint {MAX_STEP}: return" in played.stdout, played.stderr
+
+
+def test_a_second_process_on_a_run_in_training_stops_and_a_killed_run_resumes(tmp_path: Path) -> None:
+    # The same command in a second terminal while the first still trains: it must not write a second
+    # run's rows into evaluations.csv nor its checkpoints over the first's (it did, interleaved).
+    args = [*COMMON, "-n", "shared", "--override", "eval.eval_per_step=250"]
+    run = tmp_path / "models/gym/pendulum/shared"
+    first = subprocess.Popen([sys.executable, str(ROOT / "main.py"), *args], cwd=tmp_path, env=main_env(), text=True,
+                             stderr=subprocess.PIPE, stdout=subprocess.DEVNULL)  # fmt: skip
+    assert first.stderr is not None
+    try:
+        for text in first.stderr:  # training: past its first evaluation
+            if "eval at 500 env steps" in text:
+                break
+        else:
+            raise AssertionError(f"the first run ended early, exit {first.wait()}")
+        second = run_main(tmp_path, *args, timeout=120)
+        assert second.returncode == 2, second.stderr
+        assert second.stderr.strip().splitlines() == [
+            f"error: run models/gym/pendulum/shared is in use by process {first.pid}, which is training it now: wait "
+            "for it to finish or stop it (Ctrl-C saves, and the same command resumes), or give this one another "
+            "name with -n"
+        ], second.stderr
+        first.kill()  # kill -9: no save, and the lock goes with the process
+        first.wait(30)
+    finally:
+        if first.poll() is None:
+            first.kill()
+    steps = [int(r["env_steps"]) for r in read_evaluations(run / "evaluations.csv")]
+    assert steps == list(range(250, steps[-1] + 1, 250)), steps  # one run's rows only
+    resumed = run_main(tmp_path, *args, "--override", "base.max_step=1500")
+    assert resumed.returncode == 0, resumed.stderr
+    assert "finished at 1500 env steps" in resumed.stderr, resumed.stderr

@@ -9,6 +9,8 @@ journeys run the real roles on gym/pendulum with tiny budgets.
 
 from __future__ import annotations
 
+import contextlib
+import os
 import re
 import shlex
 import signal
@@ -284,19 +286,35 @@ def test_a_local_run_finishes_in_order_and_its_summary_plays_it(tmp_path: Path) 
 @pytest.mark.fault
 def test_ctrl_c_mid_run_stops_the_learner_before_the_replay_and_says_interrupted(tmp_path: Path) -> None:
     """SIGINT to the launcher mid-run: exit 130; the learner checkpointed and said it stopped before
-    the replay was told to stop; the replay saved; the summary says interrupted and plays the run."""
+    the replay was told to stop; the replay saved; the summary says interrupted and plays the run.
+    Meanwhile the same command a second time is refused before it starts a role (two launchers on one
+    run would mix two runs' checkpoints and evaluations)."""
     log = tmp_path / "local.log"
-    with log.open("w") as sink:
-        proc = subprocess.Popen(command("gym/pendulum", "local", "--actors", "2", "-n", "ctrl_c", *TINY,
-                                        "--override", "base.max_step=-1", "--override", "replay.save_replay=true"),
-                                cwd=tmp_path, env=ENV, stdout=sink, stderr=subprocess.STDOUT)  # fmt: skip
-    deadline = time.monotonic() + 60
-    while "eval at" not in log.read_text():
-        assert proc.poll() is None, log.read_text()[-4000:]
-        assert time.monotonic() < deadline, "the run did not get going: " + log.read_text()[-4000:]
-        time.sleep(0.3)
-    proc.send_signal(signal.SIGINT)  # what Ctrl-C in a terminal sends the launcher
-    assert proc.wait(timeout=60) == 130, log.read_text()[-4000:]
+    args = command("gym/pendulum", "local", "--actors", "2", "-n", "ctrl_c", *TINY,
+                   "--override", "base.max_step=-1", "--override", "replay.save_replay=true")  # fmt: skip
+    again_log = tmp_path / "again.log"
+    with log.open("w") as sink, again_log.open("w") as again_sink:
+        proc = subprocess.Popen(args, cwd=tmp_path, env=ENV, stdout=sink, stderr=subprocess.STDOUT)
+        again, passed = None, False
+        try:
+            deadline = time.monotonic() + 60
+            while "eval at" not in log.read_text():
+                assert proc.poll() is None, log.read_text()[-4000:]
+                assert time.monotonic() < deadline, "the run did not get going: " + log.read_text()[-4000:]
+                time.sleep(0.3)
+            again = subprocess.Popen(args, cwd=tmp_path, env=ENV, stdout=again_sink, stderr=subprocess.STDOUT)
+            assert again.wait(timeout=60) == 2, again_log.read_text()[-4000:]
+            said = again_log.read_text()
+            assert said.startswith(f"error: run models/gym/pendulum/ctrl_c is in use by process {proc.pid},"), said
+            proc.send_signal(signal.SIGINT)  # what Ctrl-C in a terminal sends the launcher
+            assert proc.wait(timeout=60) == 130, log.read_text()[-4000:]
+            passed = True
+        finally:  # after a failed assertion: no launcher or role of this test left running
+            for launcher, output in ((proc, log), (again, again_log)):
+                if launcher is not None and not passed:
+                    for pid in (launcher.pid, *child_pids(output.read_text()).values()):
+                        with contextlib.suppress(ProcessLookupError):
+                            os.kill(pid, signal.SIGKILL)
     out = log.read_text()
     run = tmp_path / "models/gym/pendulum/ctrl_c"
     assert list(run.glob("model/*.pt")), "no checkpoint"

@@ -27,7 +27,6 @@ of its own (``config.yaml`` with its sampled values, ``model/``, ``log/learner``
 
 from __future__ import annotations
 
-import fcntl
 import json
 import logging
 import threading
@@ -35,13 +34,13 @@ import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TextIO
 
 import grpc
 
 from algorithm.config import apply_overrides, config_from_yaml
 from algorithm.config_schema import Config
 from algorithm.files import WriteFailures, atomic_write
+from algorithm.folder_lock import FolderLock, try_hold
 from algorithm.logging import Throttle
 from ds.evolver.service import EvolverClient
 from ds.evolver.state import (
@@ -81,7 +80,7 @@ def learner_dir(run_dir: Path, learner_id: int) -> Path:
 
 
 class LearnerSlot:
-    """Learner ``learner_id``'s folder, locked (``flock`` on ``.lock``) while its process lives.
+    """Learner ``learner_id``'s folder, locked (``flock`` on the folder) while its process lives.
 
     A learner process that starts claims the folder of a learner that ran here before and is neither
     retired nor held by a live process, and registers again as that learner (``previous_id``); the
@@ -89,7 +88,7 @@ class LearnerSlot:
     ``learner.json`` says ``{"learner_id": k, "status": "active" | "retired" | "forgotten"}``
     (forgotten: the evolver's state no longer knows the id)."""
 
-    def __init__(self, path: Path, learner_id: int, lock: TextIO) -> None:
+    def __init__(self, path: Path, learner_id: int, lock: FolderLock) -> None:
         self.path = path
         self.learner_id = learner_id
         self._lock = lock
@@ -128,13 +127,8 @@ class LearnerSlot:
 
     @classmethod
     def _locked(cls, path: Path, learner_id: int) -> LearnerSlot | None:
-        lock = (path / ".lock").open("a")
-        try:
-            fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
-            lock.close()
-            return None
-        return cls(path, learner_id, lock)
+        lock = try_hold(path)
+        return None if lock is None else cls(path, learner_id, lock)
 
     def set_status(self, status: str) -> bool:
         """Write the status; False when it could not be (a full disk: logged, the file kept as it was)."""
@@ -143,7 +137,7 @@ class LearnerSlot:
         return self.status_writes.attempt(path, lambda: atomic_write(path, lambda f: f.write(text)))
 
     def release(self) -> None:
-        self._lock.close()  # closing the file drops the flock
+        self._lock.release()
 
 
 def member_config(config_yaml: str, learner_id: int, own: Config, overrides: Sequence[str]) -> Config:
