@@ -31,7 +31,7 @@ from algorithm.files import WriteFailures, atomic_write
 from algorithm.folder_lock import FolderInUse, hold_folder
 from algorithm.logging import LogFileHandler
 from algorithm.run_dir import RunDir
-from algorithm.signals import StopRequest, stop_on_signals
+from algorithm.signals import StopRequest, stop_on_signals, stop_with_launcher
 from cli import (
     ArgumentParser,
     UsageError,
@@ -286,6 +286,8 @@ def run(args: argparse.Namespace) -> int:
         finally:
             assert lock is not None
             lock.release()
+    if isinstance(context.stop, StopRequest):
+        stop_with_launcher(context.stop)  # a role of local: it stops if the launcher dies
     log.info("%s of run %s (seed %s)", role, run_dir, config.sac_config.seed)
     security.warn_without_token(role, context.credentials)
     code = run_role(role, context, args)

@@ -11,7 +11,9 @@ run uninterrupted; a finished run, started again, says where it is, what it reac
 from __future__ import annotations
 
 import os
+import pty
 import re
+import select
 import signal
 import subprocess
 import sys
@@ -204,3 +206,34 @@ def test_a_second_process_on_a_run_in_training_stops_and_a_killed_run_resumes(tm
     resumed = run_main(tmp_path, *args, "--override", "base.max_step=1500")
     assert resumed.returncode == 0, resumed.stderr
     assert "finished at 1500 env steps" in resumed.stderr, resumed.stderr
+
+
+def test_the_terminal_closing_under_a_run_saves_it_and_the_same_command_resumes(tmp_path: Path) -> None:
+    # SIGHUP is what a run started from a terminal gets when the terminal (or the SSH session) closes.
+    # It ended main.py where it stood: no save, the work since the last checkpoint lost. Here the
+    # terminal is a pseudo-terminal whose far end is closed first (every write to it fails from then
+    # on, the progress bar's included), then SIGHUP comes, as the shell sends it to its jobs.
+    args = ["gym/pendulum", "-n", "hup", "--logger_in_file", "--override", "sac.seed=0", "--override",
+            "base.max_step=1500", "--override", "eval.eval_per_step=500",
+            "--override", "sac.save_model_per_step=100000"]  # fmt: skip
+    terminal, far_end = pty.openpty()
+    proc = subprocess.Popen([sys.executable, str(ROOT / "main.py"), *args], cwd=tmp_path, env=main_env(),
+                            stdin=far_end, stdout=far_end, stderr=far_end, start_new_session=True)  # fmt: skip
+    os.close(far_end)
+    seen = b""
+    try:
+        while b"eval at 1000 env steps" not in seen:
+            ready, _, _ = select.select([terminal], [], [], HANG_S)
+            assert ready, seen.decode(errors="replace")[-4000:]
+            seen += os.read(terminal, 65536)
+    finally:
+        os.close(terminal)  # the terminal is gone
+    proc.send_signal(signal.SIGHUP)
+    assert proc.wait(timeout=HANG_S) == 129
+    run = tmp_path / "models/gym/pendulum/hup"
+    saved = max(int(p.stem) for p in run.glob("model/*.pt"))  # none before the signal: every 100,000 steps
+    assert 1000 <= saved < 1500
+    assert "SIGHUP: stopping after this step, saving" in (run / "log.txt").read_text()
+    resumed = run_main(tmp_path, *args)
+    assert resumed.returncode == 0, resumed.stderr
+    assert f"resumed at {saved} env steps" in resumed.stderr and "finished at 1500 env steps" in resumed.stderr

@@ -11,7 +11,9 @@ from __future__ import annotations
 
 import contextlib
 import os
+import pty
 import re
+import select
 import shlex
 import signal
 import subprocess
@@ -420,3 +422,92 @@ def test_ctrl_c_then_the_command_it_prints_resumes_and_a_third_run_of_the_finish
     assert sorted(p.name for p in run.glob("model/*.pt")) == checkpoints
     outcome, lines = summary_of(third.stdout)
     assert outcome == "finished" and f"run folder: models/gym/pendulum/{name}" in lines, lines
+
+
+@pytest.mark.slow
+@pytest.mark.grpc
+@pytest.mark.fault
+def test_a_launcher_killed_with_9_leaves_no_role_running_each_saves_and_the_same_command_resumes(
+    tmp_path: Path,
+) -> None:
+    """``kill -9`` of the launcher (nobody stops the roles in order, nobody reads their output): every
+    role stops by itself, as on SIGTERM (they ran on, unseen, holding their ports, and the learner's
+    work since its last checkpoint was lost when they were killed later); the learner checkpointed and
+    the replay saved; the same command then resumes the run from both (the run's lock went with the
+    launcher)."""
+    # --logger_in_file: each role's own log file says what it did after the launcher died
+    args = command("gym/pendulum", "local", "--actors", "2", "-n", "orphans", *TINY, "--logger_in_file",
+                   "--override", "sac.seed=0", "--override", "eval.eval_per_step=5000",
+                   "--override", "sac.save_model_per_step=100000")  # fmt: skip
+    log = tmp_path / "first.log"
+    with log.open("w") as sink:
+        proc = subprocess.Popen([*args, "--override", "base.max_step=-1"], cwd=tmp_path, env=ENV, stdout=sink,
+                                stderr=subprocess.STDOUT)  # fmt: skip
+    pids: dict[str, int] = {}
+    try:
+        deadline = time.monotonic() + 90
+        while not re.search(r"registered as actor-.*; 2 live", log.read_text()):
+            assert proc.poll() is None, log.read_text()[-4000:]
+            assert time.monotonic() < deadline, "the run did not get going: " + log.read_text()[-4000:]
+            time.sleep(0.3)
+        time.sleep(5)  # a few hundred steps trained, none checkpointed yet (every 100,000 steps)
+        pids = child_pids(log.read_text())
+        assert set(pids) == {"replay", "learner", "actor-0", "actor-1"}
+        run = tmp_path / "models/gym/pendulum/orphans"
+        assert not list(run.glob("model/*.pt"))
+        proc.kill()
+        proc.wait(10)
+        deadline = time.monotonic() + 60
+        while any(map(running, pids.values())):
+            assert time.monotonic() < deadline, f"roles still running 60 s after the launcher died: {pids}"
+            time.sleep(0.5)
+    finally:
+        for pid in pids.values():
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(pid, signal.SIGKILL)
+    saved = max(int(p.stem) for p in run.glob("model/*.pt"))
+    assert saved > 0 and (run / "replay/replay.npz").is_file()
+    again = subprocess.run([*args, "--override", f"base.max_step={saved + 300}"], cwd=tmp_path, env=ENV, text=True,
+                           stdout=subprocess.PIPE, stderr=subprocess.STDOUT, timeout=180)  # fmt: skip
+    out = again.stdout
+    assert again.returncode == 0, out[-4000:]
+    assert re.search(rf"resumed from \S+/{saved}\.pt at {saved} env steps", out), out[-4000:]
+    assert re.search(r"replay restored from \S+: \d+ steps", out), out[-4000:]
+    assert summary_of(out)[0] == "finished"
+
+
+@pytest.mark.slow
+@pytest.mark.grpc
+@pytest.mark.fault
+def test_the_terminal_closing_under_local_stops_every_role_in_order(tmp_path: Path) -> None:
+    """SIGHUP to the launcher after its terminal has closed (writes to it fail from then on): it stops
+    the roles in order as on Ctrl-C (exit 129), though nothing it prints can be shown any more: the
+    learner checkpoints, the replay saves, no role is left running."""
+    args = command("gym/pendulum", "local", "--actors", "2", "-n", "hup", *TINY, "--logger_in_file",
+                   "--override", "base.max_step=-1", "--override", "sac.save_model_per_step=100000")  # fmt: skip
+    terminal, far_end = pty.openpty()
+    proc = subprocess.Popen(args, cwd=tmp_path, env=ENV, stdin=far_end, stdout=far_end, stderr=far_end,
+                            start_new_session=True)  # fmt: skip
+    os.close(far_end)
+    seen, pids = "", {}
+    try:
+        try:
+            while not re.search(r"eval at \d+ env steps, [1-9]\d* updates", seen):
+                ready, _, _ = select.select([terminal], [], [], 90)
+                assert ready, seen[-4000:]
+                seen += os.read(terminal, 65536).decode(errors="replace")
+        finally:
+            os.close(terminal)  # the terminal is gone
+        pids = child_pids(seen)
+        assert set(pids) == {"replay", "learner", "actor-0", "actor-1"}, seen[-4000:]
+        proc.send_signal(signal.SIGHUP)
+        assert proc.wait(timeout=90) == 129
+        assert not any(map(running, pids.values()))
+    finally:
+        for pid in (proc.pid, *pids.values()):
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(pid, signal.SIGKILL)
+    run = tmp_path / "models/gym/pendulum/hup"
+    assert list(run.glob("model/*.pt")) and (run / "replay/replay.npz").is_file()
+    said = (run / "log_local.txt").read_text()
+    assert "SIGHUP: stopping every role in order" in said and "SIGKILL" not in said, said[-4000:]

@@ -37,6 +37,7 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import os
 import re
 import signal
 import socket
@@ -49,7 +50,7 @@ from dataclasses import dataclass
 import grpc
 
 from algorithm.logging import Throttle
-from algorithm.signals import StopRequest, stop_on_signals
+from algorithm.signals import LAUNCHER_PID_ENV, StopRequest, stop_on_signals
 from ds.evolver.service import EvolverClient
 from ds.evolver.state import LearnerInfo
 from ds.launch.local_summary import PlayableRun, summary
@@ -98,6 +99,7 @@ class LocalProcesses:
             stdin=subprocess.DEVNULL,
             text=True,
             process_group=self.pgid,  # the first child leads a new group; the others join it
+            env={**os.environ, LAUNCHER_PID_ENV: str(os.getpid())},  # it stops if this launcher dies
         )
         if not self.pgid:
             self.pgid = proc.pid
