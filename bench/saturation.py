@@ -1,0 +1,78 @@
+"""How far a trained policy pushes its pre-tanh actions, along one deterministic episode of its own.
+
+    python -m bench.saturation RUN_DIR [RUN_DIR ...] [--seed 12345]
+
+Where ``|u| > ~6.5`` the squashed Gaussian's log-density differs between ASAC, which computes
+``log(1 - tanh(u)^2)`` exactly (``2 (log 2 - u - softplus(-2u))``), and SB3 or CleanRL, which add 1e-6
+inside the log: there ``1 - tanh(u)^2 ~ 4 exp(-2|u|)`` falls to ~1e-5 and below, so the epsilon caps
+the entropy bonus's pull back from the edge. Below ~5 the two agree to under 1% per dimension. This
+prints, per run (its latest checkpoint), the episode's return and the distribution of ``|mean u|`` over
+steps and action dimensions, and the policy's standard deviation: whether that difference can matter
+for the task at all (BENCHMARKS.md section 11).
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from algorithm.checkpoint import load_for_resume
+from algorithm.config import config_from_file
+from algorithm.policy import Policy
+from algorithm.run_dir import RunDir
+from cli import _load_policy, env_factory, run_model_builder
+
+EDGE = 6.5  # |u| past which 1e-6 is more than ~10% of 1 - tanh(u)^2
+
+
+def probe(run: Path, seed: int) -> str:
+    paths = RunDir(run)
+    config = config_from_file(paths.config)
+    ckpt, state = load_for_resume(paths.model, None)
+    env = env_factory(config)(1, seed)
+    policy = Policy(env.spec, config.sac_config, config.nn_config, device="cpu", build=run_model_builder(paths))
+    _load_policy(policy, state, ckpt)
+    models = policy.models
+    if models.policy is None:
+        raise SystemExit(f"{run}: no continuous policy")
+    means, stds, total = [], [], 0.0
+    obs = env.reset(seed=seed)
+    while True:
+        with torch.no_grad():
+            x = [torch.as_tensor(np.asarray(v), dtype=torch.float32) for v in obs]
+            if models.normalizer is not None:
+                x = models.normalizer(x)
+            mean, log_std = models.policy(models.representation(x))
+        means.append(mean.numpy().ravel())
+        stds.append(log_std.exp().numpy().ravel())
+        action, _ = policy.act(obs, deterministic=True)
+        step = env.step(action)
+        obs = step.obs
+        total += float(step.rewards.sum())
+        if step.terminated.any() or step.truncated.any():
+            break
+    env.close()
+    u, std = np.abs(np.concatenate(means)), np.concatenate(stds)
+    return (
+        f"{run} ({ckpt.stem}): {len(means)} steps, return {total:.0f}; |mean u| median {np.median(u):.2f}, "
+        f"p90 {np.percentile(u, 90):.2f}, max {u.max():.2f}; share > 4: {np.mean(u > 4):.3f}, "
+        f"> {EDGE}: {np.mean(u > EDGE):.3f}; std median {np.median(std):.3f}"
+    )
+
+
+def main() -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("runs", nargs="+", type=Path, help="run folders (models/<task>/<name>)")
+    p.add_argument("--seed", type=int, default=12345, help="the episode's env seed")
+    args = p.parse_args()
+    torch.set_num_threads(1)
+    for run in args.runs:
+        print(probe(run, args.seed), flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
