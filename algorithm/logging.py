@@ -273,7 +273,11 @@ class RateMeter:
 
 
 class ProgressLine:
-    """A single refreshed terminal line: steps, rates, recent return, ETA (plain lines when not a tty)."""
+    """A single refreshed terminal line: steps, rates, recent return, ETA (plain lines when not a tty).
+
+    A stream that cannot be written any more (a terminal that hung up: EIO) silences the line for
+    good instead of raising: it raised out of the training loop and ended the run before the save
+    that SIGHUP asks for (tests/test_journeys.py)."""
 
     def __init__(self, total_steps: int, stream: TextIO = sys.stderr, min_interval: float = 1.0) -> None:
         self.total = total_steps
@@ -281,6 +285,7 @@ class ProgressLine:
         self.min_interval = min_interval if stream.isatty() else 10.0
         self._last = 0.0
         self._steps = RateMeter()
+        self._lost = False  # the stream failed once: nothing more is written
 
     def update(
         self, env_steps: int, updates: int, updates_per_s: float, recent_return: float | None, force: bool = False
@@ -303,16 +308,20 @@ class ProgressLine:
         line = (
             f"{head} | {steps_per_s:7.1f} steps/s | {updates:>8,d} updates {updates_per_s:6.1f}/s | return {ret}{tail}"
         )
-        if self.stream.isatty():
-            self.stream.write("\r" + line + "\033[K")
-        else:
-            self.stream.write(line + "\n")
-        self.stream.flush()
+        self._write("\r" + line + "\033[K" if self.stream.isatty() else line + "\n")
 
     def close(self) -> None:
         if self.stream.isatty():
-            self.stream.write("\n")
+            self._write("\n")
+
+    def _write(self, text: str) -> None:
+        if self._lost:
+            return
+        try:
+            self.stream.write(text)
             self.stream.flush()
+        except OSError:
+            self._lost = True
 
 
 def _fmt_seconds(seconds: float) -> str:

@@ -18,6 +18,7 @@ import signal
 import subprocess
 import sys
 import threading
+import time
 from pathlib import Path
 
 import pytest
@@ -228,6 +229,7 @@ def test_the_terminal_closing_under_a_run_saves_it_and_the_same_command_resumes(
             seen += os.read(terminal, 65536)
     finally:
         os.close(terminal)  # the terminal is gone
+    time.sleep(3)  # the progress line (every second on a terminal) and the log write into the hung-up terminal
     proc.send_signal(signal.SIGHUP)
     assert proc.wait(timeout=HANG_S) == 129
     run = tmp_path / "models/gym/pendulum/hup"
