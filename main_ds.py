@@ -261,7 +261,8 @@ def run(args: argparse.Namespace) -> int:
     with removed_if_not_started(run_dir):
         # local drives the whole run, as main.py does: a second launcher on it stops here (the roles
         # started one by one are kept apart by their ports, which only one process can serve)
-        lock = hold_folder(run_dir, "run") if role == "local" else None
+        if role == "local":
+            hold_folder(run_dir, "run")  # held until this process ends (the kernel drops it then)
         copy_model_file(resolve_task(args.env), config, run_dir, explicit=args.nn is not None)
         setup_logging(run_dir, role, args.logger_in_file)
         context = RoleContext(
@@ -281,11 +282,7 @@ def run(args: argparse.Namespace) -> int:
             path, text = RunDir(run_dir).config, config_to_yaml(config).encode()  # a full disk keeps the old file
             WriteFailures("run config", log).attempt(path, lambda: atomic_write(path, lambda f: f.write(text)))
     if role == "local":
-        try:
-            return local(args, config, run_dir, context.credentials)
-        finally:
-            assert lock is not None
-            lock.release()
+        return local(args, config, run_dir, context.credentials)
     if isinstance(context.stop, StopRequest):
         stop_with_launcher(context.stop)  # a role of local: it stops if the launcher dies
     log.info("%s of run %s (seed %s)", role, run_dir, config.sac_config.seed)
