@@ -70,7 +70,7 @@ def stop_on_signals(doing: str = "stopping after this step, saving") -> StopRequ
 def _leave_hung_up_terminal() -> None:
     """Point stdout and stderr, where they are a terminal, at /dev/null: after SIGHUP every write to
     it fails (``local`` stopped its roles in order, then failed on printing its summary there: exit
-    1). Files and pipes are left as they are."""
+    1; tests/test_local_journeys.py). Files and pipes are left as they are."""
     for stream in (sys.stdout, sys.stderr):
         try:
             fd = stream.fileno()

@@ -57,6 +57,21 @@ def main_ds_command(*args: str) -> list[str]:
     return [sys.executable, str(ROOT / "main_ds.py"), *args]
 
 
+_SIGHUP_DEFAULT = (
+    "import os, signal, sys; signal.signal(signal.SIGHUP, signal.SIG_DFL); "
+    "os.execv(sys.executable, [sys.executable, *sys.argv[1:]])"
+)
+
+
+def as_a_shell_starts_it(command: list[str]) -> list[str]:
+    """``command`` (``python ARGS`` with this interpreter) started with SIGHUP at its default, as a
+    shell starts a job, even when the tests run under ``nohup``: an ignored SIGHUP is inherited, and
+    ``main.py`` and ``local`` rightly keep ignoring it (a terminal test then waits for a stop that
+    never comes)."""
+    assert command[0] == sys.executable, command
+    return [sys.executable, "-c", _SIGHUP_DEFAULT, *command[1:]]
+
+
 def child_pids(output: str) -> dict[str, int]:
     """The pid of every role a ``local`` launcher logged as started, by its label."""
     return {name: int(pid) for name, pid in re.findall(r"started (\S+) \(pid (\d+)\)", output)}

@@ -25,6 +25,7 @@ import pytest
 import torch
 
 from algorithm.evaluation import read_evaluations
+from tests.role_runs import as_a_shell_starts_it
 
 ROOT = Path(__file__).resolve().parents[1]
 pytestmark = pytest.mark.fault
@@ -209,12 +210,6 @@ def test_a_second_process_on_a_run_in_training_stops_and_a_killed_run_resumes(tm
     assert "finished at 1500 env steps" in resumed.stderr, resumed.stderr
 
 
-SIGHUP_DEFAULT = (
-    "import os, signal, sys; signal.signal(signal.SIGHUP, signal.SIG_DFL); "
-    "os.execv(sys.executable, [sys.executable, *sys.argv[1:]])"
-)
-
-
 def test_the_terminal_closing_under_a_run_saves_it_and_the_same_command_resumes(tmp_path: Path) -> None:
     # SIGHUP is what a run started from a terminal gets when the terminal (or the SSH session) closes.
     # It ended main.py where it stood: no save, the work since the last checkpoint lost. Here the
@@ -224,9 +219,7 @@ def test_the_terminal_closing_under_a_run_saves_it_and_the_same_command_resumes(
             "--override", "eval.eval_per_step=500", "--override", "sac.save_model_per_step=100000"]  # fmt: skip
     terminal, far_end = pty.openpty()
     first = [*args, "--override", "base.max_step=100000"]  # still training when SIGHUP comes
-    # main.py as a shell would start it: SIGHUP at its default, even when this test runs under nohup
-    # (an ignored SIGHUP is inherited, and main.py rightly keeps ignoring it)
-    proc = subprocess.Popen([sys.executable, "-c", SIGHUP_DEFAULT, str(ROOT / "main.py"), *first], cwd=tmp_path,
+    proc = subprocess.Popen(as_a_shell_starts_it([sys.executable, str(ROOT / "main.py"), *first]), cwd=tmp_path,
                             env=main_env(), stdin=far_end, stdout=far_end, stderr=far_end,
                             start_new_session=True)  # fmt: skip
     os.close(far_end)

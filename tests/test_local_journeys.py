@@ -11,7 +11,9 @@ from __future__ import annotations
 
 import contextlib
 import os
+import pty
 import re
+import select
 import shlex
 import signal
 import subprocess
@@ -28,7 +30,16 @@ from ds.actor.role import AsksForIndex
 from ds.launch.local import plan
 from ds.launch.local_summary import python_command, resume_argv
 from ds.learner.client import LearnerClient
-from tests.role_runs import ENV, TINY, child_pids, event_files, main_ds_command, no_process_mentions, running
+from tests.role_runs import (
+    ENV,
+    TINY,
+    as_a_shell_starts_it,
+    child_pids,
+    event_files,
+    main_ds_command,
+    no_process_mentions,
+    running,
+)
 
 ROOT = Path(__file__).resolve().parents[1]
 SUMMARY_HEAD = re.compile(r"^== local run (.+) ==$", re.M)
@@ -472,3 +483,42 @@ def test_a_launcher_killed_with_9_leaves_no_role_running_each_saves_and_the_same
     assert re.search(rf"resumed from \S+/{saved}\.pt at {saved} env steps", out), out[-4000:]
     assert re.search(r"replay restored from \S+: \d+ steps", out), out[-4000:]
     assert summary_of(out)[0] == "finished"
+
+
+@pytest.mark.slow
+@pytest.mark.grpc
+@pytest.mark.fault
+def test_the_terminal_closing_under_local_stops_every_role_in_order(tmp_path: Path) -> None:
+    """SIGHUP to the launcher after its terminal has closed (writes to it fail from then on): it stops
+    the roles in order as on Ctrl-C (exit 129), though nothing it prints can be shown any more: the
+    learner checkpoints, the replay saves, no role is left running."""
+    args = command("gym/pendulum", "local", "--actors", "2", "-n", "hup", *TINY, "--logger_in_file",
+                   "--override", "base.max_step=-1", "--override", "sac.save_model_per_step=100000")  # fmt: skip
+    terminal, far_end = pty.openpty()
+    proc = subprocess.Popen(as_a_shell_starts_it(args), cwd=tmp_path, env=ENV, stdin=far_end, stdout=far_end,
+                            stderr=far_end, start_new_session=True)  # fmt: skip
+    os.close(far_end)
+    seen, passed = "", False
+    try:
+        try:
+            while not re.search(r"eval at \d+ env steps, [1-9]\d* updates", seen):
+                ready, _, _ = select.select([terminal], [], [], 300)  # a hang guard: roles start slowly when loaded
+                assert ready, seen[-4000:]
+                seen += os.read(terminal, 65536).decode(errors="replace")
+        finally:
+            os.close(terminal)  # the terminal is gone
+        pids = child_pids(seen)
+        assert set(pids) == {"replay", "learner", "actor-0", "actor-1"}, seen[-4000:]
+        time.sleep(3)  # the roles' lines go on arriving, and the launcher fails to show them
+        proc.send_signal(signal.SIGHUP)
+        assert proc.wait(timeout=90) == 129
+        assert not any(map(running, pids.values()))
+        passed = True
+    finally:  # after a failed assertion: the launcher and the roles it said it started
+        for pid in () if passed else (proc.pid, *child_pids(seen).values()):
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(pid, signal.SIGKILL)
+    run = tmp_path / "models/gym/pendulum/hup"
+    assert list(run.glob("model/*.pt")) and (run / "replay/replay.npz").is_file()
+    said = (run / "log_local.txt").read_text()
+    assert "SIGHUP: stopping every role in order" in said and "SIGKILL" not in said, said[-4000:]

@@ -89,6 +89,7 @@ class LocalProcesses:
         self._held: dict[str, list[str]] = {}
         self._lock = threading.Lock()
         self._readers: list[threading.Thread] = []
+        self._stream_failed = False
 
     def start(self, name: str, command: list[str], labelled: bool = True) -> None:
         """Start ``command`` as ``name``; ``labelled``: its lines show as ``[name]`` at once."""
@@ -122,7 +123,18 @@ class LocalProcesses:
                     self._held[name].append(line)
                     continue
                 label = self.labels[name]
-            self._stream(f"[{label}] {line}")
+            self._show(f"[{label}] {line}")
+
+    def _show(self, text: str) -> None:
+        """Stream ``text``; once the stream fails (the terminal hung up: EIO; a closed pipe) stop
+        showing lines but go on reading them: a reader that died would leave its child blocked on
+        a full pipe, unable to log its stop or exit."""
+        if self._stream_failed:
+            return
+        try:
+            self._stream(text)
+        except OSError:
+            self._stream_failed = True
 
     def relabel(self, name: str, label: str) -> None:
         """Show ``name``'s lines as ``[label]`` from now on, the ones held back first."""
@@ -131,7 +143,7 @@ class LocalProcesses:
                 return
             self.labels[name] = label
             for line in self._held.pop(name, []):
-                self._stream(f"[{label}] {line}")
+                self._show(f"[{label}] {line}")
         log.info("%s (pid %d) is %s", _role(name), self.children[name].pid, label)
 
     def release(self) -> None:
