@@ -81,7 +81,7 @@ def latest(path: Path, steps: int) -> tuple[int, float, float] | None:
 
 
 def report(task: str, sections: list[str], seeds: list[int], steps: int) -> None:
-    print(f"{task}, evaluation at {steps} env steps (10 deterministic episodes); bench/results/long_runs/")
+    print(f"{task}, evaluation at {steps} env steps (10 deterministic episodes); {RESULTS}/")
     for section in sections:
         cells, done = [], []
         for seed in seeds:
