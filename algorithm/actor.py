@@ -99,6 +99,11 @@ class ChunkBuilder:
         self._t = np.zeros(n, dtype=np.int64)
         self._envs = np.arange(n)
 
+    @property
+    def open_steps(self) -> int:
+        """Steps recorded in chunks not yet completed, over every env."""
+        return int(self._t.sum())
+
     def add(
         self,
         obs: list[np.ndarray],
@@ -289,8 +294,14 @@ class ActorLoop:
         stats.nonfinite_steps = self.nonfinite_steps - dropped
         return stats
 
+    @property
+    def open_steps(self) -> int:
+        """Steps taken and not yet handed to the sink (the open chunks)."""
+        return self.builder.open_steps
+
     def flush(self) -> int:
-        """Hand every open chunk to the sink now (before a final checkpoint); returns how many."""
+        """Hand every open chunk to the sink now (before a final checkpoint, or before a pause);
+        returns how many. Stepping may go on after it: each env's episode continues in a new chunk."""
         count = 0
         for i in range(self.env.num_envs):
             chunk = self.builder.flush(i, [o[i] for o in self.obs], truncate=False)

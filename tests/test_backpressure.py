@@ -1,8 +1,9 @@
 """An actor held back by the replay's rate limiter, end to end (ds/actor/actor.py with its sink,
-ds/actor/sink.py): when the run's budget is spent while the learner is behind, the actor stops
-promptly and every step it collected is stored, the last inserts past the rate limiter (none is
-thrown away, nothing is logged as unsent); its heartbeat thread ends quietly when the channel
-closes under a heartbeat on its way."""
+ds/actor/sink.py): at the end of the run's budget while the learner is behind, the actor stops
+stepping once what it holds takes the replay to the budget, and ends on it; stopped by a signal
+while held back, it stops promptly and stores what it holds past the rate limiter. Either way
+every step it collected is stored (none is thrown away, nothing is logged as unsent). Its heartbeat
+thread ends quietly when the channel closes under a heartbeat on its way."""
 
 from __future__ import annotations
 
@@ -29,21 +30,24 @@ MAX_STEP = 600
 N_ENVS = 2
 
 
-def test_an_actor_held_back_at_the_end_of_the_budget_stops_at_once_and_stores_what_it_holds(
-    tmp_path: Path, caplog: pytest.LogCaptureFixture
+@pytest.mark.parametrize("stopped_by", ["budget", "signal"])
+def test_an_actor_held_back_at_the_end_stops_at_once_and_stores_everything_it_collected(
+    stopped_by: str, tmp_path: Path, caplog: pytest.LogCaptureFixture
 ) -> None:
     # The learner draws 8 windows per inserted step, slower than the actor steps: the rate limiter
-    # holds the actor's inserts back. Once the replay has MAX_STEP steps, it stops (finished), and
-    # nothing it holds can be inserted any more.
+    # holds the actor's inserts back. "budget": the learner stops drawing once the replay has
+    # MAX_STEP steps (finished). "signal": it stops drawing at half of it, and the actor is stopped
+    # (Ctrl-C) while held back, so what it holds can only be stored past the rate limiter.
     limiter = RateLimiter(samples_per_insert=8.0, min_size_to_sample=64, tolerance=64.0)
     table = PrioritizedTable(100_000, SPEC.sensors, SPEC.action.size, 3, rate_limiter=limiter, seed=0)
     server, replay_port = serve_replay(table, "127.0.0.1:0")
     learner_port = free_port()
     learner = Learner(learner_port, version=1, seed=1)
     learning = threading.Event()
+    learn_until = MAX_STEP if stopped_by == "budget" else MAX_STEP // 2
 
     def learn() -> None:
-        while not learning.wait(0.01) and table.info()["inserted_steps"] < MAX_STEP:
+        while not learning.wait(0.01) and table.info()["inserted_steps"] < learn_until:
             with contextlib.suppress(SampleTimeout):
                 table.sample(64, timeout=0)
 
@@ -57,12 +61,18 @@ def test_an_actor_held_back_at_the_end_of_the_budget_stops_at_once_and_stores_wh
     make_env = vector_env_factory("Pendulum-v1")
     actor = DistributedActor(config, tmp_path, make_env, sac, replay, learner_client, "127.0.0.1", heartbeat_s=0.2)
     thread = threading.Thread(target=actor.run, daemon=True)
+
+    def stopping() -> bool:
+        if stopped_by == "signal" and not sampler.is_alive() and actor.sink.backlog() > 0:
+            actor.stop.set()  # held back, the learner gone: Ctrl-C
+        return actor.done or actor.stop.is_set()
+
     try:
         with caplog.at_level(logging.INFO, logger="asac.actor"):
             thread.start()
             deadline = time.monotonic() + 60
-            while not actor.done:
-                assert time.monotonic() < deadline and thread.is_alive(), "the actor never saw the budget spent"
+            while not stopping():
+                assert time.monotonic() < deadline and thread.is_alive(), "the actor never stopped"
                 time.sleep(0.02)
             done_at = time.monotonic()
             thread.join(30)
@@ -75,18 +85,22 @@ def test_an_actor_held_back_at_the_end_of_the_budget_stops_at_once_and_stores_wh
         learner.stop()
         server.stop(None)
     assert not thread.is_alive()
-    sink = actor.sink
-    assert sink.insert_waits > 0  # the rate limiter held the actor back
-    # The last inserts wait for the learner LAST_INSERTS_WAIT_S in all (here in vain: this learner stopped
-    # at the budget, a real one trains until the actors leave); an insert already waiting finishes its
+    sink, info = actor.sink, table.info()
+    assert info["insert_waits"] > 0  # the rate limiter held the actor back
+    # The last inserts wait for the learner LAST_INSERTS_WAIT_S in all (here in vain: this learner
+    # stopped, a real one trains until the actors leave); an insert already waiting finishes its
     # wait; nothing else waits.
     assert stopped_s < LAST_INSERTS_WAIT_S + 3 * sink.timeout_s
-    # Nothing thrown away: every collected step stored, the open chunks included, those held back
-    # by the limiter after the wait (the learner never drew again) past it.
-    info = table.info()
+    # Nothing thrown away: every collected step stored, the open chunks included.
     assert actor.env_steps == sink.inserted_steps == info["inserted_steps"] and sink.unsent_steps == 0
-    assert info["stored_past_limiter"] > 0
     assert not [r.getMessage() for r in caplog.records if "were not inserted" in r.getMessage()]
+    if stopped_by == "signal":  # what it held when stopped: after the wait, past the rate limiter
+        assert info["stored_past_limiter"] > 0 and info["inserted_steps"] < MAX_STEP
+    else:
+        # The budget is exact: the actor stopped stepping once what it held (in flight, queued, in
+        # open chunks) would take the replay to MAX_STEP, so it ends within one step of its envs past
+        # it (it stepped on up to 2 chunks per env, 64 steps here, until the replay's answer said so).
+        assert MAX_STEP <= info["inserted_steps"] < MAX_STEP + N_ENVS, info["inserted_steps"]
 
 
 def test_a_heartbeat_on_its_way_when_the_channel_closes_ends_quietly(tmp_path: Path) -> None:

@@ -195,6 +195,13 @@ class DistributedActor:
                     break
                 self._take_new_params()
                 self._between()
+                if not self.done and self._holds_the_rest_of_the_budget():
+                    # Stepping on would only add steps past max_step (before: up to 2 chunks per env per
+                    # actor): send what is held and wait until it is stored, as at any other time (the
+                    # rate limiter, a replay that restarts), then take the replay's count.
+                    loop.flush()
+                    self.sink.flush()
+                    self._between()
                 if time.monotonic() - last_metrics >= self.metrics_every_s:
                     writer.write(self._metrics(rate.mark(self.env_steps)), self.env_steps)
                     last_metrics = time.monotonic()
@@ -370,6 +377,18 @@ class DistributedActor:
         if inserted >= max_step:
             log.info("the replay has %d+ env steps (base_config.max_step): done", max_step)
             self.done = True  # the loop stops stepping; the sink sends what it holds
+
+    def _holds_the_rest_of_the_budget(self) -> bool:
+        """Whether the replay's count after the latest answered insert, plus the env steps this actor
+        holds (sent and unanswered, queued, in open chunks), reaches ``max_step``: once they are
+        stored the budget is spent. Never early: the count already includes every other actor's
+        stored steps and only grows, and a count the replay answers still short of ``max_step``
+        after they are stored lets the actor step on."""
+        max_step = self.config.base_config.max_step
+        inserted = self.sink.replay_inserted_steps
+        if max_step < 0 or inserted < 0 or self.loop is None:
+            return False
+        return inserted + self.sink.held_steps() + self.loop.open_steps >= max_step
 
     def _learner_unreachable(self, error: grpc.RpcError) -> None:
         if not peer_unresponsive(error.code()):

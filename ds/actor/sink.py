@@ -140,6 +140,10 @@ class ReplaySink:
         (at most :attr:`max_backlog` while not stopping)."""
         return sum(len(p.chunks) for p in self._pending) + len(self._queued)
 
+    def held_steps(self) -> int:
+        """Env steps handed in and not yet stored (the chunks of :meth:`backlog`)."""
+        return sum(p.steps() for p in self._pending) + sum(len(chunk) for _, chunk in self._queued)
+
     def flush(self) -> None:
         """Wait until every chunk handed in is stored or, once stopping, counted as unsent; log
         what was not stored (one line)."""
