@@ -18,7 +18,9 @@ few seconds (at most a third of the lease), whatever the acting thread waits for
 restarted (new id) or forgot it (lease expired: this process was stopped or cut off for longer) is
 registered with again, keeping the index. The learner says when the run's budget is spent (its
 heartbeat answer: it counts every actor's steps, across replay restarts); a replay that has itself
-seen ``max_step`` inserts is taken as the same sign. A replay that does not answer (down, or stalled) is waited
+seen ``max_step`` inserts is taken as the same sign. Near the end it stops stepping once the replay's
+count plus what it holds reaches ``max_step`` and waits for that to be stored, so a run passes its
+budget only by what the other actors hold. A replay that does not answer (down, or stalled) is waited
 for; chunks stay in the sink until the replay acknowledges them. At the end (budget spent, ``max_iter``
 or a signal) the open chunks and the sink's backlog get one last try each, without waiting in the
 rate limiter or retrying a replay that is gone; what was not stored is counted
