@@ -252,6 +252,7 @@ class ActorLoop:
     def step(self) -> StepStats:
         n = self.env.num_envs
         next_rnn_state = None
+        self.policy.env_steps = self.total_steps
         if self.rnn_state is not None:  # the state advances during random warm-up too
             actions, logp, next_rnn_state = self.policy.act_recurrent(self.obs, self.prev_actions, self.rnn_state)
         if self.total_steps < self.random_steps:
