@@ -16,20 +16,22 @@ class RegisterActorRequest(_message.Message):
     def __init__(self, name: _Optional[str] = ..., preferred_index: _Optional[int] = ...) -> None: ...
 
 class RegisterActorReply(_message.Message):
-    __slots__ = ("actor_id", "index", "learner_id", "params_port", "lease_s", "params_key")
+    __slots__ = ("actor_id", "index", "learner_id", "params_port", "lease_s", "params_key", "live_actors")
     ACTOR_ID_FIELD_NUMBER: _ClassVar[int]
     INDEX_FIELD_NUMBER: _ClassVar[int]
     LEARNER_ID_FIELD_NUMBER: _ClassVar[int]
     PARAMS_PORT_FIELD_NUMBER: _ClassVar[int]
     LEASE_S_FIELD_NUMBER: _ClassVar[int]
     PARAMS_KEY_FIELD_NUMBER: _ClassVar[int]
+    LIVE_ACTORS_FIELD_NUMBER: _ClassVar[int]
     actor_id: str
     index: int
     learner_id: str
     params_port: int
     lease_s: float
     params_key: bytes
-    def __init__(self, actor_id: _Optional[str] = ..., index: _Optional[int] = ..., learner_id: _Optional[str] = ..., params_port: _Optional[int] = ..., lease_s: _Optional[float] = ..., params_key: _Optional[bytes] = ...) -> None: ...
+    live_actors: int
+    def __init__(self, actor_id: _Optional[str] = ..., index: _Optional[int] = ..., learner_id: _Optional[str] = ..., params_port: _Optional[int] = ..., lease_s: _Optional[float] = ..., params_key: _Optional[bytes] = ..., live_actors: _Optional[int] = ...) -> None: ...
 
 class HeartbeatRequest(_message.Message):
     __slots__ = ("actor_id", "env_steps", "leaving")
@@ -42,14 +44,16 @@ class HeartbeatRequest(_message.Message):
     def __init__(self, actor_id: _Optional[str] = ..., env_steps: _Optional[int] = ..., leaving: _Optional[bool] = ...) -> None: ...
 
 class HeartbeatReply(_message.Message):
-    __slots__ = ("learner_id", "params_version", "run_done")
+    __slots__ = ("learner_id", "params_version", "run_done", "live_actors")
     LEARNER_ID_FIELD_NUMBER: _ClassVar[int]
     PARAMS_VERSION_FIELD_NUMBER: _ClassVar[int]
     RUN_DONE_FIELD_NUMBER: _ClassVar[int]
+    LIVE_ACTORS_FIELD_NUMBER: _ClassVar[int]
     learner_id: str
     params_version: int
     run_done: bool
-    def __init__(self, learner_id: _Optional[str] = ..., params_version: _Optional[int] = ..., run_done: _Optional[bool] = ...) -> None: ...
+    live_actors: int
+    def __init__(self, learner_id: _Optional[str] = ..., params_version: _Optional[int] = ..., run_done: _Optional[bool] = ..., live_actors: _Optional[int] = ...) -> None: ...
 
 class GetParamsRequest(_message.Message):
     __slots__ = ()

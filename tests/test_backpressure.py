@@ -103,6 +103,63 @@ def test_an_actor_held_back_at_the_end_stops_at_once_and_stores_everything_it_co
         assert MAX_STEP <= info["inserted_steps"] < MAX_STEP + N_ENVS, info["inserted_steps"]
 
 
+ACTORS = 4
+
+
+def test_several_actors_held_back_at_the_end_pass_the_budget_by_less_than_a_chunk_per_env(tmp_path: Path) -> None:
+    # Four actors against one replay whose rate limiter holds them back (the learner is behind), up
+    # to the budget. Each stops once what it holds reaches its share of what is left, (max_step -
+    # count) / live actors, so together they pass MAX_STEP by less than a chunk per env of each
+    # actor; with the whole rest as each one's share (each stopping on count + its own holdings
+    # alone) the others' holdings came on top (840 for 600).
+    limiter = RateLimiter(samples_per_insert=8.0, min_size_to_sample=64, tolerance=64.0)
+    table = PrioritizedTable(100_000, SPEC.sensors, SPEC.action.size, 3, rate_limiter=limiter, seed=0)
+    server, replay_port = serve_replay(table, "127.0.0.1:0")
+    learner_port = free_port()
+    learner = Learner(learner_port, version=1, seed=1)
+    learning = threading.Event()
+
+    def learn() -> None:
+        while not learning.wait(0.005) and table.info()["inserted_steps"] < MAX_STEP:
+            with contextlib.suppress(SampleTimeout):
+                table.sample(64, timeout=0)
+
+    sampler = threading.Thread(target=learn, daemon=True)
+    sampler.start()
+    config = CONFIG.model_copy(deep=True)
+    config.base_config.max_step, config.base_config.n_agents = MAX_STEP, N_ENVS
+    actors, clients = [], []
+    for i in range(ACTORS):
+        replay = ReplayClient(f"127.0.0.1:{replay_port}", SPEC.sensors, SPEC.action.size, retry=FAST_RETRY)
+        learner_client = LearnerClient(f"127.0.0.1:{learner_port}", SPEC, retry=FAST_RETRY, rpc_timeout_s=2.0)
+        sac = SAC(SPEC, config.sac_config, config.nn_config, config.replay_config)
+        make_env = vector_env_factory("Pendulum-v1")
+        actors.append(DistributedActor(config, tmp_path / f"a{i}", make_env, sac, replay, learner_client,
+                                       "127.0.0.1", heartbeat_s=0.2, name=f"actor {i}"))  # fmt: skip
+        clients += [replay, learner_client]
+    threads = [threading.Thread(target=actor.run, daemon=True) for actor in actors]
+    try:
+        for thread in threads:
+            thread.start()
+        for thread in threads:
+            thread.join(90)
+    finally:
+        learning.set()
+        sampler.join()
+        for client in clients:
+            client.close()
+        learner.stop()
+        server.stop(None)
+    assert not any(thread.is_alive() for thread in threads)
+    info = table.info()
+    assert info["insert_waits"] > 0  # the rate limiter held the actors back
+    assert sum(actor.env_steps for actor in actors) == info["inserted_steps"]  # nothing thrown away
+    assert max(actor.live_actors for actor in actors) == ACTORS
+    # Measured 24-106 past the budget (240 without the shares): less than a chunk per env of each actor.
+    chunk = config.actor_config.chunk_length
+    assert MAX_STEP <= info["inserted_steps"] < MAX_STEP + ACTORS * N_ENVS * chunk, info["inserted_steps"]
+
+
 def test_a_heartbeat_on_its_way_when_the_channel_closes_ends_quietly(tmp_path: Path) -> None:
     """The run is over (``_beats_done``) and the role closes the learner channel while a heartbeat
     is on its way: gRPC raises ``ValueError: Cannot invoke RPC on closed channel!``; the heartbeat

@@ -18,9 +18,10 @@ few seconds (at most a third of the lease), whatever the acting thread waits for
 restarted (new id) or forgot it (lease expired: this process was stopped or cut off for longer) is
 registered with again, keeping the index. The learner says when the run's budget is spent (its
 heartbeat answer: it counts every actor's steps, across replay restarts); a replay that has itself
-seen ``max_step`` inserts is taken as the same sign. Near the end it stops stepping once the replay's
-count plus what it holds reaches ``max_step`` and waits for that to be stored, so a run passes its
-budget only by what the other actors hold. A replay that does not answer (down, or stalled) is waited
+seen ``max_step`` inserts is taken as the same sign. Near the end it stops stepping once what it
+holds reaches its share of what is left (``(max_step - the replay's count) / live actors``, the
+learner saying how many actors are live) and waits for that to be stored, so the actors together
+pass the budget by little (:meth:`DistributedActor._holds_the_rest_of_the_budget`). A replay that does not answer (down, or stalled) is waited
 for; chunks stay in the sink until the replay acknowledges them. At the end (budget spent, ``max_iter``
 or a signal) the open chunks and the sink's backlog get one last try each, without waiting in the
 rate limiter or retrying a replay that is gone; what was not stored is counted
@@ -131,6 +132,9 @@ class DistributedActor:
         self.env_steps = 0
         self.episodes = 0
         self.done = False
+        # The actors holding a lease, as the learner said at registration and in its latest heartbeat
+        # answer (at least 1): near the budget this actor's share of what is left is 1 / this.
+        self.live_actors = 1
         actor_cfg = config.actor_config
         self.sink = ReplaySink(
             replay,
@@ -266,6 +270,7 @@ class DistributedActor:
             self.subscriber = ParamsSubscriber(address, spec, token=self.token, stream=self._stream(reg))
             self.params_version = -1
         self.registration = reg
+        self.live_actors = max(1, reg.live_actors)
         return reg
 
     def _stream(self, reg: Registration) -> StreamKey:
@@ -329,6 +334,8 @@ class DistributedActor:
             try:
                 beat = self.learner.heartbeat(reg.actor_id, self.env_steps)
                 known = beat.learner_id == reg.learner_id
+                if known:
+                    self.live_actors = max(1, beat.live_actors)
                 if known and beat.run_done and not self.done:
                     log.info("the learner has spent the run's budget (base_config.max_step): done")
                     self.done = True  # the acting thread stops stepping; the sink sends what it holds
@@ -381,21 +388,27 @@ class DistributedActor:
             self.done = True  # the loop stops stepping; the sink sends what it holds
 
     def _holds_the_rest_of_the_budget(self) -> bool:
-        """Whether the replay's count after the latest answered insert, plus the env steps this actor
-        holds (sent and unanswered, queued, in open chunks), reaches ``max_step``: once they are
-        stored the budget is spent. Never early: the count already includes every other actor's
-        stored steps and only grows, and a count the replay answers still short of ``max_step``
-        after they are stored lets the actor step on."""
+        """Whether the env steps this actor holds (sent and unanswered, queued, in open chunks) reach
+        its share of what is left of the budget: ``(max_step - count) / live_actors``, ``count`` the
+        replay's after the latest answered insert, ``live_actors`` as the learner last said. Each
+        actor stops there, so together they hold about what is left. What passes ``max_step`` is what
+        an actor held beyond its share when it came near the budget (one waiting in the rate limiter
+        with a full backlog does not step, and cannot shed it) and what was stored after its count:
+        with four actors, 2 envs each and 16-step chunks, 24-106 steps past 600 where each one taking
+        the whole rest as its share passed it by 240 (tests/test_backpressure.py). Never early: a
+        count still short of ``max_step`` once this actor's steps are stored lets it step on, with a
+        new share."""
         max_step = self.config.base_config.max_step
         inserted = self.sink.replay_inserted_steps
         if max_step < 0 or inserted < 0 or self.loop is None:
             return False
-        # Far from the budget even the most an actor can hold does not reach it: this runs every env
+        # Far from the budget even the most an actor can hold is below its share: this runs every env
         # step, and the sums below cost ~2 us (2% of a one-env Pendulum step)
         most_held = (self.sink.max_backlog + self.loop.env.num_envs) * self.config.actor_config.chunk_length
-        if inserted + most_held < max_step:
+        if inserted + most_held * self.live_actors < max_step:
             return False
-        return inserted + self.sink.held_steps() + self.loop.open_steps >= max_step
+        held = self.sink.held_steps() + self.loop.open_steps
+        return inserted + held * self.live_actors >= max_step
 
     def _learner_unreachable(self, error: grpc.RpcError) -> None:
         if not peer_unresponsive(error.code()):

@@ -33,6 +33,7 @@ class Beat(NamedTuple):
     learner_id: str
     params_version: int
     run_done: bool
+    live_actors: int = 0  # actors holding a lease (0: a learner that does not say)
 
 
 @dataclass(frozen=True)
@@ -43,6 +44,7 @@ class Registration:
     params_port: int
     lease_s: float
     params_key: bytes = field(default=b"", repr=False)  # the learner's StreamKey secret (ds/net/stream_key.py)
+    live_actors: int = 0  # actors holding a lease, this one included (0: a learner that does not say)
 
 
 class LearnerClient(RpcClient):
@@ -81,7 +83,7 @@ class LearnerClient(RpcClient):
             request.preferred_index = int(preferred_index)
         reply = self._call(self._stub.RegisterActor, request)
         return Registration(reply.actor_id, reply.index, reply.learner_id, reply.params_port, reply.lease_s,
-                            reply.params_key)  # fmt: skip
+                            reply.params_key, reply.live_actors)  # fmt: skip
 
     def leave(self, actor_id: str, env_steps: int) -> bool:
         """Tell the learner this actor has sent its last inserts and stops (its lease ends now).
@@ -104,7 +106,7 @@ class LearnerClient(RpcClient):
             if e.code() == grpc.StatusCode.NOT_FOUND:
                 raise LeaseExpired(e.details()) from None
             raise
-        return Beat(reply.learner_id, reply.params_version, reply.run_done)
+        return Beat(reply.learner_id, reply.params_version, reply.run_done, reply.live_actors)
 
     def get_params(self) -> tuple[int, list[bytes]]:
         """The latest published ``(version, frames)``; decode with :func:`ds.net.params.decode_params`."""

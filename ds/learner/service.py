@@ -164,6 +164,12 @@ class ActorRegistry:
                      env_steps, len(self._actors))  # fmt: skip
             return True
 
+    def live_count(self) -> int:
+        """How many actors hold a lease now."""
+        with self._lock:
+            self._expire()
+            return len(self._actors)
+
     def alive(self) -> list[ActorLease]:
         with self._lock:
             self._expire()
@@ -284,6 +290,7 @@ class LearnerServicer(learner_pb2_grpc.LearnerServiceServicer):
             params_port=self.params_port,
             lease_s=self.registry.lease_s,
             params_key=self.stream.secret,
+            live_actors=self.registry.live_count(),
         )
 
     def Heartbeat(
@@ -296,7 +303,10 @@ class LearnerServicer(learner_pb2_grpc.LearnerServiceServicer):
         elif not self.registry.renew(request.actor_id, request.env_steps):
             context.abort(grpc.StatusCode.NOT_FOUND, f"no live actor {request.actor_id!r} (lease expired?): register")
         return learner_pb2.HeartbeatReply(
-            learner_id=self.learner_id, params_version=self.store.version, run_done=self.registry.run_done.is_set()
+            learner_id=self.learner_id,
+            params_version=self.store.version,
+            run_done=self.registry.run_done.is_set(),
+            live_actors=self.registry.live_count(),
         )
 
     def GetParams(

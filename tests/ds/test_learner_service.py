@@ -109,8 +109,8 @@ def test_registry_gives_the_lowest_free_index_and_expires_leases() -> None:
 
 def test_heartbeat_of_an_unknown_actor_says_register_again(learner_side: LearnerSide) -> None:
     reg = learner_side.client.register("me")
-    learner_id, version, run_done = learner_side.client.heartbeat(reg.actor_id, 10)
-    assert learner_id == reg.learner_id and version == -1 and not run_done
+    learner_id, version, run_done, live = learner_side.client.heartbeat(reg.actor_id, 10)
+    assert learner_id == reg.learner_id and version == -1 and not run_done and live == 1
     with pytest.raises(LeaseExpired):
         learner_side.client.heartbeat("actor-9-unknown", 0)
 
@@ -122,12 +122,15 @@ def test_heartbeats_tell_actors_when_the_runs_budget_is_spent_and_leaving_actors
     # once it says the run is done, every heartbeat answers so; an actor that has sent its last
     # inserts says it leaves, and once none is live the learner knows nothing more is on its way.
     a, b = learner_side.client.register("a"), learner_side.client.register("b")
+    assert (a.live_actors, b.live_actors) == (1, 2)  # each actor's share of the budget's rest is 1 / live
     registry = learner_side.registry
     assert not learner_side.client.heartbeat(a.actor_id, 5).run_done
+    assert learner_side.client.heartbeat(b.actor_id, 5).live_actors == 2
     registry.run_done.set()
     assert learner_side.client.heartbeat(a.actor_id, 6).run_done
     assert learner_side.client.leave(a.actor_id, 7)
     assert [lease.index for lease in registry.alive()] == [b.index] and registry.left == 1
+    assert learner_side.client.heartbeat(b.actor_id, 6).live_actors == 1  # the one that left is not counted
     with pytest.raises(LeaseExpired):  # gone: a heartbeat without leaving is refused
         learner_side.client.heartbeat(a.actor_id, 7)
     assert learner_side.client.leave(a.actor_id, 7)  # a repeated goodbye is harmless
