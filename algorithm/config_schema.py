@@ -201,11 +201,11 @@ class SacConfig(Section):
     rnd_strength: float = Field(
         0.0, ge=0.0, description="Scale of RND's novelty as an intrinsic reward, in targets only (0: none)."
     )
-    rnd_choice_fade_steps: int = Field(
+    rnd_choice_steps: int = Field(
         0,
         ge=0,
-        description="The chance that an env acts with the most novel candidate rather than a plain policy sample "
-        "falls linearly from 1 to 0 over this many of the actor's env steps (0: always the most novel).",
+        description="Act with the most novel candidate for the first this many of the actor's env steps, with the "
+        "policy's own sample after them (0: the most novel for the whole run).",
     )
     rnd_normalize: bool = Field(
         False,
@@ -253,8 +253,8 @@ class SacConfig(Section):
             raise ValueError("ensemble_q_sample must be <= ensemble_q_num")
         if self.rnd_normalize and not (self.use_rnd and self.rnd_strength > 0):
             raise ValueError("rnd_normalize scales RND's novelty reward: it needs use_rnd: true and rnd_strength > 0")
-        if self.rnd_choice_fade_steps and not self.use_rnd:
-            raise ValueError("rnd_choice_fade_steps fades RND's action choice: it needs use_rnd: true")
+        if self.rnd_choice_steps and not self.use_rnd:
+            raise ValueError("rnd_choice_steps ends RND's action choice: it needs use_rnd: true")
         if self.burn_in_step and not self.use_rnn:
             raise ValueError("burn_in_step > 0 needs use_rnn: true (burn-in warms up a recurrent state)")
         return self
