@@ -49,6 +49,7 @@ class Policy(Protocol):
     (``rnn_state_size > 0``) acts through ``act_recurrent`` and the loop carries its state."""
 
     rnn_state_size: int
+    env_steps: int  # the loop's env steps, set before each step (RND's choice ends after sac_config.rnd_choice_steps)
 
     def act(self, obs: list[np.ndarray], deterministic: bool = False) -> tuple[np.ndarray, np.ndarray]:
         """Batched actions ``[N, A]`` in model space and their behaviour log-probabilities ``[N]``."""

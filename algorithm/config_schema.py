@@ -205,7 +205,8 @@ class SacConfig(Section):
         0,
         ge=0,
         description="Act with the most novel candidate for the first this many of the actor's env steps, with the "
-        "policy's own sample after them (0: the most novel for the whole run).",
+        "policy's own sample after them (0: the most novel for the whole run). Actors that ask the learner for "
+        "every action (actor_config.update_policy_mode: false) keep the choice.",
     )
     rnd_normalize: bool = Field(
         False,

@@ -83,6 +83,7 @@ class SB3Policy:
     """Adapts an SB3 model to our Policy protocol so both are evaluated by the same code."""
 
     rnn_state_size = 0  # SB3's SAC is feedforward: evaluation calls act only
+    env_steps = 0  # the acting loop's count (ASAC's exploration schedules read it; SB3 acts on its own)
 
     def __init__(self, model) -> None:  # noqa: ANN001
         self.model = model

@@ -30,36 +30,61 @@ MAX_STEP = 600
 N_ENVS = 2
 
 
+class HeldBackRun:
+    """A replay whose rate limiter holds inserts back (a sampler standing in for the learner draws 8
+    windows per inserted step, slower than actors step, until the replay holds ``learn_until``
+    steps), a learner service, and actors of ``N_ENVS`` Pendulum envs built against them; the run's
+    budget is ``MAX_STEP``. :meth:`close` stops all of it."""
+
+    def __init__(self, learn_until: int, sample_every_s: float) -> None:
+        limiter = RateLimiter(samples_per_insert=8.0, min_size_to_sample=64, tolerance=64.0)
+        self.table = table = PrioritizedTable(100_000, SPEC.sensors, SPEC.action.size, 3, rate_limiter=limiter, seed=0)
+        self.server, self.replay_port = serve_replay(table, "127.0.0.1:0")
+        self.learner_port = free_port()
+        self.learner = Learner(self.learner_port, version=1, seed=1)
+        self.learning = threading.Event()
+
+        def learn() -> None:
+            while not self.learning.wait(sample_every_s) and table.info()["inserted_steps"] < learn_until:
+                with contextlib.suppress(SampleTimeout):
+                    table.sample(64, timeout=0)
+
+        self.sampler = threading.Thread(target=learn, daemon=True)
+        self.sampler.start()
+        self.config = CONFIG.model_copy(deep=True)
+        self.config.base_config.max_step, self.config.base_config.n_agents = MAX_STEP, N_ENVS
+        self.clients: list[ReplayClient | LearnerClient] = []
+
+    def actor(self, run_dir: Path, name: str) -> DistributedActor:
+        config = self.config
+        replay = ReplayClient(f"127.0.0.1:{self.replay_port}", SPEC.sensors, SPEC.action.size, retry=FAST_RETRY)
+        learner = LearnerClient(f"127.0.0.1:{self.learner_port}", SPEC, retry=FAST_RETRY, rpc_timeout_s=2.0)
+        self.clients += [replay, learner]
+        sac = SAC(SPEC, config.sac_config, config.nn_config, config.replay_config)
+        make_env = vector_env_factory("Pendulum-v1")
+        return DistributedActor(
+            config, run_dir, make_env, sac, replay, learner, "127.0.0.1", heartbeat_s=0.2, name=name
+        )
+
+    def close(self) -> None:
+        self.learning.set()
+        self.sampler.join()
+        for client in self.clients:
+            client.close()
+        self.learner.stop()
+        self.server.stop(None)
+
+
 @pytest.mark.parametrize("stopped_by", ["budget", "signal"])
 def test_an_actor_held_back_at_the_end_stops_at_once_and_stores_everything_it_collected(
     stopped_by: str, tmp_path: Path, caplog: pytest.LogCaptureFixture
 ) -> None:
-    # The learner draws 8 windows per inserted step, slower than the actor steps: the rate limiter
-    # holds the actor's inserts back. "budget": the learner stops drawing once the replay has
-    # MAX_STEP steps (finished). "signal": it stops drawing at half of it, and the actor is stopped
-    # (Ctrl-C) while held back, so what it holds can only be stored past the rate limiter.
-    limiter = RateLimiter(samples_per_insert=8.0, min_size_to_sample=64, tolerance=64.0)
-    table = PrioritizedTable(100_000, SPEC.sensors, SPEC.action.size, 3, rate_limiter=limiter, seed=0)
-    server, replay_port = serve_replay(table, "127.0.0.1:0")
-    learner_port = free_port()
-    learner = Learner(learner_port, version=1, seed=1)
-    learning = threading.Event()
-    learn_until = MAX_STEP if stopped_by == "budget" else MAX_STEP // 2
-
-    def learn() -> None:
-        while not learning.wait(0.01) and table.info()["inserted_steps"] < learn_until:
-            with contextlib.suppress(SampleTimeout):
-                table.sample(64, timeout=0)
-
-    sampler = threading.Thread(target=learn, daemon=True)
-    sampler.start()
-    config = CONFIG.model_copy(deep=True)
-    config.base_config.max_step, config.base_config.n_agents = MAX_STEP, N_ENVS
-    replay = ReplayClient(f"127.0.0.1:{replay_port}", SPEC.sensors, SPEC.action.size, retry=FAST_RETRY)
-    learner_client = LearnerClient(f"127.0.0.1:{learner_port}", SPEC, retry=FAST_RETRY, rpc_timeout_s=2.0)
-    sac = SAC(SPEC, config.sac_config, config.nn_config, config.replay_config)
-    make_env = vector_env_factory("Pendulum-v1")
-    actor = DistributedActor(config, tmp_path, make_env, sac, replay, learner_client, "127.0.0.1", heartbeat_s=0.2)
+    # The rate limiter holds the actor's inserts back. "budget": the learner stops drawing once the
+    # replay has MAX_STEP steps (finished). "signal": it stops drawing at half of it, and the actor
+    # is stopped (Ctrl-C) while held back, so what it holds can only be stored past the rate limiter.
+    run = HeldBackRun(MAX_STEP if stopped_by == "budget" else MAX_STEP // 2, sample_every_s=0.01)
+    table, sampler = run.table, run.sampler
+    actor = run.actor(tmp_path, "actor 0")
     thread = threading.Thread(target=actor.run, daemon=True)
 
     def stopping() -> bool:
@@ -78,12 +103,7 @@ def test_an_actor_held_back_at_the_end_stops_at_once_and_stores_everything_it_co
             thread.join(30)
             stopped_s = time.monotonic() - done_at
     finally:
-        learning.set()
-        sampler.join()
-        replay.close()
-        learner_client.close()
-        learner.stop()
-        server.stop(None)
+        run.close()
     assert not thread.is_alive()
     sink, info = actor.sink, table.info()
     assert info["insert_waits"] > 0  # the rate limiter held the actor back
@@ -112,31 +132,9 @@ def test_several_actors_held_back_at_the_end_pass_the_budget_by_less_than_a_chun
     # count) / live actors, so together they pass MAX_STEP by less than a chunk per env of each
     # actor; with the whole rest as each one's share (each stopping on count + its own holdings
     # alone) the others' holdings came on top (840 for 600).
-    limiter = RateLimiter(samples_per_insert=8.0, min_size_to_sample=64, tolerance=64.0)
-    table = PrioritizedTable(100_000, SPEC.sensors, SPEC.action.size, 3, rate_limiter=limiter, seed=0)
-    server, replay_port = serve_replay(table, "127.0.0.1:0")
-    learner_port = free_port()
-    learner = Learner(learner_port, version=1, seed=1)
-    learning = threading.Event()
-
-    def learn() -> None:
-        while not learning.wait(0.005) and table.info()["inserted_steps"] < MAX_STEP:
-            with contextlib.suppress(SampleTimeout):
-                table.sample(64, timeout=0)
-
-    sampler = threading.Thread(target=learn, daemon=True)
-    sampler.start()
-    config = CONFIG.model_copy(deep=True)
-    config.base_config.max_step, config.base_config.n_agents = MAX_STEP, N_ENVS
-    actors, clients = [], []
-    for i in range(ACTORS):
-        replay = ReplayClient(f"127.0.0.1:{replay_port}", SPEC.sensors, SPEC.action.size, retry=FAST_RETRY)
-        learner_client = LearnerClient(f"127.0.0.1:{learner_port}", SPEC, retry=FAST_RETRY, rpc_timeout_s=2.0)
-        sac = SAC(SPEC, config.sac_config, config.nn_config, config.replay_config)
-        make_env = vector_env_factory("Pendulum-v1")
-        actors.append(DistributedActor(config, tmp_path / f"a{i}", make_env, sac, replay, learner_client,
-                                       "127.0.0.1", heartbeat_s=0.2, name=f"actor {i}"))  # fmt: skip
-        clients += [replay, learner_client]
+    run = HeldBackRun(MAX_STEP, sample_every_s=0.005)
+    table, config = run.table, run.config
+    actors = [run.actor(tmp_path / f"a{i}", f"actor {i}") for i in range(ACTORS)]
     threads = [threading.Thread(target=actor.run, daemon=True) for actor in actors]
     try:
         for thread in threads:
@@ -144,12 +142,7 @@ def test_several_actors_held_back_at_the_end_pass_the_budget_by_less_than_a_chun
         for thread in threads:
             thread.join(90)
     finally:
-        learning.set()
-        sampler.join()
-        for client in clients:
-            client.close()
-        learner.stop()
-        server.stop(None)
+        run.close()
     assert not any(thread.is_alive() for thread in threads)
     info = table.info()
     assert info["insert_waits"] > 0  # the rate limiter held the actors back

@@ -21,11 +21,11 @@ heartbeat answer: it counts every actor's steps, across replay restarts); a repl
 seen ``max_step`` inserts is taken as the same sign. Near the end it stops stepping once what it
 holds reaches its share of what is left (``(max_step - the replay's count) / live actors``, the
 learner saying how many actors are live) and waits for that to be stored, so the actors together
-pass the budget by little (:meth:`DistributedActor._holds_the_rest_of_the_budget`). A replay that does not answer (down, or stalled) is waited
-for; chunks stay in the sink until the replay acknowledges them. At the end (budget spent, ``max_iter``
-or a signal) the open chunks and the sink's backlog get one last try each, without waiting in the
-rate limiter or retrying a replay that is gone; what was not stored is counted
-(``actor/unsent_steps``) and logged in one line.
+pass the budget by little (:meth:`DistributedActor._holds_the_rest_of_the_budget`). A replay that
+does not answer (down, or stalled) is waited for; chunks stay in the sink until the replay
+acknowledges them. At the end (budget spent, ``max_iter`` or a signal) the open chunks and the
+sink's backlog get one last try each, without waiting in the rate limiter or retrying a replay that
+is gone; what was not stored is counted (``actor/unsent_steps``) and logged in one line.
 
 Nothing non-finite goes out or comes in: chunks with NaN/inf are dropped by the loop (counted:
 ``actor/nonfinite_steps``) and broadcast weights that fail :func:`~ds.net.params.decode_params` (NaN/inf

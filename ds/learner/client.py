@@ -160,6 +160,7 @@ class RemotePolicy:
         self.learner = learner
         self.noise = float(noise)
         self.rnn_state_size = learner.rnn_state_size
+        self.env_steps = 0  # the loop sets it; the learner acts with its own policy's schedule
 
     def act(self, obs: list[np.ndarray], deterministic: bool = False) -> tuple[np.ndarray, np.ndarray]:
         actions, logp, _ = self.learner.act(obs, self.noise, deterministic)
