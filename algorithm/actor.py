@@ -28,7 +28,7 @@ from typing import Any, Protocol
 import numpy as np
 
 from algorithm.spaces import ActionSpec, EnvSpec
-from algorithm.types import Chunk
+from algorithm.types import ActingProgress, Chunk
 
 log = logging.getLogger("asac.actor")
 _LOG_EVERY_S = 30.0  # dropped chunks: the first is logged, then at most one line (with totals) per period
@@ -49,7 +49,7 @@ class Policy(Protocol):
     (``rnn_state_size > 0``) acts through ``act_recurrent`` and the loop carries its state."""
 
     rnn_state_size: int
-    env_steps: int  # the loop's env steps, set before each step (RND's choice ends after sac_config.rnd_choice_steps)
+    progress: ActingProgress  # the loop's, which it updates (exploration schedules read it)
 
     def act(self, obs: list[np.ndarray], deterministic: bool = False) -> tuple[np.ndarray, np.ndarray]:
         """Batched actions ``[N, A]`` in model space and their behaviour log-probabilities ``[N]``."""
@@ -246,6 +246,7 @@ class ActorLoop:
         self.episode_return = np.zeros(n, dtype=np.float64)
         self.episode_length = np.zeros(n, dtype=np.int64)
         self.total_steps = 0
+        self.progress = ActingProgress()
         self.nonfinite_chunks = 0
         self.nonfinite_steps = 0
         self._last_log = -float("inf")
@@ -253,7 +254,8 @@ class ActorLoop:
     def step(self) -> StepStats:
         n = self.env.num_envs
         next_rnn_state = None
-        self.policy.env_steps = self.total_steps
+        self.progress.env_steps = self.total_steps  # (set from outside on a resume)
+        self.policy.progress = self.progress  # each step: a policy may serve more than one loop
         if self.rnn_state is not None:  # the state advances during random warm-up too
             actions, logp, next_rnn_state = self.policy.act_recurrent(self.obs, self.prev_actions, self.rnn_state)
         if self.total_steps < self.random_steps:
@@ -285,6 +287,7 @@ class ActorLoop:
         self.obs = result.obs
         for i in np.flatnonzero(done):
             stats.finished.append((float(self.episode_return[i]), int(self.episode_length[i])))
+            self.progress.best_episode_return = max(self.progress.best_episode_return, float(self.episode_return[i]))
             self.episode_return[i] = 0.0
             self.episode_length[i] = 0
         if done[0]:

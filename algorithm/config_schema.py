@@ -208,6 +208,11 @@ class SacConfig(Section):
         "policy's own sample after them (0: the most novel for the whole run). Actors that ask the learner for "
         "every action (actor_config.update_policy_mode: false) keep the choice.",
     )
+    rnd_choice_until_return: float | None = Field(
+        None,
+        description="Act with the most novel candidate until an episode of the actor returns at least this (the "
+        "goal found), with the policy's own sample after it (None: no such end).",
+    )
     rnd_normalize: bool = Field(
         False,
         description="RND's novelty reward as rnd_strength x (novelty / m - 1), m a running mean of the replayed "
@@ -254,8 +259,8 @@ class SacConfig(Section):
             raise ValueError("ensemble_q_sample must be <= ensemble_q_num")
         if self.rnd_normalize and not (self.use_rnd and self.rnd_strength > 0):
             raise ValueError("rnd_normalize scales RND's novelty reward: it needs use_rnd: true and rnd_strength > 0")
-        if self.rnd_choice_steps and not self.use_rnd:
-            raise ValueError("rnd_choice_steps ends RND's action choice: it needs use_rnd: true")
+        if (self.rnd_choice_steps or self.rnd_choice_until_return is not None) and not self.use_rnd:
+            raise ValueError("rnd_choice_steps and rnd_choice_until_return end RND's action choice: they need use_rnd")
         if self.burn_in_step and not self.use_rnn:
             raise ValueError("burn_in_step > 0 needs use_rnn: true (burn-in warms up a recurrent state)")
         return self

@@ -29,6 +29,7 @@ from algorithm.nn.numpy_acting import numpy_actor_for
 from algorithm.nn.recurrent import RecurrentRepresentation
 from algorithm.nn.user import ModelBuilder
 from algorithm.spaces import EnvSpec
+from algorithm.types import ActingProgress
 
 
 class Policy:
@@ -100,9 +101,8 @@ class Policy:
         # over allowed actions (weight min(noise, 1)).
         # The log-prob returned is the widened policy's, so the stored behaviour mu stays exact.
         self.exploration_noise = 0.0
-        # Env steps this policy's actor has taken (ActorLoop sets it before each step): RND's action
-        # choice ends after sac_config.rnd_choice_steps of them.
-        self.env_steps = 0
+        # What the acting loop has done (ActorLoop hands its own in): RND's action choice ends by it.
+        self.progress = ActingProgress()
 
     # -- acting ---------------------------------------------------------------------------------
 
@@ -215,14 +215,17 @@ class Policy:
                 set_noise(self._acting, True)
 
     def chooses_by_novelty(self) -> bool:
-        """Whether stochastic acting takes the most novel of RND's candidates: for the first
-        ``rnd_choice_steps`` of :attr:`env_steps` (all of them when it is 0). The choice leaves a path
-        once its pairs are familiar, also after it found the goal (BENCHMARKS.md section 8,
-        MountainCar); ending it hands acting back to the policy. A chance fading from 1 to 0, drawn
-        per step, was tried first: mixing the two actions step by step lost the sustained push that
-        finds the goal (3 of 4 development seeds never found it)."""
-        until = self.sac.rnd_choice_steps
-        return until <= 0 or self.env_steps < until
+        """Whether stochastic acting takes the most novel of RND's candidates: until the loop's env
+        steps reach ``rnd_choice_steps`` (0: no limit) and until one of its episodes has returned
+        ``rnd_choice_until_return`` (None: no limit). The choice leaves a path once its pairs are
+        familiar, also after it found the goal (BENCHMARKS.md section 8, MountainCar); ending it
+        hands acting back to the policy. A chance fading from 1 to 0, drawn per step, was tried
+        first: mixing the two actions step by step lost the sustained push that finds the goal (3 of
+        4 development seeds never found it)."""
+        sac, progress = self.sac, self.progress
+        if 0 < sac.rnd_choice_steps <= progress.env_steps:
+            return False
+        return sac.rnd_choice_until_return is None or progress.best_episode_return < sac.rnd_choice_until_return
 
     def _act(
         self, full_state: Tensor, tensors: list[Tensor], deterministic: bool, colored: bool = True

@@ -1,4 +1,5 @@
-"""Data that crosses part boundaries: trajectory chunks going into replay, batches coming out.
+"""Data that crosses part boundaries: trajectory chunks going into replay, batches coming out, and
+what an acting loop tells its policy about its progress.
 
 Layouts are batch-major everywhere: ``[B, L, ...]`` for windows, ``[T, ...]`` for a chunk.
 See docs/architecture.md section 3 for the contract these types implement.
@@ -6,6 +7,7 @@ See docs/architecture.md section 3 for the contract these types implement.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -72,3 +74,13 @@ class Batch:
     @property
     def window(self) -> int:
         return int(self.mask.shape[1])
+
+
+@dataclass
+class ActingProgress:
+    """What one acting loop has done so far, for exploration that depends on it (RND's action choice
+    ends per ``sac_config.rnd_choice_steps`` and ``rnd_choice_until_return``). The loop owns it and
+    updates it before each step (:class:`~algorithm.actor.ActorLoop`); the policy reads it."""
+
+    env_steps: int = 0  # over all envs of this loop, random warm-up included
+    best_episode_return: float = -math.inf  # the highest return of an episode this loop finished

@@ -25,6 +25,7 @@ from algorithm.config import load_config
 from algorithm.config_schema import Config
 from algorithm.evaluation import evaluate, read_evaluations
 from algorithm.trainer import EmbeddedTrainer
+from algorithm.types import ActingProgress
 from envs.make import make_vector_env, vector_env_factory
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -83,7 +84,7 @@ class SB3Policy:
     """Adapts an SB3 model to our Policy protocol so both are evaluated by the same code."""
 
     rnn_state_size = 0  # SB3's SAC is feedforward: evaluation calls act only
-    env_steps = 0  # the acting loop's count (ASAC's exploration schedules read it; SB3 acts on its own)
+    progress = ActingProgress()  # the acting loop's (ASAC's exploration schedules read it; SB3 acts on its own)
 
     def __init__(self, model) -> None:  # noqa: ANN001
         self.model = model

@@ -12,6 +12,7 @@ import grpc
 import numpy as np
 
 from algorithm.spaces import EnvSpec
+from algorithm.types import ActingProgress
 from ds.net import rpc, security
 from ds.net.client import RpcClient
 from ds.net.security import NO_CREDENTIALS, Credentials
@@ -160,7 +161,7 @@ class RemotePolicy:
         self.learner = learner
         self.noise = float(noise)
         self.rnn_state_size = learner.rnn_state_size
-        self.env_steps = 0  # the loop sets it; the learner acts with its own policy's schedule
+        self.progress = ActingProgress()  # the loop's; the learner acts with its own policy's schedule
 
     def act(self, obs: list[np.ndarray], deterministic: bool = False) -> tuple[np.ndarray, np.ndarray]:
         actions, logp, _ = self.learner.act(obs, self.noise, deterministic)

@@ -4,15 +4,19 @@ RND's target stays frozen and checkpointed, and acting picks the most novel cand
 from __future__ import annotations
 
 import copy
+import math
 from typing import Any
 
 import numpy as np
 import pytest
 import torch
 
+from algorithm.actor import ActorLoop
 from algorithm.config_schema import NNConfig, ReplayConfig, SacConfig
 from algorithm.sac import SAC
 from algorithm.spaces import ActionSpec, EnvSpec, SensorSpec
+from algorithm.types import ActingProgress
+from envs.make import vector_env_factory
 from tests.algorithm.test_sac import make_batch
 
 OBS, ACT = 3, 2
@@ -118,7 +122,7 @@ def test_rnd_choice_ends_after_its_env_steps_and_the_policy_acts_alone() -> None
 
     def act_at(env_steps: int, sac: SAC) -> np.ndarray:
         sac.load_state_dict(copy.deepcopy(state))  # the same acting noise for every call
-        sac.env_steps = env_steps
+        sac.progress = ActingProgress(env_steps=env_steps)
         return sac.act(obs)[0]
 
     always, alone = make_sac(use_rnd=True, rnd_n_sample=10), make_sac(use_rnd=True, rnd_n_sample=1)
@@ -130,9 +134,27 @@ def test_rnd_choice_ends_after_its_env_steps_and_the_policy_acts_alone() -> None
     np.testing.assert_array_equal(act_at(50_000, always), act_at(0, always))  # 0: the choice for the whole run
 
 
-def test_rnd_choice_steps_needs_rnd() -> None:
-    with pytest.raises(ValueError, match="rnd_choice_steps .* needs use_rnd"):
-        SacConfig(rnd_choice_steps=10)
+def test_rnd_choice_ends_once_an_episode_returned_enough_and_the_loop_tells_the_policy() -> None:
+    # The acting loop hands the policy its progress each step: the best episode return ends the choice.
+    env = vector_env_factory("Pendulum-v1")(2, 0)
+    sac = SacConfig(seed=1, use_rnd=True, rnd_n_sample=10, rnd_choice_until_return=-100.0)
+    ending = SAC(env.spec, sac, NNConfig(hidden_units=[16]), ReplayConfig())
+    loop = ActorLoop(env, ending, lambda chunk: None, chunk_length=16)
+    for _ in range(200):  # Pendulum: 200-step episodes
+        assert ending.chooses_by_novelty()
+        loop.step()
+    assert ending.progress is loop.progress and loop.progress.env_steps == loop.total_steps - 2
+    assert loop.progress.best_episode_return > -math.inf
+    assert loop.progress.best_episode_return < -100.0 and ending.chooses_by_novelty()  # random-ish: far below
+    loop.progress.best_episode_return = -99.0
+    assert not ending.chooses_by_novelty()
+    env.close()
+
+
+@pytest.mark.parametrize("option", [{"rnd_choice_steps": 10}, {"rnd_choice_until_return": 90.0}])
+def test_rnd_choice_ends_need_rnd(option: dict[str, Any]) -> None:
+    with pytest.raises(ValueError, match="rnd_choice_steps and rnd_choice_until_return .* need use_rnd"):
+        SacConfig(**option)
 
 
 def test_rnd_normalize_centres_the_bonus_on_a_running_mean_of_replayed_novelty_which_is_checkpointed() -> None:
