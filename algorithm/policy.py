@@ -11,6 +11,7 @@ Usage, in an actor::
 
 from __future__ import annotations
 
+import logging
 import math
 from collections.abc import Mapping
 from typing import Any
@@ -30,6 +31,8 @@ from algorithm.nn.recurrent import RecurrentRepresentation
 from algorithm.nn.user import ModelBuilder
 from algorithm.spaces import EnvSpec
 from algorithm.types import ActingProgress
+
+log = logging.getLogger("asac.policy")
 
 
 class Policy:
@@ -103,6 +106,7 @@ class Policy:
         self.exploration_noise = 0.0
         # What the acting loop has done (ActorLoop hands its own in): RND's action choice ends by it.
         self.progress = ActingProgress()
+        self._novelty_choice_ended = False
 
     # -- acting ---------------------------------------------------------------------------------
 
@@ -224,8 +228,15 @@ class Policy:
         4 development seeds never found it)."""
         sac, progress = self.sac, self.progress
         if 0 < sac.rnd_choice_steps <= progress.env_steps:
-            return False
-        return sac.rnd_choice_until_return is None or progress.best_episode_return < sac.rnd_choice_until_return
+            reason = f"rnd_choice_steps {sac.rnd_choice_steps} reached"
+        elif sac.rnd_choice_until_return is not None and progress.best_episode_return >= sac.rnd_choice_until_return:
+            reason = f"an episode returned {progress.best_episode_return:.1f} (rnd_choice_until_return)"
+        else:
+            return True
+        if not self._novelty_choice_ended:  # once per policy: the schedules only move forward
+            self._novelty_choice_ended = True
+            log.info("RND's action choice ends at %d env steps: %s; the policy acts alone", progress.env_steps, reason)
+        return False
 
     def _act(
         self, full_state: Tensor, tensors: list[Tensor], deterministic: bool, colored: bool = True

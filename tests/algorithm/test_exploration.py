@@ -4,6 +4,7 @@ RND's target stays frozen and checkpointed, and acting picks the most novel cand
 from __future__ import annotations
 
 import copy
+import logging
 import math
 from typing import Any
 
@@ -134,7 +135,9 @@ def test_rnd_choice_ends_after_its_env_steps_and_the_policy_acts_alone() -> None
     np.testing.assert_array_equal(act_at(50_000, always), act_at(0, always))  # 0: the choice for the whole run
 
 
-def test_rnd_choice_ends_once_an_episode_returned_enough_and_the_loop_tells_the_policy() -> None:
+def test_rnd_choice_ends_once_an_episode_returned_enough_and_the_loop_tells_the_policy(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
     # The acting loop hands the policy its progress each step: the best episode return ends the choice.
     env = vector_env_factory("Pendulum-v1")(2, 0)
     sac = SacConfig(seed=1, use_rnd=True, rnd_n_sample=10, rnd_choice_until_return=-100.0)
@@ -147,7 +150,10 @@ def test_rnd_choice_ends_once_an_episode_returned_enough_and_the_loop_tells_the_
     assert loop.progress.best_episode_return > -math.inf
     assert loop.progress.best_episode_return < -100.0 and ending.chooses_by_novelty()  # random-ish: far below
     loop.progress.best_episode_return = -99.0
-    assert not ending.chooses_by_novelty()
+    with caplog.at_level(logging.INFO, logger="asac.policy"):
+        assert not ending.chooses_by_novelty() and not ending.chooses_by_novelty()
+    ended = [r.getMessage() for r in caplog.records if "action choice ends" in r.getMessage()]
+    assert len(ended) == 1 and "an episode returned -99.0" in ended[0], ended  # said once, with why
     env.close()
 
 
