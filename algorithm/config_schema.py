@@ -211,7 +211,8 @@ class SacConfig(Section):
     rnd_choice_until_return: float | None = Field(
         None,
         description="Act with the most novel candidate until an episode of the actor returns at least this (the "
-        "goal found), with the policy's own sample after it (None: no such end).",
+        "goal found), with the policy's own sample after it (None: no such end). main.py keeps the best return "
+        "across a resume; a distributed actor that restarts starts its choice again.",
     )
     rnd_normalize: bool = Field(
         False,

@@ -19,6 +19,7 @@ run had collected.
 from __future__ import annotations
 
 import logging
+import math
 import threading
 from collections import deque
 from collections.abc import Callable
@@ -216,6 +217,8 @@ class EmbeddedTrainer:
         return {
             "actor_rng": self.actor.rng.bit_generator.state,
             "replay_inserted_steps": self._replay_saved_at,
+            # what ends RND's choice (rnd_choice_until_return) holds across a resume
+            "actor_best_episode_return": self.actor.progress.best_episode_return,
         }
 
     def restore(self, step: int | None = None) -> None:
@@ -226,6 +229,7 @@ class EmbeddedTrainer:
         path, state = self.core.restore(step)
         self.actor.rng.bit_generator.state = state["actor_rng"]
         self.actor.total_steps = self.env_steps  # random_steps counts from the run's start, not the resume
+        self.actor.progress.best_episode_return = float(state.get("actor_best_episode_return", -math.inf))
         saved_at = state.get("replay_inserted_steps")
         if saved_at is not None and self.paths.replay.exists():
             load_replay_snapshot(self.table, self.paths.replay)

@@ -120,6 +120,8 @@ def test_resume_gives_a_bit_identical_next_update(tmp_path: Path) -> None:
 
     resumed = make_trainer(config, tmp_path / "run")  # finds model/300.pt and replay/replay.npz
     assert (resumed.env_steps, resumed.updates) == (original.env_steps, original.updates)
+    best = original.actor.progress.best_episode_return  # ends RND's choice (rnd_choice_until_return)
+    assert -50 * 16.3 <= best <= 0 and resumed.actor.progress.best_episode_return == best
     got = [next_update(resumed) for _ in range(3)]
     for (m_exp, p_exp), (m_got, p_got) in zip(expected, got, strict=True):
         assert m_exp == m_got
