@@ -73,7 +73,8 @@ def read_checked(
             arrays = {name: f[name] for name in f.files}
         meta = json.loads(str(arrays.pop("meta")))
     except Exception as e:  # numpy and zipfile raise many types for a damaged file (NotImplementedError too)
-        raise ValueError(f"{path}: not a readable replay file ({type(e).__name__}: {e})") from e
+        why = str(e) if len(str(e)) <= 300 else f"{str(e)[:300]}..."  # zipfile may quote kilobytes of the file
+        raise ValueError(f"{path}: not a readable replay file ({type(e).__name__}: {why})") from e
     if not isinstance(meta, dict) or meta.get("format") != FORMAT:
         raise ValueError(f"{path}: not a replay file of format {FORMAT}")
     for name, want in layout.items():

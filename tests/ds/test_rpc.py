@@ -6,7 +6,7 @@ from __future__ import annotations
 import grpc
 import pytest
 
-from ds.net.rpc import RetryPolicy, call_with_retry, peer_gone, peer_unresponsive
+from ds.net.rpc import MAX_STATUS_DETAILS, RetryPolicy, call_with_retry, peer_gone, peer_unresponsive, status_details
 
 NO_WAIT = RetryPolicy(attempts=3, initial_backoff_s=0.0, max_backoff_s=0.0)
 
@@ -65,3 +65,11 @@ def test_an_unresponsive_peer_is_one_gone_or_past_its_deadline(code: grpc.Status
     waited = {grpc.StatusCode.UNAVAILABLE, grpc.StatusCode.CANCELLED, grpc.StatusCode.DEADLINE_EXCEEDED}
     assert peer_unresponsive(code) == (code in waited)
     assert peer_gone(code) == (code in waited - {grpc.StatusCode.DEADLINE_EXCEEDED})
+
+
+def test_status_details_keep_both_ends_within_what_a_status_carries() -> None:
+    assert status_details("short") == "short"
+    long = "/run/replay/bad.npz: not readable (" + "x" * 20_000 + ") the end"
+    shortened = status_details(long)
+    assert len(shortened) <= MAX_STATUS_DETAILS and shortened.startswith("/run/replay/bad.npz: not readable (")
+    assert shortened.endswith(") the end") and f"...[{len(long) - MAX_STATUS_DETAILS + 40} characters]..." in shortened

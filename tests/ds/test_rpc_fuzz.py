@@ -402,6 +402,9 @@ def test_save_to_a_nul_or_outside_path_is_refused(replay: Replay, path: str) -> 
     at=st.integers(0, 10**7),
     flips=st.lists(st.integers(1, 255), min_size=1, max_size=3),
 )
+# A flip in the zip directory's first file name: zipfile's error quoted 11 KB of the file, more than a
+# status can carry (RESOURCE_EXHAUSTED "metadata size exceeds soft limit" instead of INVALID_ARGUMENT).
+@example(how="flip", at=27, flips=[12])
 def test_loading_a_corrupt_snapshot_is_refused_and_changes_nothing(
     replay: Replay, how: str, at: int, flips: list[int]
 ) -> None:
