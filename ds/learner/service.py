@@ -301,7 +301,8 @@ class LearnerServicer(learner_pb2_grpc.LearnerServiceServicer):
         if request.leaving:
             self.registry.leave(request.actor_id, request.env_steps)  # an unknown id has gone already: fine
         elif not self.registry.renew(request.actor_id, request.env_steps):
-            context.abort(grpc.StatusCode.NOT_FOUND, f"no live actor {request.actor_id!r} (lease expired?): register")
+            said = rpc.status_details(f"no live actor {request.actor_id!r} (lease expired?): register")
+            context.abort(grpc.StatusCode.NOT_FOUND, said)
         return learner_pb2.HeartbeatReply(
             learner_id=self.learner_id,
             params_version=self.store.version,
@@ -388,7 +389,7 @@ def _invalid_argument(context: grpc.ServicerContext) -> Iterator[None]:
     try:
         yield
     except ValueError as e:
-        context.abort(grpc.StatusCode.INVALID_ARGUMENT, str(e))
+        context.abort(grpc.StatusCode.INVALID_ARGUMENT, rpc.status_details(str(e)))
 
 
 def serve_learner(

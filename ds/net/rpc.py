@@ -147,7 +147,7 @@ def _refusing_malformed(behaviour: Callable[[Any, grpc.ServicerContext], Any]) -
     @functools.wraps(behaviour)
     def handle(request: Any, context: grpc.ServicerContext) -> Any:
         if isinstance(request, MalformedRequest):
-            context.abort(grpc.StatusCode.INVALID_ARGUMENT, request.reason)
+            context.abort(grpc.StatusCode.INVALID_ARGUMENT, status_details(request.reason))
         return behaviour(request, context)
 
     return handle

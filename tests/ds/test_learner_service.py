@@ -113,6 +113,10 @@ def test_heartbeat_of_an_unknown_actor_says_register_again(learner_side: Learner
     assert learner_id == reg.learner_id and version == -1 and not run_done and live == 1
     with pytest.raises(LeaseExpired):
         learner_side.client.heartbeat("actor-9-unknown", 0)
+    # An id of 20 KB (bad input): still NOT_FOUND naming it, shortened to what a status carries
+    # (unshortened, gRPC dropped the answer as RESOURCE_EXHAUSTED: its details passed 8 KiB).
+    with pytest.raises(LeaseExpired, match=r"no live actor 'actor-x+ \.\.\.\[\d+ characters\]\.\.\. x+' \(lease"):
+        learner_side.client.heartbeat("actor-" + "x" * 20_000, 0)
 
 
 def test_heartbeats_tell_actors_when_the_runs_budget_is_spent_and_leaving_actors_are_forgotten(
