@@ -224,8 +224,8 @@ class Policy:
         ``rnd_choice_until_return`` (None: no limit). The choice leaves a path once its pairs are
         familiar, also after it found the goal (BENCHMARKS.md section 8, MountainCar); ending it
         hands acting back to the policy. A chance fading from 1 to 0, drawn per step, was tried
-        first: mixing the two actions step by step lost the sustained push that finds the goal (3 of
-        4 development seeds never found it)."""
+        first: mixing the two actions step by step lost the sustained push that finds the goal (4 of
+        5 development seeds never found it)."""
         sac, progress = self.sac, self.progress
         if 0 < sac.rnd_choice_steps <= progress.env_steps:
             reason = f"rnd_choice_steps {sac.rnd_choice_steps} reached"
