@@ -394,7 +394,7 @@ class DistributedActor:
         actor stops there, so together they hold about what is left. What passes ``max_step`` is what
         an actor held beyond its share when it came near the budget (one waiting in the rate limiter
         with a full backlog does not step, and cannot shed it) and what was stored after its count:
-        with four actors, 2 envs each and 16-step chunks, 24-106 steps past 600 where each one taking
+        with four actors, 2 envs each and 16-step chunks, 28-106 steps past 600 where each one taking
         the whole rest as its share passed it by 240 (tests/test_backpressure.py). Never early: a
         count still short of ``max_step`` once this actor's steps are stored lets it step on, with a
         new share."""
