@@ -190,13 +190,13 @@ def _status_codes(context: grpc.ServicerContext) -> Iterator[None]:
     try:
         yield
     except (UnknownLearner, UnknownAssignment) as e:
-        context.abort(grpc.StatusCode.NOT_FOUND, rpc.status_details(str(e)))
+        context.abort(grpc.StatusCode.NOT_FOUND, str(e))
     except LearnerRetired as e:
-        context.abort(grpc.StatusCode.FAILED_PRECONDITION, rpc.status_details(str(e)))
+        context.abort(grpc.StatusCode.FAILED_PRECONDITION, str(e))
     except NoWorkYet as e:
-        context.abort(grpc.StatusCode.UNAVAILABLE, rpc.status_details(str(e)))
+        context.abort(grpc.StatusCode.UNAVAILABLE, str(e))
     except ValueError as e:
-        context.abort(grpc.StatusCode.INVALID_ARGUMENT, rpc.status_details(str(e)))
+        context.abort(grpc.StatusCode.INVALID_ARGUMENT, str(e))
 
 
 def _peer_host(peer: str) -> str:

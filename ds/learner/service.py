@@ -164,12 +164,6 @@ class ActorRegistry:
                      env_steps, len(self._actors))  # fmt: skip
             return True
 
-    def live_count(self) -> int:
-        """How many actors hold a lease now."""
-        with self._lock:
-            self._expire()
-            return len(self._actors)
-
     def alive(self) -> list[ActorLease]:
         with self._lock:
             self._expire()
@@ -290,7 +284,7 @@ class LearnerServicer(learner_pb2_grpc.LearnerServiceServicer):
             params_port=self.params_port,
             lease_s=self.registry.lease_s,
             params_key=self.stream.secret,
-            live_actors=self.registry.live_count(),
+            live_actors=len(self.registry.alive()),
         )
 
     def Heartbeat(
@@ -301,13 +295,12 @@ class LearnerServicer(learner_pb2_grpc.LearnerServiceServicer):
         if request.leaving:
             self.registry.leave(request.actor_id, request.env_steps)  # an unknown id has gone already: fine
         elif not self.registry.renew(request.actor_id, request.env_steps):
-            said = rpc.status_details(f"no live actor {request.actor_id!r} (lease expired?): register")
-            context.abort(grpc.StatusCode.NOT_FOUND, said)
+            context.abort(grpc.StatusCode.NOT_FOUND, f"no live actor {request.actor_id!r} (lease expired?): register")
         return learner_pb2.HeartbeatReply(
             learner_id=self.learner_id,
             params_version=self.store.version,
             run_done=self.registry.run_done.is_set(),
-            live_actors=self.registry.live_count(),
+            live_actors=len(self.registry.alive()),
         )
 
     def GetParams(
@@ -389,7 +382,7 @@ def _invalid_argument(context: grpc.ServicerContext) -> Iterator[None]:
     try:
         yield
     except ValueError as e:
-        context.abort(grpc.StatusCode.INVALID_ARGUMENT, rpc.status_details(str(e)))
+        context.abort(grpc.StatusCode.INVALID_ARGUMENT, str(e))
 
 
 def serve_learner(

@@ -18,7 +18,8 @@ Servers registered with :func:`add_servicer` answer a request that does not pars
 a field the server's .proto does not define (at any depth), with INVALID_ARGUMENT naming it, before
 the servicer sees it. gRPC's own deserialisation would answer INTERNAL for the first and silently
 drop the second; every role of a run is built from the same protos, so an unknown field means a peer
-of another version whose data would otherwise vanish without a word.
+of another version whose data would otherwise vanish without a word. Their refusals' details are
+shortened to what a status can carry (:func:`status_details`), whatever the servicer aborts with.
 """
 
 from __future__ import annotations
@@ -30,7 +31,7 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, TypeVar
+from typing import Any, TypeVar, cast
 
 import grpc
 from google.protobuf import message_factory, unknown_fields
@@ -143,12 +144,30 @@ def _first_unknown_field(message: Message, path: str) -> tuple[str, int]:
     return path, -1
 
 
+class _BoundedDetails:
+    """A servicer's context whose ``abort`` and ``set_details`` shorten the details with
+    :func:`status_details`; everything else is the context's own."""
+
+    def __init__(self, context: grpc.ServicerContext) -> None:
+        self._context = context
+
+    def abort(self, code: grpc.StatusCode, details: str) -> None:
+        self._context.abort(code, status_details(details))
+
+    def set_details(self, details: str) -> None:
+        self._context.set_details(status_details(details))
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._context, name)
+
+
 def _refusing_malformed(behaviour: Callable[[Any, grpc.ServicerContext], Any]) -> Callable[..., Any]:
     @functools.wraps(behaviour)
     def handle(request: Any, context: grpc.ServicerContext) -> Any:
+        bounded = cast(grpc.ServicerContext, _BoundedDetails(context))
         if isinstance(request, MalformedRequest):
-            context.abort(grpc.StatusCode.INVALID_ARGUMENT, status_details(request.reason))
-        return behaviour(request, context)
+            bounded.abort(grpc.StatusCode.INVALID_ARGUMENT, request.reason)
+        return behaviour(request, bounded)
 
     return handle
 

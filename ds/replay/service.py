@@ -267,26 +267,25 @@ def _wait_seconds(request: Any, context: grpc.ServicerContext) -> float | None:
 
 @contextmanager
 def _status_codes(context: grpc.ServicerContext) -> Iterator[None]:
-    """Turn the table's exceptions into status codes with the exception's message (shortened to
-    what a status can carry: :func:`ds.net.rpc.status_details`)."""
+    """Turn the table's exceptions into status codes with the exception's message."""
     try:
         yield
     except (SampleTimeout, InsertTimeout, FileWorkAbandoned) as e:  # before OSError: TimeoutError is an OSError
-        context.abort(grpc.StatusCode.DEADLINE_EXCEEDED, rpc.status_details(str(e)))
+        context.abort(grpc.StatusCode.DEADLINE_EXCEEDED, str(e))
     except FileWorkBusy as e:
-        context.abort(grpc.StatusCode.ABORTED, rpc.status_details(str(e)))
+        context.abort(grpc.StatusCode.ABORTED, str(e))
     except _NoSnapshotFolder as e:
-        context.abort(grpc.StatusCode.FAILED_PRECONDITION, rpc.status_details(str(e)))
+        context.abort(grpc.StatusCode.FAILED_PRECONDITION, str(e))
     except ValueError as e:
-        context.abort(grpc.StatusCode.INVALID_ARGUMENT, rpc.status_details(str(e)))
+        context.abort(grpc.StatusCode.INVALID_ARGUMENT, str(e))
     except ProducerLimitReached as e:
-        context.abort(grpc.StatusCode.RESOURCE_EXHAUSTED, rpc.status_details(str(e)))
+        context.abort(grpc.StatusCode.RESOURCE_EXHAUSTED, str(e))
     except OSError as e:
         # gRPC's code for "the entire file system is out of space" (its status code guide); other
         # I/O errors leave the server's state as the precondition that failed.
         full = e.errno in (errno.ENOSPC, errno.EDQUOT)
         code = grpc.StatusCode.RESOURCE_EXHAUSTED if full else grpc.StatusCode.FAILED_PRECONDITION
-        context.abort(code, rpc.status_details(f"{type(e).__name__}: {e}"))
+        context.abort(code, f"{type(e).__name__}: {e}")
 
 
 def set_serving(health_servicer: health.HealthServicer, serving: bool) -> None:
