@@ -229,6 +229,12 @@ class SacConfig(Section):
     use_normalization: bool = False
     max_nonfinite_steps: int = Field(100, ge=1, description="Consecutive skipped (non-finite) updates before stopping.")
     compile: bool = Field(False, description="torch.compile the losses; 5-10% slower on CPU (bench/learner.py).")
+    cuda_graph: bool = Field(
+        True,
+        description="On a CUDA device, record each update's forward and backward pass once as a CUDA graph and "
+        "replay it (algorithm/update_graph.py): the same result without launching ~230 kernels from Python per "
+        "update. Recurrent, V-trace, prediction-model and normalized-RND configs run eagerly; no effect on the CPU.",
+    )
     numpy_acting: bool = Field(
         True,
         description="Act with a NumPy copy of the policy's forward pass where it computes exactly what torch "

@@ -26,7 +26,6 @@ import copy
 import math
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -36,6 +35,7 @@ from torch import Tensor
 from algorithm.config_schema import NNConfig, ReplayConfig, SacConfig
 from algorithm.losses import Metrics, importance_weights
 from algorithm.nn.builder import build_models
+from algorithm.nn.layers import uses_bfloat16
 from algorithm.nn.models import SacModels
 from algorithm.nn.noisy import reset_noise
 from algorithm.nn.prediction import gated_gradients, observation_targets
@@ -43,23 +43,7 @@ from algorithm.policy import Policy
 from algorithm.sac_losses import Losses, SacLosses
 from algorithm.spaces import EnvSpec
 from algorithm.types import Batch
-
-
-def uses_bfloat16(compute_dtype: str, device: torch.device, cpuinfo: Path = Path("/proc/cpuinfo")) -> bool:
-    """Resolve ``sac_config.compute_dtype``: ``auto`` means bfloat16 where the hardware computes it
-    natively — a CUDA device that supports it, or a CPU whose flags list ``avx512_bf16`` or
-    ``amx_bf16`` (elsewhere bf16 matmuls are emulated and slower than float32)."""
-    if compute_dtype != "auto":
-        return compute_dtype == "bfloat16"
-    if device.type == "cuda":
-        return bool(torch.cuda.is_bf16_supported())
-    if device.type != "cpu":
-        return False
-    try:
-        flags = next((line for line in cpuinfo.read_text().splitlines() if line.startswith("flags")), "")
-    except OSError:
-        return False
-    return bool({"avx512_bf16", "amx_bf16"} & set(flags.split()))
+from algorithm.update_graph import graph_for
 
 
 @dataclass
@@ -152,6 +136,12 @@ class SAC(SacLosses, Policy):
         # Hidden layers in bfloat16 (sac.compute_dtype): 2.2x faster matmuls on this project's AVX512-BF16
         # CPUs, 1.4x faster updates (bench/learner.py); output layers stay float32 (nn.layers.in_float32).
         self._low_precision = uses_bfloat16(sac.compute_dtype, self.device)
+        # On a GPU the forward and backward pass is recorded once as a CUDA graph and replayed
+        # (algorithm/update_graph.py); None where it is not (the CPU, configs it cannot record).
+        trained = [p for opt in self._optimizers() for group in opt.param_groups for p in group["params"]]
+        self.update_graph = graph_for(
+            sac, self.device, compile, bool(self.rnn_state_size), self.models.prediction is not None, trained
+        )
         self.updates = 0  # applied (not skipped) updates
         self.nonfinite_skipped = 0
         self._consecutive_nonfinite = 0
@@ -181,24 +171,14 @@ class SAC(SacLosses, Policy):
             reset_noise(self.target_q, self._learn_rng)
         noise = self._noise(batch, self._learn_rng)
         self._anneal_target_entropy()
-        losses = self._batch_losses(batch, weights, noise, self._subset(), self._subset())
-
-        # 3. One backward: the losses touch disjoint parameters (policy_loss detaches the critic,
-        #    alpha_loss detaches log_prob, the target is no-grad), so each gets exactly its own grads.
-        for opt in self._optimizers():
-            opt.zero_grad(set_to_none=True)
-        predictions = losses.predictions
-        (losses.q + losses.policy + losses.alpha + losses.auxiliary).backward(retain_graph=bool(predictions))
-        if predictions:
-            self._apply_prediction_gradients(predictions, losses.metrics)
-        critic_norm, policy_norm = _grad_norm(self._critic_params), _grad_norm(self._policy_params)
-        prediction_loss = (
-            torch.stack(list(predictions.values())).sum().detach() if predictions else losses.auxiliary.detach()
-        )
-        checks = torch.stack(
-            [losses.q.detach(), losses.policy.detach(), losses.alpha.detach(), losses.auxiliary.detach(),
-             prediction_loss, critic_norm, policy_norm]
-        )  # fmt: skip
+        inputs = self._pass_inputs(batch, weights, noise, self._subset(), self._subset())
+        graph = self.update_graph
+        passed = None
+        if graph is not None and graph.usable:
+            passed = graph.run(self._forward_backward, inputs, self.device, self._kept_modules())
+        if passed is None:
+            passed = self._forward_backward(self._on_device(inputs))
+        losses, critic_norm, policy_norm, checks = passed
 
         # 4. Apply, or skip the whole step if anything is non-finite.
         skipped = not bool(torch.isfinite(checks).all())  # the one host sync of the step
@@ -278,7 +258,7 @@ class SAC(SacLosses, Policy):
         mean = rnd.get_buffer("novelty_mean") if rnd is not None and self.sac.rnd_normalize else None
         kept = None if mean is None else mean.clone()
         with torch.no_grad():
-            td_abs = self._batch_losses(batch, None, noise, None, None).td_abs
+            td_abs = self._batch_losses(self._on_device(self._pass_inputs(batch, None, noise, None, None))).td_abs
             if mean is not None and kept is not None:
                 mean.copy_(kept)
         return torch.nan_to_num(td_abs.float(), nan=0.0, posinf=0.0, neginf=0.0).cpu().numpy()
@@ -295,32 +275,53 @@ class SAC(SacLosses, Policy):
         shape = (batch.batch_size, *trained, samples, self.spec.action.continuous_dim)
         return torch.randn(shape, generator=generator, device=self.device)
 
-    def _batch_losses(
-        self,
-        batch: Batch,
-        weights: Tensor | None,
-        noise: Tensor,
-        target_heads: Tensor | None,
+    def _pass_inputs(
+        self, batch: Batch, weights: Tensor | None, noise: Tensor, target_heads: Tensor | None,
         policy_heads: Tensor | None,
-    ) -> Losses:
-        """:meth:`_losses` of a sampled batch (its arrays moved to the device, observations normalized)."""
-        dev = self.device
-        with torch.autocast(dev.type, dtype=torch.bfloat16, enabled=self._low_precision):
-            return self._compute_losses(
-                self._normalize([torch.from_numpy(o).to(dev) for o in batch.obs]),
-                torch.from_numpy(batch.actions).to(dev),
-                torch.from_numpy(batch.prev_actions).to(dev),
-                torch.from_numpy(batch.rewards).to(dev),
-                torch.from_numpy(batch.terminated).to(dev),
-                torch.from_numpy(batch.truncated).to(dev),
-                torch.from_numpy(batch.mask).to(dev),
-                torch.from_numpy(batch.behaviour_logp).to(dev),
-                torch.from_numpy(batch.rnn_state).to(dev) if self.rnn_state_size else None,
-                weights,
-                noise,
-                target_heads,
-                policy_heads,
-            )
+    ) -> list[np.ndarray | Tensor | None]:  # fmt: skip
+        """What one pass over ``batch`` takes, in :meth:`_losses`'s order (the sensors' observations first);
+        the batch's arrays still on the host."""
+        rnn_state = batch.rnn_state if self.rnn_state_size else None
+        return [*batch.obs, batch.actions, batch.prev_actions, batch.rewards, batch.terminated, batch.truncated,
+                batch.mask, batch.behaviour_logp, rnn_state, weights, noise, target_heads, policy_heads]  # fmt: skip
+
+    def _on_device(self, inputs: list[np.ndarray | Tensor | None]) -> list[Tensor | None]:
+        return [torch.from_numpy(x).to(self.device) if isinstance(x, np.ndarray) else x for x in inputs]
+
+    def _batch_losses(self, inputs: list[Tensor | None]) -> Losses:
+        """:meth:`_losses` of a pass's inputs on the device, observations normalized. Autocast's cache of
+        cast weights is off with a CUDA graph (its recipe says so); the values are the same."""
+        n = len(self.spec.sensors)
+        rest: list[Any] = inputs[n:]
+        obs = [o for o in inputs[:n] if o is not None]
+        cache = self.update_graph is None
+        with torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=self._low_precision, cache_enabled=cache):
+            return self._compute_losses(self._normalize(obs), *rest)
+
+    def _forward_backward(self, inputs: list[Tensor | None]) -> tuple[Losses, Tensor, Tensor, Tensor]:
+        """One pass: the losses, their gradients in every parameter's ``.grad``, the two gradient norms
+        and what the non-finite check looks at. This is what a CUDA graph records (:attr:`update_graph`)."""
+        losses = self._batch_losses(inputs)
+        # One backward: the losses touch disjoint parameters (policy_loss detaches the critic, alpha_loss
+        # detaches log_prob, the target is no-grad), so each gets exactly its own grads.
+        for opt in self._optimizers():
+            opt.zero_grad(set_to_none=True)
+        predictions = losses.predictions
+        (losses.q + losses.policy + losses.alpha + losses.auxiliary).backward(retain_graph=bool(predictions))
+        if predictions:
+            self._apply_prediction_gradients(predictions, losses.metrics)
+        critic_norm, policy_norm = _grad_norm(self._critic_params), _grad_norm(self._policy_params)
+        prediction_loss = (
+            torch.stack(list(predictions.values())).sum().detach() if predictions else losses.auxiliary.detach()
+        )
+        checks = torch.stack(
+            [losses.q.detach(), losses.policy.detach(), losses.alpha.detach(), losses.auxiliary.detach(),
+             prediction_loss, critic_norm, policy_norm]
+        )  # fmt: skip
+        return losses, critic_norm, policy_norm, checks
+
+    def _kept_modules(self) -> list[torch.nn.Module]:
+        return [self.models, self.target_representation, self.target_q]
 
     def _window_rows(self, batch: Batch, fed_states: Tensor) -> tuple[np.ndarray, np.ndarray]:
         """Row keys and fed states of every valid window step: window step ``j`` of a window whose

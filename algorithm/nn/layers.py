@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
+from pathlib import Path
 from typing import Any
 
 import torch
@@ -20,6 +21,23 @@ def activation(name: str) -> nn.Module:
         raise ValueError(
             f"nn_config.activation: unknown activation {name!r}, expected one of {sorted(ACTIVATIONS)}"
         ) from None
+
+
+def uses_bfloat16(compute_dtype: str, device: torch.device, cpuinfo: Path = Path("/proc/cpuinfo")) -> bool:
+    """Resolve ``sac_config.compute_dtype``: ``auto`` means bfloat16 where the hardware computes it
+    natively — a CUDA device that supports it, or a CPU whose flags list ``avx512_bf16`` or
+    ``amx_bf16`` (elsewhere bf16 matmuls are emulated and slower than float32)."""
+    if compute_dtype != "auto":
+        return compute_dtype == "bfloat16"
+    if device.type == "cuda":
+        return bool(torch.cuda.is_bf16_supported())
+    if device.type != "cpu":
+        return False
+    try:
+        flags = next((line for line in cpuinfo.read_text().splitlines() if line.startswith("flags")), "")
+    except OSError:
+        return False
+    return bool({"avx512_bf16", "amx_bf16"} & set(flags.split()))
 
 
 def in_float32(layer: nn.Module, x: Tensor, *args: object) -> Tensor:

@@ -15,8 +15,9 @@ from torch import Tensor, nn
 
 from algorithm.config_schema import NNConfig, ReplayConfig, SacConfig
 from algorithm.losses import PolicySample, alpha_loss, critic_loss, importance_weights, policy_loss
+from algorithm.nn.layers import uses_bfloat16
 from algorithm.nn.models import QEnsemble, Representation, TanhGaussianPolicy
-from algorithm.sac import SAC, uses_bfloat16
+from algorithm.sac import SAC
 from algorithm.spaces import ActionSpec, EnvSpec, SensorSpec
 from algorithm.types import Batch
 

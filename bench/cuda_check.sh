@@ -1,0 +1,25 @@
+#!/bin/bash
+# The checks this project runs on a machine with a GPU, in one go (BENCHMARKS.md section 12): the CUDA
+# graph's tests against eager updates on the GPU, its speed against eager updates (bench.cuda_graph), the
+# --device cuda journeys (bench/cuda_journeys.sh), and HalfCheetah toward 3,000 with 1, 4 and 12 actors side
+# by side for L seconds (bench/scaling_parallel.sh). Packages the machine lacks can travel as wheels in .whl/
+# (installed into /tmp/site first). Results go to $OUT (default /tmp/cuda_check).
+# Usage: bash bench/cuda_check.sh [L] [DEVICE]
+L=${1:-220}; D=${2:-cuda}; O=${OUT:-/tmp/cuda_check}; mkdir -p "$O"
+PY=${PYTHON:-python3}
+if ls .whl/*.whl >/dev/null 2>&1; then
+  $PY -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .whl/*.whl \
+    && export PYTHONPATH=/tmp/site
+fi
+export PYTHONUNBUFFERED=1
+nvidia-smi -L 2>/dev/null; echo "cores $(nproc)"; $PY -c "import torch; print('torch', torch.__version__)"; date
+echo "== tests/algorithm/test_update_graph.py"
+timeout 150 $PY -m pytest -q -p no:cacheprovider tests/algorithm/test_update_graph.py 2>&1 | tail -12
+echo "== bench.cuda_graph"
+timeout 120 $PY -m bench.cuda_graph --rounds 5 --updates 300 --out "$O/cuda_graph.csv" 2>&1 | tail -6
+echo "== bench/cuda_journeys.sh"
+PYTHON=$PY timeout 200 bash bench/cuda_journeys.sh "$D" 2>&1
+grep -h "CUDA graph" /tmp/m1.log /tmp/m2.log 2>/dev/null | head -4
+echo "== HalfCheetah, 1, 4 and 12 actors side by side, $L s"; date
+OUT=$O timeout $((L + 90)) bash bench/scaling_parallel.sh "$L" "$D" "$PY" 2>&1 | tail -30
+date
