@@ -336,6 +336,9 @@ def test_ctrl_c_mid_run_stops_the_learner_before_the_replay_and_says_interrupted
     assert first(r"^\[learner\] .*learner stopped after", out) < first(r"^\[replay\] .*SIGINT: stopping", out)
     assert first(r"^\[learner\] .*learner stopped after", out) < first(r"^\[actor-\d\] .*SIGINT: stopping", out)
     assert "Traceback" not in out and "SIGKILL" not in out, out[-4000:]
+    for k in range(2):  # an actor told to stop does not warn that the learner, stopped before it, is gone
+        after_stop = out[first(rf"^\[actor-{k}\] .*SIGINT: stopping", out) :]
+        assert not re.search(rf"^\[actor-{k}\] .* WARNING ", after_stop, re.M), after_stop[-4000:]
     check_nothing_collected_was_lost(out)
     check_actor_labels(out)
     outcome, lines = summary_of(out)

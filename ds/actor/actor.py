@@ -413,6 +413,8 @@ class DistributedActor:
     def _learner_unreachable(self, error: grpc.RpcError) -> None:
         if not peer_unresponsive(error.code()):
             raise error
+        if self.stop.is_set():  # told to stop: the learner may be gone already (a local run stops it first)
+            return
         if self._log_learner():
             code, version = error.code().name, self.params_version
             log.warning("learner unreachable (%s); acting with parameter version %d meanwhile", code, version)

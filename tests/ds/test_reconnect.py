@@ -4,6 +4,7 @@ registers again under its old index and takes them)."""
 
 from __future__ import annotations
 
+import logging
 import socket
 import threading
 import time
@@ -11,6 +12,7 @@ from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
+import grpc
 import pytest
 import torch
 
@@ -187,3 +189,32 @@ def test_an_actor_takes_only_parameters_signed_with_the_runs_token(tmp_path: Pat
     finally:
         learner.stop()
         replay.stop()
+
+
+def test_an_actor_told_to_stop_does_not_warn_that_the_learner_is_gone(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """A local run stops the learner before the actors (its orderly stop), so a heartbeat of an actor
+    already told to stop that finds no learner is expected: no WARNING (one was printed at the end of
+    a Ctrl-C'd HalfCheetah run). An actor still running does warn."""
+    port = free_port()  # nothing listens: a real UNAVAILABLE
+    replay = ReplayClient(f"127.0.0.1:{free_port()}", SPEC.sensors, SPEC.action.size, retry=FAST_RETRY)
+    learner = LearnerClient(f"127.0.0.1:{port}", SPEC, retry=FAST_RETRY, rpc_timeout_s=2.0)
+    sac = SAC(SPEC, CONFIG.sac_config, CONFIG.nn_config, CONFIG.replay_config)
+    stop = threading.Event()
+    actor = DistributedActor(CONFIG, tmp_path, vector_env_factory("Pendulum-v1"), sac, replay, learner,
+                             "127.0.0.1", stop=stop)  # fmt: skip
+    try:
+        with pytest.raises(grpc.RpcError) as gone:
+            learner.heartbeat("actor-0", 0)
+        assert gone.value.code() == grpc.StatusCode.UNAVAILABLE
+        with caplog.at_level(logging.WARNING):
+            stop.set()
+            actor._learner_unreachable(gone.value)
+            assert not [r for r in caplog.records if r.levelno >= logging.WARNING], caplog.text
+            stop.clear()
+            actor._learner_unreachable(gone.value)
+            assert "learner unreachable (UNAVAILABLE)" in caplog.text
+    finally:
+        replay.close()
+        learner.close()
