@@ -34,7 +34,7 @@ from algorithm.config import ConfigError, apply_overrides, config_from_file, loa
 from algorithm.errors import CheckpointError
 from algorithm.folder_lock import FolderInUse, hold_folder
 from algorithm.random_params import draw_for_run
-from algorithm.run_dir import RunDir
+from algorithm.run_dir import RunDir, python_command, shown_path
 from algorithm.signals import stop_on_signals
 from cli import (
     ArgumentParser,
@@ -148,7 +148,7 @@ def run_command(args: argparse.Namespace, run_dir: Path) -> str:
     """The command that trains ``run_dir`` on (resumes it), as the user would type it here."""
     name = run_dir.relative_to(Path(args.model_root) / args.env)
     root = "" if args.model_root == "models" else f" --model_root {args.model_root}"
-    return f"python main.py {args.env} -n {name}{root}"
+    return f"{python_command()} {shown_path(Path(__file__))} {args.env} -n {name}{root}"
 
 
 def play_command(args: argparse.Namespace, run_dir: Path) -> str:

@@ -1,7 +1,11 @@
-"""A run's folder, ``models/<task>/<name>/``, and what lives in it (README, "The run directory")."""
+"""A run's folder, ``models/<task>/<name>/``, and what lives in it (README, "The run directory"); how the
+commands that resume or play a run are shown to the user (both launchers print them)."""
 
 from __future__ import annotations
 
+import os
+import shutil
+import sys
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -38,3 +42,20 @@ class RunDir:
     def model_file(self) -> Path:
         """The run's copy of the task's model file (nn/user.py), when the task has one."""
         return self.root / "nn.py"
+
+
+def python_command() -> str:
+    """``python`` when that is this interpreter on PATH, else this interpreter's path (a venv's, say)."""
+    found = shutil.which("python")
+    if found is not None and Path(found).absolute() == Path(sys.executable).absolute():
+        return "python"
+    return shown_path(Path(sys.executable))
+
+
+def shown_path(path: Path) -> str:
+    """``path`` relative to the working directory when it lies inside it, else absolute."""
+    absolute = Path(os.path.abspath(path))
+    try:
+        return str(absolute.relative_to(Path.cwd()))
+    except ValueError:
+        return str(absolute)

@@ -231,7 +231,9 @@ class EmbeddedTrainer:
         self.actor.total_steps = self.env_steps  # random_steps counts from the run's start, not the resume
         self.actor.progress.best_episode_return = float(state.get("actor_best_episode_return", -math.inf))
         saved_at = state.get("replay_inserted_steps")
-        if saved_at is not None and self.paths.replay.exists():
+        if self.done():  # a finished run trains no more: its replay is not loaded (it can be gigabytes)
+            pass
+        elif saved_at is not None and self.paths.replay.exists():
             load_replay_snapshot(self.table, self.paths.replay)
             inserted = int(self.table.info()["inserted_steps"])
             if inserted != saved_at:  # written at another moment (killed between the two saves): still data

@@ -143,6 +143,11 @@ def test_interrupted_at_three_points_the_same_command_resumes_each_time_and_ends
     assert f"resumed at {stopped_at} env steps" in resumed.stderr
     got = final_return(run)
     assert abs(got - uninterrupted) <= RETURN_BAND, f"resumed run ended at {got:.1f}, uninterrupted {uninterrupted:.1f}"
+    # Started again once finished, it reports and leaves: the snapshot written at the last interruption
+    # is neither loaded nor talked about (it was: "not loading replay.npz: checkpoint ... saved without it").
+    again = run_main(tmp_path, *args)
+    assert again.returncode == 0 and f"already finished at {MAX_STEP} env steps" in again.stderr, again.stderr
+    assert "replay" not in again.stderr, again.stderr
 
 
 def test_resume_without_the_replay_does_not_hang_and_keeps_the_ratio(tmp_path: Path) -> None:
@@ -171,9 +176,11 @@ def test_a_finished_run_started_again_reports_its_result_and_how_to_play_it(whol
     again = run_main(whole, *COMMON, "-n", "whole", timeout=180)
     assert again.returncode == 0, again.stderr
     assert f"already finished at {MAX_STEP} env steps; last eval return {rows[-1]['return_mean']:.1f}" in again.stderr
-    command = re.search(r"play it with: python (main\.py .*--run)", again.stderr)
+    # as the user would type it here: this interpreter (python when that is it on PATH) and main.py's path
+    command = re.search(r"play it with: (\S+) (\S*main\.py) (.*--run)$", again.stderr, re.M)
     assert command is not None and "models/gym/pendulum/whole" in again.stderr, again.stderr
-    played = run_main(whole, *command.group(1).split()[1:], "--episodes", "2")
+    assert Path(command.group(2)) == ROOT / "main.py" and command.group(1) in ("python", sys.executable), command[0]
+    played = run_main(whole, *command.group(3).split(), "--episodes", "2")
     assert played.returncode == 0 and f"checkpoint {MAX_STEP}: return" in played.stdout, played.stderr
 
 

@@ -26,9 +26,10 @@ import pytest
 import torch
 
 from algorithm.evaluation import read_evaluations
+from algorithm.run_dir import python_command
 from ds.actor.role import AsksForIndex
 from ds.launch.local import plan
-from ds.launch.local_summary import python_command, resume_argv
+from ds.launch.local_summary import resume_argv
 from ds.learner.client import LearnerClient
 from tests.role_runs import (
     ENV,
@@ -231,7 +232,7 @@ def check_nothing_collected_was_lost(output: str) -> None:
     replay they saved, and no actor says it could not insert some."""
     assert "were not inserted" not in output, output[-4000:]
     collected = re.findall(r"^\[actor-\d\] .*actor \d (?:finished|stopped) after (\d+) env steps", output, re.M)
-    saved = re.findall(r"^\[replay\] .*replay saved to .*: (\d+) env steps inserted", output, re.M)
+    saved = re.findall(r"^\[replay\] .*replay saved to .*: (\d+) env steps inserted over the run", output, re.M)
     assert len(collected) == 2 and len(saved) == 1, output[-4000:]
     assert sum(map(int, collected)) == int(saved[0]), output[-4000:]
 

@@ -200,7 +200,7 @@ def test_sigint_saves_and_says_how_to_resume_a_run_named_by_its_start_time(tmp_p
     proc.send_signal(signal.SIGINT)
     _, stderr = proc.communicate(timeout=60)
     assert proc.returncode == 130, stderr
-    said = re.search(r"saved; resume it with: python main\.py gym/pendulum -n (\d{14})$", stderr, re.M)
+    said = re.search(r"saved; resume it with: \S+ \S*main\.py gym/pendulum -n (\d{14})$", stderr, re.M)
     assert said is not None, stderr
     name = said.group(1)
     assert [d.name for d in runs.iterdir()] == [name]

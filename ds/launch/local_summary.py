@@ -15,16 +15,13 @@ a checkpoint to play), so it says the same whether the run finished or was inter
 
 from __future__ import annotations
 
-import os
 import shlex
-import shutil
-import sys
 from dataclasses import dataclass
 from pathlib import Path
 
 from algorithm.checkpoint import list_checkpoints
 from algorithm.learner_core import last_evaluation
-from algorithm.run_dir import RunDir
+from algorithm.run_dir import RunDir, python_command, shown_path
 
 DEFAULT_MODEL_ROOT = "models"  # main.py's --model_root default: the play command leaves it out
 
@@ -70,7 +67,7 @@ def resume_argv(script: Path, argv: list[str], name: str) -> tuple[str, ...]:
             skip = True
         elif not arg.startswith(("--name=", "--ckpt=")) and not (arg.startswith("-n") and not arg.startswith("--")):
             kept.append(arg)
-    return (_shown(script), *kept, "-n", name)
+    return (shown_path(script), *kept, "-n", name)
 
 
 def _member_lines(run: PlayableRun, folder: Path, name: str, who: str) -> list[str]:
@@ -82,27 +79,10 @@ def _member_lines(run: PlayableRun, folder: Path, name: str, who: str) -> list[s
         result = f"no evaluation yet ({paths.evaluations} is missing or empty)"
     if not list_checkpoints(paths.model):
         return [f"{who}{result}", f"{who}nothing to play yet: no checkpoint in {paths.model}"]
-    command = [python_command(), _shown(run.main_py), run.task, "-n", name, "--run"]
+    command = [python_command(), shown_path(run.main_py), run.task, "-n", name, "--run"]
     if run.model_root != DEFAULT_MODEL_ROOT:
         command += ["--model_root", run.model_root]
     return [f"{who}{result}", f"{who}play it: {shlex.join(command)}"]
 
 
-def python_command() -> str:
-    """``python`` when that is this interpreter on PATH, else this interpreter's path (a venv's, say)."""
-    found = shutil.which("python")
-    if found is not None and Path(found).absolute() == Path(sys.executable).absolute():
-        return "python"
-    return _shown(Path(sys.executable))
-
-
-def _shown(path: Path) -> str:
-    """``path`` relative to the working directory when it lies inside it, else absolute."""
-    absolute = Path(os.path.abspath(path))
-    try:
-        return str(absolute.relative_to(Path.cwd()))
-    except ValueError:
-        return str(absolute)
-
-
-__all__ = ["PlayableRun", "python_command", "resume_argv", "summary"]
+__all__ = ["PlayableRun", "resume_argv", "summary"]

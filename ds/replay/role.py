@@ -154,8 +154,8 @@ def _serve_replay(role: RoleContext, keeper: AssignmentKeeper | None, metrics_ev
         server.stop(grace=2.0).wait()
         if saving_at_stop and snapshots.attempt(path, lambda: table.save(path), final=True):
             info = table.info()
-            log.info("replay saved to %s: %d env steps inserted (%d of them stopping actors' last, past the rate "
-                     "limiter)", path, info["inserted_steps"], info["stored_past_limiter"])  # fmt: skip
+            log.info("replay saved to %s: %d env steps inserted over the run (%d of them stopping actors' last, "
+                     "past the rate limiter)", path, info["inserted_steps"], info["stored_past_limiter"])  # fmt: skip
         writer.close()
     return code
 
