@@ -288,7 +288,8 @@ DAMAGED_RUNS: list[tuple[str, Callable[[Path], None], list[str], str]] = [
      f"checkpoint {RUN}/model/40.pt does not fit this run's models and state (RuntimeError: Error(s) in loading"),
     ("checkpoint truncated, played", lambda r: truncate(r / "model/40.pt"), ["main.py", "--run"],
      f"checkpoint {RUN}/model/40.pt is unreadable or not an ASAC checkpoint ... pass --ckpt 20"),
-    ("replay snapshot truncated", lambda r: truncate(r / "replay/replay.npz"), ["main.py"],
+    # taken further: a finished run started again only reports, without reading its replay
+    ("replay snapshot truncated", lambda r: truncate(r / "replay/replay.npz"), ["main.py", "--override", "base.max_step=80"],
      f"replay snapshot {RUN}/replay/replay.npz: not a readable replay file"),
     ("replay snapshot flipped", lambda r: flip_in_largest_record(r / "replay/replay.npz"), ["main_ds.py", "replay"],
      f"replay snapshot {RUN}/replay/replay.npz: not a readable replay file (BadZipFile: Bad CRC-32"),
