@@ -290,7 +290,8 @@ DAMAGED_RUNS: list[tuple[str, Callable[[Path], None], list[str], str]] = [
      f"checkpoint {RUN}/model/40.pt is unreadable or not an ASAC checkpoint ... pass --ckpt 20"),
     # taken further: a finished run started again only reports, without reading its replay
     ("replay snapshot truncated", lambda r: truncate(r / "replay/replay.npz"),
-     ["main.py", "--override", "base.max_step=80"], f"replay snapshot {RUN}/replay/replay.npz: not a readable replay file"),
+     ["main.py", "--override", "base.max_step=80"],
+     f"replay snapshot {RUN}/replay/replay.npz: not a readable replay file"),
     ("replay snapshot flipped", lambda r: flip_in_largest_record(r / "replay/replay.npz"), ["main_ds.py", "replay"],
      f"replay snapshot {RUN}/replay/replay.npz: not a readable replay file (BadZipFile: Bad CRC-32"),
 ]  # fmt: skip
