@@ -3,7 +3,12 @@
 # graph's tests against eager updates on the GPU, its speed against eager updates (bench.cuda_graph), the
 # --device cuda journeys (bench/cuda_journeys.sh), and HalfCheetah toward 3,000 with 1, 4 and 12 actors side
 # by side for L seconds (bench/scaling_parallel.sh). Packages the machine lacks can travel as wheels in .whl/
-# (installed into /tmp/site first). Results go to $OUT (default /tmp/cuda_check).
+# (installed into /tmp/site first; on 2026-11-29 the H200 image lacked gymnasium, farama-notifications, mujoco,
+# glfw, pyopengl, pyzmq, pydantic, pydantic_core, annotated-types, typing-inspection and grpcio-health-checking,
+# and needed grpcio 1.85.3 and protobuf 7.36.2 for protos/: fetch them with `pip download --no-deps
+# --only-binary=:all: --python-version 3.12 --platform manylinux_2_28_x86_64 --platform manylinux2014_x86_64
+# -d .whl NAME==VERSION`, the versions of requirements/, with .whl/ in .git/info/exclude).
+# Results go to $OUT (default /tmp/cuda_check).
 # Usage: bash bench/cuda_check.sh [L] [DEVICE]
 L=${1:-220}; D=${2:-cuda}; O=${OUT:-/tmp/cuda_check}; mkdir -p "$O"
 PY=${PYTHON:-python3}
