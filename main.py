@@ -23,6 +23,7 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 import argparse
 import logging
 import random
+import shlex
 import sys
 import time
 from pathlib import Path
@@ -147,8 +148,8 @@ def train(args: argparse.Namespace) -> int:
 def run_command(args: argparse.Namespace, run_dir: Path) -> str:
     """The command that trains ``run_dir`` on (resumes it), as the user would type it here."""
     name = run_dir.relative_to(Path(args.model_root) / args.env)
-    root = "" if args.model_root == "models" else f" --model_root {args.model_root}"
-    return f"{python_command()} {shown_path(Path(__file__))} {args.env} -n {name}{root}"
+    root = [] if args.model_root == "models" else ["--model_root", args.model_root]
+    return shlex.join([python_command(), shown_path(Path(__file__)), args.env, "-n", str(name), *root])
 
 
 def play_command(args: argparse.Namespace, run_dir: Path) -> str:

@@ -230,16 +230,19 @@ class EmbeddedTrainer:
         self.actor.rng.bit_generator.state = state["actor_rng"]
         self.actor.total_steps = self.env_steps  # random_steps counts from the run's start, not the resume
         self.actor.progress.best_episode_return = float(state.get("actor_best_episode_return", -math.inf))
-        saved_at = state.get("replay_inserted_steps")
-        if self.done():  # a finished run trains no more: its replay is not loaded (it can be gigabytes)
-            pass
-        elif saved_at is not None and self.paths.replay.exists():
+        if not self.done():  # a finished run trains no more: its replay is not loaded (it can be gigabytes)
+            self._restore_replay(path, state.get("replay_inserted_steps"))
+        self.budget.owed = self.core.counters.owed_updates
+        self.budget.forgive(self.table.rate_limiter.size)
+
+    def _restore_replay(self, checkpoint: Path, saved_at: int | None) -> None:
+        """Load the replay snapshot when it is the one written with ``checkpoint`` (``saved_at``: the
+        inserted steps it was saved with; None: saved without it)."""
+        if saved_at is not None and self.paths.replay.exists():
             load_replay_snapshot(self.table, self.paths.replay)
             inserted = int(self.table.info()["inserted_steps"])
             if inserted != saved_at:  # written at another moment (killed between the two saves): still data
                 log.warning("replay snapshot %s holds %d inserted steps, checkpoint %s was saved with %d; using it",
-                            self.paths.replay, inserted, path, saved_at)  # fmt: skip
+                            self.paths.replay, inserted, checkpoint, saved_at)  # fmt: skip
         elif self.paths.replay.exists():
-            log.info("not loading %s: checkpoint %s was saved without it", self.paths.replay, path)
-        self.budget.owed = self.core.counters.owed_updates
-        self.budget.forgive(self.table.rate_limiter.size)
+            log.info("not loading %s: checkpoint %s was saved without it", self.paths.replay, checkpoint)
