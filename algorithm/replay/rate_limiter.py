@@ -105,9 +105,11 @@ class RateLimiter:
             ok = self.condition.wait_for(lambda: self.can_insert(n), timeout)
             self.insert_wait_seconds += time.monotonic() - start
         if not ok:
+            owed = self.surplus
             raise InsertTimeout(
-                f"insert of {n} steps blocked for {timeout} s by the rate limiter: the learner is behind "
-                f"(surplus {self.surplus:.0f} windows > tolerance {self.tolerance:g})"
+                f"insert of {n} steps held back {timeout} s by the rate limiter, as it should be while the learner "
+                f"is behind: it has {owed:.0f} windows to sample first ({owed / self.samples_per_insert:.0f} env "
+                f"steps' worth at samples_per_insert {self.samples_per_insert:g})"
             )
 
     def await_sample(self, n: int, timeout: float | None) -> None:
@@ -124,7 +126,10 @@ class RateLimiter:
             if self.size < self.min_size_to_sample:
                 why = f"{self.size} steps stored < min_size_to_sample {self.min_size_to_sample}"
             else:
-                why = f"rate-limited: surplus {self.surplus:.0f} windows, tolerance {self.tolerance:g}"
+                why = (
+                    f"rate-limited, as it should be while the actors are behind: {-self.surplus:.0f} windows sampled "
+                    f"ahead of samples_per_insert {self.samples_per_insert:g} per inserted step"
+                )
             raise SampleTimeout(f"could not sample {n} windows within {timeout} s ({why})")
 
     def record_insert(self, n: int, evicted: int = 0) -> None:

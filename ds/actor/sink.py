@@ -218,7 +218,7 @@ class ReplaySink:
         except InsertTimeout as e:
             self.insert_waits += 1
             if self._log():
-                log.info("replay holds inserts back (the learner is behind) or does not answer; waiting: %s", e)
+                log.info("waiting to insert: %s", e)
         except ReplayRpcError as e:
             if e.code != grpc.StatusCode.UNAVAILABLE:
                 raise
