@@ -38,6 +38,9 @@ SUITE_OVERRIDES = ("sac.compute_dtype=bfloat16",)  # as HalfCheetah's reported r
 SUMMARY_FIELDS = ("task", "system", "seed", "steps", "return", "wall_s", "eval_s", "overrides", "code", "finished")
 CURVE_FIELDS = ("env_steps", "return_mean", "return_std", "wall_seconds")
 LAST = 3  # the report also averages each run's last LAST evaluations (90k-100k of 100k)
+# ... and all of a run's evaluations past the tasks' 10,000 uniformly random steps (those before score the
+# untrained policy): the area under the learning curve, how fast a system learns as well as where it ends
+LEARNING_FROM = 10_000
 INTERVAL = 0.9  # the report's interval of the ratio of means over resampled seeds
 
 
@@ -182,6 +185,7 @@ def report(out: Path, task: str | None = None) -> None:
         means: dict[str, float] = {}
         lasts: dict[str, float] = {}
         finals: dict[str, list[float]] = {}
+        areas: dict[str, list[float]] = {}
         for system in ("asac", "sb3"):
             rets = [float(r["return"]) for (sy, _), r in runs.items() if sy == system]
             if not rets:
@@ -190,9 +194,12 @@ def report(out: Path, task: str | None = None) -> None:
             # less noisy than one evaluation: each seed's mean of its last LAST evaluations
             last = [last_evaluations(curve_path(out, name, sy, s)) for (sy, s) in runs if sy == system]
             lasts[system] = float(np.mean(last))
+            areas[system] = [curve_mean(curve_path(out, name, sy, s)) for (sy, s) in runs if sy == system]
             print(
                 f"{system}: mean {means[system]:.1f}, min {min(rets):.1f}, max {max(rets):.1f} over {len(rets)} seeds;"
-                f" mean of the last {LAST} evaluations {lasts[system]:.1f} ({' / '.join(f'{v:.1f}' for v in last)})"
+                f" mean of the last {LAST} evaluations {lasts[system]:.1f} ({' / '.join(f'{v:.1f}' for v in last)});"
+                f" mean of all evaluations past {LEARNING_FROM} steps {np.mean(areas[system]):.1f}"
+                f" ({' / '.join(f'{v:.1f}' for v in areas[system])})"
             )
         if len(means) == 2 and means["sb3"] != 0:
             low, high = ratio_interval(finals["asac"], finals["sb3"])
@@ -200,6 +207,11 @@ def report(out: Path, task: str | None = None) -> None:
                 f"ASAC / SB3 means: {means['asac'] / means['sb3']:.2f}x (seeds resampled: {INTERVAL:.0%} of draws"
                 f" between {low:.2f}x and {high:.2f}x);"
                 f" of the last {LAST} evaluations {lasts['asac'] / lasts['sb3']:.2f}x"
+            )
+            low, high = ratio_interval(areas["asac"], areas["sb3"])
+            print(
+                f"ASAC / SB3 over the whole curve (mean of the evaluations past {LEARNING_FROM} steps):"
+                f" {np.mean(areas['asac']) / np.mean(areas['sb3']):.2f}x ({INTERVAL:.0%}: {low:.2f}x-{high:.2f}x)"
             )
 
 
@@ -216,6 +228,13 @@ def ratio_interval(ours: list[float], theirs: list[float], draws: int = 10_000) 
     tail = (1.0 - INTERVAL) / 2
     low, high = np.quantile(ratios, [tail, 1.0 - tail])
     return float(low), float(high)
+
+
+def curve_mean(path: Path) -> float:
+    """The mean of a run's evaluations past ``LEARNING_FROM`` env steps (the area under its curve)."""
+    with path.open(newline="") as f:
+        rows = [r for r in csv.DictReader(f) if int(float(r["env_steps"])) > LEARNING_FROM]
+    return float(np.mean([float(r["return_mean"]) for r in rows]))
 
 
 def last_evaluations(path: Path) -> float:

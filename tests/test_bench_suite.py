@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 
 from algorithm.run_dir import RunDir
-from bench.suite import ratio_interval, run_folder
+from bench.suite import curve_mean, ratio_interval, run_folder
 from bench.systems import RunResult, RunStopped, run_ours
 
 TINY = ["nn.hidden_units=[16,16]", "replay.batch_size=16", "actor.random_steps=100", "replay.min_size_to_sample=100",
@@ -45,3 +45,10 @@ def test_the_ratio_interval_widens_with_the_seeds_spread_and_holds_the_ratio_of_
     assert tight[0] <= 1.0 <= tight[1] and tight[1] - tight[0] < 0.05
     assert spread[0] < 0.5 and spread[1] > 2.0  # one seed far above the others on each side
     assert ratio_interval([200.0] * 3, [100.0] * 3) == (2.0, 2.0)
+
+
+def test_the_curve_mean_averages_the_evaluations_past_the_random_warm_up_only(tmp_path: Path) -> None:
+    curve = tmp_path / "walker2d_asac_seed0.csv"
+    rows = [(5000, -1.0), (10000, 7.0), (15000, 200.0), (20000, 400.0), (100000, 900.0)]
+    curve.write_text("env_steps,return_mean,return_std,wall_seconds\n" + "".join(f"{s},{r},0.0,1\n" for s, r in rows))
+    assert curve_mean(curve) == pytest.approx(500.0)  # 15k, 20k and 100k: the untrained policy's scores left out
