@@ -240,7 +240,9 @@ class EmbeddedTrainer:
         inserted steps it was saved with; None: saved without it)."""
         if saved_at is not None and self.paths.replay.exists():
             load_replay_snapshot(self.table, self.paths.replay)
-            inserted = int(self.table.info()["inserted_steps"])
+            info = self.table.info()
+            inserted = int(info["inserted_steps"])
+            log.info("replay restored from %s: %d steps", self.paths.replay, int(info["size"]))
             if inserted != saved_at:  # written at another moment (killed between the two saves): still data
                 log.warning("replay snapshot %s holds %d inserted steps, checkpoint %s was saved with %d; using it",
                             self.paths.replay, inserted, checkpoint, saved_at)  # fmt: skip

@@ -141,6 +141,7 @@ def test_interrupted_at_three_points_the_same_command_resumes_each_time_and_ends
     resumed = run_main(tmp_path, *args)
     assert resumed.returncode == 0, resumed.stderr
     assert f"resumed at {stopped_at} env steps" in resumed.stderr
+    assert re.search(r"replay restored from \S+replay\.npz: \d+ steps", resumed.stderr), resumed.stderr  # says so
     got = final_return(run)
     assert abs(got - uninterrupted) <= RETURN_BAND, f"resumed run ended at {got:.1f}, uninterrupted {uninterrupted:.1f}"
     # Started again once finished, it reports and leaves: the snapshot written at the last interruption

@@ -127,8 +127,9 @@ class RateLimiter:
                 why = f"{self.size} steps stored < min_size_to_sample {self.min_size_to_sample}"
             else:
                 why = (
-                    f"rate-limited, as it should be while the actors are behind: {-self.surplus:.0f} windows sampled "
-                    f"ahead of samples_per_insert {self.samples_per_insert:g} per inserted step"
+                    f"rate-limited: the learner has sampled the {self.sampled} windows its "
+                    f"{self.inserted - self.min_size_to_sample} steps past min_size_to_sample allow at "
+                    f"samples_per_insert {self.samples_per_insert:g}, and waits for more data"
                 )
             raise SampleTimeout(f"could not sample {n} windows within {timeout} s ({why})")
 

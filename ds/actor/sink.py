@@ -217,7 +217,7 @@ class ReplaySink:
             inserted = pending.result()
         except InsertTimeout as e:
             self.insert_waits += 1
-            if self._log():
+            if not self.stopping() and self._log():  # while stopping, the final inserts pass the limiter anyway
                 log.info("waiting to insert: %s", e)
         except ReplayRpcError as e:
             if e.code != grpc.StatusCode.UNAVAILABLE:

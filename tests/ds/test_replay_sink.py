@@ -82,6 +82,25 @@ def test_held_back_inserts_are_retried_and_once_stopping_stored_anyway(over_grpc
     assert info["stored_past_limiter"] == handed - 12  # three chunks let in while fewer than 10 steps were stored
 
 
+def test_an_insert_held_back_when_stopping_is_stored_without_a_waiting_line(
+    over_grpc: ServeOverGrpc, caplog: pytest.LogCaptureFixture
+) -> None:
+    # Sent while running, refused by the rate limiter after the user pressed Ctrl-C: the retry is the
+    # final one and passes the limiter, so "waiting to insert" would only be noise in the stop's log.
+    limiter = RateLimiter(samples_per_insert=1.0, min_size_to_sample=10, tolerance=0.0)
+    table = PrioritizedTable(1000, (VECTOR,), 2, 1, rate_limiter=limiter, seed=0)
+    table.insert(make_chunk(12, 0))  # nobody samples: from here on inserts are held back
+    client = over_grpc(table)
+    stopping = False
+    sink = ReplaySink(client, lambda: stopping, timeout_s=0.05, in_flight=1, max_chunks_per_insert=1)
+    sink(make_chunk(4, 12))
+    stopping = True
+    with caplog.at_level(logging.INFO, logger="asac"):
+        sink.flush()
+    assert sink.insert_waits >= 1 and sink.inserted_steps == 4 and client.info()["inserted_steps"] == 16
+    assert "waiting to insert" not in caplog.text, caplog.text
+
+
 class AgeRecordingTable(PrioritizedTable):
     """A table that records, for every chunk it stores, how many chunks the actor handed to its sink
     after that one before it was stored (``make_chunk(5, 5 * i)`` is chunk ``i``)."""
