@@ -324,7 +324,10 @@ class LearnerCore:
 
     # -- evaluation -------------------------------------------------------------------------
     def evaluate_if_due(self) -> None:
-        if self.eval_env is not None and self.counters.env_steps >= self.counters.next_eval:
+        """Evaluate when ``next_eval`` is reached, unless the budget is spent: then :meth:`finish`'s
+        final evaluation, after the last updates, is the one (a distributed learner trains on what
+        the replay still owes it first, so a due one here would be a second row a few steps before)."""
+        if self.eval_env is not None and not self.done() and self.counters.env_steps >= self.counters.next_eval:
             self.evaluate()
 
     def evaluate(self) -> EvalResult:

@@ -255,7 +255,7 @@ def test_a_local_run_finishes_in_order_and_its_summary_plays_it(tmp_path: Path) 
     end; one evaluation row per evaluation and a final checkpoint; the last lines are the summary,
     whose play command works; ``[actor-k]`` is index k."""
     done = subprocess.run(command("gym/pendulum", "local", "--actors", "2", "-n", "journey", *TINY,
-                                  "--override", "base.max_step=1000"),
+                                  "--override", "base.max_step=1000", "--override", "eval.eval_per_step=250"),
                           cwd=tmp_path, env=ENV, text=True, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
                           timeout=HANG_S)  # fmt: skip
     out = done.stdout
@@ -284,6 +284,9 @@ def test_a_local_run_finishes_in_order_and_its_summary_plays_it(tmp_path: Path) 
     run = tmp_path / "models/gym/pendulum/journey"
     steps = [int(r["env_steps"]) for r in read_evaluations(run / "evaluations.csv")]
     assert steps and steps == sorted(set(steps)), steps  # one row per evaluation, in order
+    # one evaluation at the end, after the updates on the last data (an evaluation due at 1,000 was a
+    # second row a few steps before it)
+    assert [s for s in steps if s >= 1000] == [ended], steps
     assert max(int(p.stem) for p in run.glob("model/*.pt")) >= 1000  # the final checkpoint
     outcome, lines = summary_of(out)
     assert outcome == "finished"
