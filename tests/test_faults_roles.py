@@ -198,7 +198,7 @@ def test_a_stopped_replay_and_a_stopped_actor_are_waited_for_and_rejoin(tmp_path
     assert re.search(r"replay unreachable, waiting for it: .*DEADLINE_EXCEEDED", learner_waited), learner_waited
     for k in range(2):  # each actor's inserts timed out and were kept (sent again, not dropped)
         waited = run.text(f"actor-{k}")[mark[f"actor-{k}"] :]
-        assert "waiting: replay Insert" in waited, waited
+        assert "waiting to insert: replay Insert" in waited, waited
 
     # An actor stops answering for longer than its lease.
     pid = run.procs["actor-1"].pid
