@@ -8,10 +8,13 @@ beside each other and beside subprocesses, so they pin torch to one passive thre
 from __future__ import annotations
 
 import os
+import sys
+from collections.abc import Iterator
 
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 os.environ.setdefault("MUJOCO_GL", "egl")
 
+import pytest
 import torch
 
 torch.set_num_threads(1)
@@ -22,3 +25,13 @@ from hypothesis import settings  # noqa: E402
 # hypothesis' random exploration, which is how such cases are found.
 settings.register_profile("ci", derandomize=True)
 settings.load_profile("ci" if os.environ.get("CI") else "default")
+
+
+@pytest.fixture(autouse=True)
+def _no_role_left_running() -> Iterator[None]:
+    """After each test, kill the role processes a test started by hand (tests/role_runs.py) and left
+    running because it failed before stopping them."""
+    yield
+    role_runs = sys.modules.get("tests.role_runs")
+    if role_runs is not None:
+        role_runs.RoleRun.kill_all_left()

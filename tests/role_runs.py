@@ -129,7 +129,13 @@ def scalars(folder: Path, tag: str) -> list[tuple[float, int, float]]:
 
 
 class RoleRun:
-    """The role processes of one run, each in a process group of its own, its output in ``<label>.log``."""
+    """The role processes of one run, each in a process group of its own, its output in ``<label>.log``.
+
+    Every run is remembered until :meth:`kill_all_left` (tests/conftest.py calls it after each test),
+    so a test that fails before its ``stop_all`` leaves no role running (a run with ``max_step=-1``
+    would go on for the rest of the suite, taking its cores)."""
+
+    _all: list[RoleRun] = []
 
     def __init__(self, cwd: Path, name: str, common: list[str], task: str = "gym/pendulum") -> None:
         self.cwd, self.name, self.common, self.task = cwd, name, common, task
@@ -137,6 +143,21 @@ class RoleRun:
         self.procs: dict[str, subprocess.Popen[bytes]] = {}
         self.ended: set[str] = set()  # roles the test ended with a signal: their exit is no failure
         self.run = cwd / "models" / task / name
+        RoleRun._all.append(self)
+
+    @classmethod
+    def kill_all_left(cls) -> list[str]:
+        """SIGKILL the process group of every role still running, of every run so far; returns their labels."""
+        killed = []
+        for run in cls._all:
+            for label, proc in run.procs.items():
+                if proc.poll() is None:
+                    with contextlib.suppress(ProcessLookupError):
+                        os.killpg(proc.pid, signal.SIGKILL)
+                    proc.wait(timeout=10)
+                    killed.append(f"{run.name}/{label}")
+        cls._all.clear()
+        return killed
 
     def start(self, label: str, role: str, *extra: str) -> subprocess.Popen[bytes]:
         """``main_ds.py TASK ROLE -n NAME`` with the run's ports, the common flags and ``extra``, as
