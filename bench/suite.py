@@ -230,17 +230,19 @@ def ratio_interval(ours: list[float], theirs: list[float], draws: int = 10_000) 
     return float(low), float(high)
 
 
+def curve_returns(path: Path) -> list[tuple[int, float]]:
+    """A run's curve: ``(env_steps, return_mean)`` of each evaluation, in order."""
+    with path.open(newline="") as f:
+        return [(int(float(r["env_steps"])), float(r["return_mean"])) for r in csv.DictReader(f)]
+
+
 def curve_mean(path: Path) -> float:
     """The mean of a run's evaluations past ``LEARNING_FROM`` env steps (the area under its curve)."""
-    with path.open(newline="") as f:
-        rows = [r for r in csv.DictReader(f) if int(float(r["env_steps"])) > LEARNING_FROM]
-    return float(np.mean([float(r["return_mean"]) for r in rows]))
+    return float(np.mean([ret for steps, ret in curve_returns(path) if steps > LEARNING_FROM]))
 
 
 def last_evaluations(path: Path) -> float:
-    with path.open(newline="") as f:
-        rows = list(csv.DictReader(f))
-    return float(np.mean([float(r["return_mean"]) for r in rows[-LAST:]]))
+    return float(np.mean([ret for _, ret in curve_returns(path)[-LAST:]]))
 
 
 def suite(args: argparse.Namespace) -> None:

@@ -146,18 +146,15 @@ class RoleRun:
         RoleRun._all.append(self)
 
     @classmethod
-    def kill_all_left(cls) -> list[str]:
-        """SIGKILL the process group of every role still running, of every run so far; returns their labels."""
-        killed = []
+    def kill_all_left(cls) -> None:
+        """SIGKILL the process group of every role still running, of every run so far."""
         for run in cls._all:
-            for label, proc in run.procs.items():
+            for proc in run.procs.values():
                 if proc.poll() is None:
                     with contextlib.suppress(ProcessLookupError):
                         os.killpg(proc.pid, signal.SIGKILL)
                     proc.wait(timeout=10)
-                    killed.append(f"{run.name}/{label}")
         cls._all.clear()
-        return killed
 
     def start(self, label: str, role: str, *extra: str) -> subprocess.Popen[bytes]:
         """``main_ds.py TASK ROLE -n NAME`` with the run's ports, the common flags and ``extra``, as
