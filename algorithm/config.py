@@ -294,6 +294,9 @@ def config_from_yaml(text: str, source: str = "config.yaml") -> Config:
     data = parse_yaml(text, source) or {}
     if not isinstance(data, dict):
         raise ConfigError(f"{source}: top level must be a mapping of sections, got {type(data).__name__}")
+    named = [k for k in data if not isinstance(k, str)]
+    if named:  # e.g. a bare "?" or "null:" line: a key YAML reads as None
+        raise ConfigError(f"{source}: section names must be strings, got {named[0]!r}")
     try:
         return Config.model_validate(data)
     except ValidationError as e:

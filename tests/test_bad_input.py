@@ -136,6 +136,7 @@ def test_any_task_file_gives_a_config_or_a_one_line_error(
 @given(edit=st.tuples(st.sampled_from(KEYS), VALUES) | st.text(max_size=60))
 @example(edit="1")  # a number for the whole file: once a TypeError from the error formatting
 @example(edit="- sac_config")
+@example(edit="?")  # a key YAML reads as None: once an AttributeError from the error formatting
 def test_any_saved_run_config_gives_a_config_or_a_one_line_error(edit: tuple[str, Any] | str) -> None:
     """A run directory's config.yaml (what a resume reads) with a key set to anything, or replaced by any text."""
     if isinstance(edit, str):
