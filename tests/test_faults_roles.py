@@ -78,8 +78,8 @@ def test_learner_kill_9_actors_and_replay_wait_and_the_restarted_learner_resumes
     assert counters["updates"] >= KILL_UPDATES and counters["env_steps"] == step
 
     for k in range(2):  # the actors notice, say so, and act on with the weights they have
-        run.wait_for_line(f"actor-{k}", r"learner unreachable \((UNAVAILABLE|DEADLINE_EXCEEDED)\); acting with "
-                          r"parameter version \d+ meanwhile", 60, killed_at[f"actor-{k}"])  # fmt: skip
+        run.wait_for_line(f"actor-{k}", r"learner unreachable \((UNAVAILABLE|DEADLINE_EXCEEDED)\) for \d+ s; "
+                          r"acting with parameter version \d+ meanwhile", 60, killed_at[f"actor-{k}"])  # fmt: skip
     with run.replay_client(PENDULUM.sensors, PENDULUM.action.size) as replay:
         info = replay.info()  # the replay serves on without its learner
     assert info["inserted_steps"] >= step

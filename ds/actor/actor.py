@@ -66,6 +66,10 @@ from ds.replay.service import ReplayClient
 
 log = logging.getLogger("asac.actor")
 ACTOR_SEED_STRIDE = 1000  # actor i's env j gets seed + 1000 * (i + 1) + j: never a training or eval seed
+LEARNER_GONE_WARN_S = 10.0
+"""How long the learner must have been unreachable before an actor warns. A learner's orderly stop closes
+its server a few seconds before the actors are told to stop (a local run stops the learner first: it
+saves), and a heartbeat falling in that gap is no fault; a learner gone for longer is warned about."""
 
 
 def actor_noise(config: Config, index: int, override: float | None = None) -> float:
@@ -153,6 +157,7 @@ class DistributedActor:
         self._beat_error: Exception | None = None
         self._log_learner = Throttle()
         self._log_params = Throttle()
+        self._learner_gone_since: float | None = None  # the first of the current run of failed learner calls
 
     # -- the loop ---------------------------------------------------------------------------
     def run(self) -> ActorSummary:
@@ -333,6 +338,7 @@ class DistributedActor:
                 continue
             try:
                 beat = self.learner.heartbeat(reg.actor_id, self.env_steps)
+                self._learner_gone_since = None
                 known = beat.learner_id == reg.learner_id
                 if known:
                     self.live_actors = max(1, beat.live_actors)
@@ -367,6 +373,7 @@ class DistributedActor:
                 if self.update_mode:
                     self._fetch_params()
                 self._rejoin.clear()
+                self._learner_gone_since = None
             except grpc.RpcError as e:
                 self._learner_unreachable(e)
             except ParamsError as e:  # a learner that restarted again between RegisterActor and GetParams
@@ -415,6 +422,12 @@ class DistributedActor:
             raise error
         if self.stop.is_set():  # told to stop: the learner may be gone already (a local run stops it first)
             return
+        now = time.monotonic()
+        if self._learner_gone_since is None:
+            self._learner_gone_since = now
+        if now - self._learner_gone_since < LEARNER_GONE_WARN_S:
+            return
         if self._log_learner():
-            code, version = error.code().name, self.params_version
-            log.warning("learner unreachable (%s); acting with parameter version %d meanwhile", code, version)
+            code, version, gone_s = error.code().name, self.params_version, now - self._learner_gone_since
+            log.warning("learner unreachable (%s) for %.0f s; acting with parameter version %d meanwhile",
+                        code, gone_s, version)  # fmt: skip
