@@ -423,11 +423,12 @@ class DistributedActor:
         if self.stop.is_set():  # told to stop: the learner may be gone already (a local run stops it first)
             return
         now = time.monotonic()
-        if self._learner_gone_since is None:
-            self._learner_gone_since = now
-        if now - self._learner_gone_since < LEARNER_GONE_WARN_S:
+        since = self._learner_gone_since  # read once: the other thread may clear it meanwhile
+        if since is None:
+            self._learner_gone_since = since = now
+        if now - since < LEARNER_GONE_WARN_S:
             return
         if self._log_learner():
-            code, version, gone_s = error.code().name, self.params_version, now - self._learner_gone_since
+            code, version, gone_s = error.code().name, self.params_version, now - since
             log.warning("learner unreachable (%s) for %.0f s; acting with parameter version %d meanwhile",
                         code, gone_s, version)  # fmt: skip

@@ -224,6 +224,22 @@ def test_an_actor_warns_of_a_gone_learner_only_once_it_has_been_gone_a_while_and
             time.sleep(0.6)
             actor._learner_unreachable(gone.value)
             assert re.search(r"learner unreachable \(UNAVAILABLE\) for \d+ s", caplog.text), caplog.text
+        served = Learner(port, version=0, seed=0)  # the learner is back: registering again restarts the clock
+        try:
+            actor._rejoin.set()
+            deadline = time.monotonic() + 20
+            while actor._rejoin.is_set() and time.monotonic() < deadline:  # the channel retries after its backoff
+                actor._last_rejoin = -float("inf")
+                actor._between()
+                time.sleep(0.2)
+            assert actor.registration is not None and not actor._rejoin.is_set()
+            assert actor._learner_gone_since is None  # (the warning itself is throttled: the clock is what resets)
+        finally:
+            served.stop()
+        caplog.clear()
+        with caplog.at_level(logging.WARNING):
+            actor._learner_unreachable(gone.value)  # gone again: the first failure of a new outage
+            assert not [r for r in caplog.records if r.levelno >= logging.WARNING], caplog.text
     finally:
         replay.close()
         learner.close()
