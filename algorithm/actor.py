@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import logging
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
@@ -73,6 +73,10 @@ class VectorEnvLike(Protocol):
     def step(self, actions: np.ndarray) -> Any: ...
 
     def reset_env(self, index: int) -> list[np.ndarray]: ...
+
+    def rng_states(self) -> list[dict[str, Any]]: ...
+
+    def set_rng_states(self, states: Sequence[dict[str, Any]]) -> None: ...
 
     def close(self) -> None: ...
 

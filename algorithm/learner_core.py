@@ -17,8 +17,9 @@ loop and trains on its in-process table as :class:`UpdateBudget` says; the distr
 :class:`~ds.learner.learner.Learner` trains on what a prefetcher brings from the replay server, whose rate
 limiter applies the same ratio to actors it cannot otherwise slow down.
 
-Checkpoints have one format for both (``model/<env_steps>.pt``: ``sac``, ``counters``, ``rng`` and
-the mode's extras), so ``main.py --run`` plays either and a finished run knows its last evaluation.
+Checkpoints have one format for both (``model/<env_steps>.pt``: ``sac``, ``counters``, ``rng``,
+``eval_env_rng`` and the mode's extras), so ``main.py --run`` plays either and a finished run knows
+its last evaluation.
 
 A checkpoint, an ``evaluations.csv`` row or the run's ``config.yaml`` that cannot be written (a full
 disk, an I/O error) never stops training: it is logged once (:class:`~algorithm.files.WriteFailures`),
@@ -377,6 +378,8 @@ class LearnerCore:
             self._write_config()
         extra = self.extra_state()  # first: it may bring counters up to date (the budget's balance)
         state = {"sac": self.sac.state_dict(), "counters": asdict(c), "rng": capture_rng(), **extra}
+        if self.eval_env is not None:  # the evaluations after a resume go on with the stream's next starts
+            state["eval_env_rng"] = self.eval_env.rng_states()
         path = self.paths.model / f"{c.env_steps}.pt"
         written = self.checkpoint_writes.attempt(
             path,
@@ -412,7 +415,19 @@ class LearnerCore:
             self.sac.load_state_dict(state["sac"])
             self.counters = RunCounters.from_checkpoint(state["counters"], self.counters)
             restore_rng(state["rng"])
+            self._restore_eval_rng(path, state.get("eval_env_rng"))
         return path, state
+
+    def _restore_eval_rng(self, path: Path, states: list[dict[str, Any]] | None) -> None:
+        """The evaluation envs' RNGs as saved (checkpoints before 2026-12-02 have none: the stream then
+        starts again at the first evaluation's starts, as it did). A run resumed with another
+        ``eval_envs`` starts a new stream, and says so."""
+        if self.eval_env is None or states is None:
+            return
+        try:
+            self.eval_env.set_rng_states(states)
+        except ValueError as err:
+            log.info("evaluation envs' RNGs in %s not used (%s): evaluations draw their starts anew", path, err)
 
 
 def last_evaluation(path: Path) -> tuple[int, float] | None:

@@ -47,6 +47,15 @@ class SeedOnFirstReset(gym.Wrapper[Any, Any, Any, Any]):
         self._pending_seed = None
         return self.env.reset(seed=seed, options=options)
 
+    @property
+    def pending_seed(self) -> int | None:
+        """The seed the next unseeded ``reset()`` will take; None once the env has been reset."""
+        return self._pending_seed
+
+    @pending_seed.setter
+    def pending_seed(self, seed: int | None) -> None:
+        self._pending_seed = seed
+
 
 class HideVelocity(gym.ObservationWrapper[np.ndarray, Any, Any], gym.utils.RecordConstructorArgs):
     """Keeps only the observation entries at ``keep`` (in that order), as float32.

@@ -325,3 +325,34 @@ def test_every_reset_passes_the_configured_reset_options() -> None:
             starts.append(result.obs[0][ended])
     assert len(starts) > 3  # auto-resets happened
     assert all(((s >= 0.2) & (s <= 0.25)).all() for s in starts), starts
+
+
+def test_rng_states_put_into_a_new_vector_env_continue_the_stream_and_bad_ones_change_nothing() -> None:
+    # What a checkpoint keeps of its envs (algorithm/learner_core.py, algorithm/trainer.py): a new
+    # vector env given them resets as the first would have next, not as a fresh one does.
+    first = make_vector_env("Pendulum-v1", 3, seed=5)
+    never_reset = first.rng_states()
+    assert never_reset == [{"seed": 5}, {"seed": 6}, {"seed": 7}]
+    first.reset()
+    first.reset()
+    states = first.rng_states()
+    expected = first.reset()
+    second = make_vector_env("Pendulum-v1", 3, seed=5)
+    fresh = make_vector_env("Pendulum-v1", 3, seed=5).reset()
+    second.set_rng_states(states)
+    got = second.reset()
+    assert all(np.array_equal(a, b) for a, b in zip(got, expected, strict=True))
+    assert not all(np.array_equal(a, b) for a, b in zip(got, fresh, strict=True))
+
+    pending = make_vector_env("Pendulum-v1", 3, seed=9)
+    pending.set_rng_states(never_reset)  # not reset yet: the first reset takes the saved seeds
+    assert all(np.array_equal(a, b) for a, b in zip(pending.reset(), fresh, strict=True))
+
+    third = make_vector_env("Pendulum-v1", 3, seed=5)
+    with pytest.raises(ValueError, match="2 env RNG states for 3 envs"):
+        third.set_rng_states(states[:2])
+    with pytest.raises(ValueError, match="env 1's RNG state names no numpy bit generator: 'Nope'"):
+        third.set_rng_states([states[0], {**states[1], "bit_generator": "Nope"}, states[2]])
+    with pytest.raises(ValueError, match="env 2's RNG state does not fit a PCG64"):
+        third.set_rng_states([states[0], states[1], {"bit_generator": "PCG64", "state": "x"}])
+    assert all(np.array_equal(a, b) for a, b in zip(third.reset(), fresh, strict=True))  # unchanged
