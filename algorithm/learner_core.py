@@ -337,7 +337,7 @@ class LearnerCore:
         assert self.eval_env is not None
         c, every = self.counters, self.config.eval_config.eval_per_step
         with self.timers.phase("eval"):
-            seed = self.eval_seed if not c.evaluations else None  # one seeded stream per process
+            seed = self.eval_seed if not c.evaluations else None  # one seeded stream a run (in its checkpoints)
             result = evaluate(self.eval_env, self.sac, self.config.eval_config.eval_episodes, seed)
         c.evaluations += 1
         c.last_eval_mean, c.last_eval_step = result.mean, c.env_steps
@@ -415,19 +415,24 @@ class LearnerCore:
             self.sac.load_state_dict(state["sac"])
             self.counters = RunCounters.from_checkpoint(state["counters"], self.counters)
             restore_rng(state["rng"])
-            self._restore_eval_rng(path, state.get("eval_env_rng"))
+            if self.eval_env is not None:
+                restore_env_rngs(self.eval_env, state.get("eval_env_rng"), "evaluation", path)
         return path, state
 
-    def _restore_eval_rng(self, path: Path, states: list[dict[str, Any]] | None) -> None:
-        """The evaluation envs' RNGs as saved (checkpoints before 2026-12-02 have none: the stream then
-        starts again at the first evaluation's starts, as it did). A run resumed with another
-        ``eval_envs`` starts a new stream, and says so."""
-        if self.eval_env is None or states is None:
-            return
-        try:
-            self.eval_env.set_rng_states(states)
-        except ValueError as err:
-            log.info("evaluation envs' RNGs in %s not used (%s): evaluations draw their starts anew", path, err)
+
+def restore_env_rngs(env: VectorEnvLike, states: list[dict[str, Any]] | None, which: str, path: Path) -> bool:
+    """Put a checkpoint's env RNGs (``VectorEnv.rng_states``) back into ``env``; whether it did. None
+    (checkpoints before 2026-12-02) leaves the envs as made: their streams start again from their seeds,
+    as they did then. States that do not fit (a run resumed with another env count) are logged, and the
+    envs draw their starts anew."""
+    if states is None:
+        return False
+    try:
+        env.set_rng_states(states)
+    except ValueError as err:
+        log.info("%s envs' RNGs in %s not used (%s): their episodes start anew", which, path, err)
+        return False
+    return True
 
 
 def last_evaluation(path: Path) -> tuple[int, float] | None:

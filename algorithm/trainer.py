@@ -34,7 +34,7 @@ from algorithm.actor import ActorLoop, VectorEnvLike
 from algorithm.checkpoint import list_checkpoints
 from algorithm.config_schema import Config
 from algorithm.files import WriteFailures
-from algorithm.learner_core import LearnerCore, UpdateBudget
+from algorithm.learner_core import LearnerCore, UpdateBudget, restore_env_rngs
 from algorithm.nn.user import model_builder
 from algorithm.policy import Policy
 from algorithm.replay import PrioritizedTable
@@ -229,26 +229,14 @@ class EmbeddedTrainer:
         decides (``--ckpt``)."""
         path, state = self.core.restore(step)
         self.actor.rng.bit_generator.state = state["actor_rng"]
-        self._restore_env_rng(path, state.get("env_rng"))
+        if restore_env_rngs(self.env, state.get("env_rng"), "training", path):
+            self.actor.obs = self.env.reset()  # new episodes from the restored streams, not the run's first starts
         self.actor.total_steps = self.env_steps  # random_steps counts from the run's start, not the resume
         self.actor.progress.best_episode_return = float(state.get("actor_best_episode_return", -math.inf))
         if not self.done():  # a finished run trains no more: its replay is not loaded (it can be gigabytes)
             self._restore_replay(path, state.get("replay_inserted_steps"))
         self.budget.owed = self.core.counters.owed_updates
         self.budget.forgive(self.table.rate_limiter.size)
-
-    def _restore_env_rng(self, checkpoint: Path, states: list[dict[str, Any]] | None) -> None:
-        """The training envs' RNGs as saved, and new episodes drawn from them: without this a resumed
-        run's first episodes would start as the run's very first did. Checkpoints before 2026-12-02
-        have none; a run resumed with another ``n_agents`` draws new starts, and says so."""
-        if states is None:
-            return
-        try:
-            self.env.set_rng_states(states)
-        except ValueError as err:
-            log.info("training envs' RNGs in %s not used (%s): their episodes start anew", checkpoint, err)
-            return
-        self.actor.obs = self.env.reset()
 
     def _restore_replay(self, checkpoint: Path, saved_at: int | None) -> None:
         """Load the replay snapshot when it is the one written with ``checkpoint`` (``saved_at``: the

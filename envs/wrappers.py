@@ -39,22 +39,13 @@ class SeedOnFirstReset(gym.Wrapper[Any, Any, Any, Any]):
 
     def __init__(self, env: gym.Env[Any, Any], seed: int) -> None:
         super().__init__(env)
-        self._pending_seed: int | None = seed
+        self.pending_seed: int | None = seed  # the next unseeded reset's; None once reset
 
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None) -> tuple[Any, dict]:
         if seed is None:
-            seed = self._pending_seed
-        self._pending_seed = None
+            seed = self.pending_seed
+        self.pending_seed = None
         return self.env.reset(seed=seed, options=options)
-
-    @property
-    def pending_seed(self) -> int | None:
-        """The seed the next unseeded ``reset()`` will take; None once the env has been reset."""
-        return self._pending_seed
-
-    @pending_seed.setter
-    def pending_seed(self, seed: int | None) -> None:
-        self._pending_seed = seed
 
 
 class HideVelocity(gym.ObservationWrapper[np.ndarray, Any, Any], gym.utils.RecordConstructorArgs):

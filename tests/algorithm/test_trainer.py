@@ -3,6 +3,7 @@ TensorBoard and evaluations.csv read back."""
 
 from __future__ import annotations
 
+import logging
 import threading
 from pathlib import Path
 
@@ -13,8 +14,9 @@ import torch
 from algorithm.config import load_config
 from algorithm.config_schema import Config
 from algorithm.evaluation import CSV_FIELDS, read_evaluations
+from algorithm.learner_core import restore_env_rngs
 from algorithm.trainer import EmbeddedTrainer
-from envs.make import vector_env_factory
+from envs.make import make_vector_env, vector_env_factory
 
 ROOT = Path(__file__).resolve().parents[2]
 SMALL = [
@@ -278,3 +280,17 @@ def test_a_resumed_run_evaluates_on_the_starts_the_uninterrupted_run_does_and_tr
     assert [r["env_steps"] for r in got] == [r["env_steps"] for r in expected] == [200, 400, 600]
     assert [r["return_mean"] for r in got] == [r["return_mean"] for r in expected]
     assert got[2]["return_mean"] != got[0]["return_mean"]  # a fresh set of starts, not the first again
+
+
+def test_env_rngs_that_do_not_fit_are_logged_and_leave_the_envs_as_made(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    # A run resumed with another env count: its saved RNG states are not used, and it says so.
+    saved = make_vector_env("Pendulum-v1", 3, seed=1).rng_states()
+    env = make_vector_env("Pendulum-v1", 2, seed=1)
+    as_made = make_vector_env("Pendulum-v1", 2, seed=1).reset()
+    with caplog.at_level(logging.INFO, logger="asac.learner"):
+        assert not restore_env_rngs(env, saved, "evaluation", tmp_path / "model/400.pt")
+    assert "evaluation envs' RNGs in" in caplog.text and "3 env RNG states for 2 envs" in caplog.text, caplog.text
+    assert all(np.array_equal(a, b) for a, b in zip(env.reset(), as_made, strict=True))
+    assert not restore_env_rngs(env, None, "evaluation", tmp_path / "model/400.pt")  # checkpoints before the fix
