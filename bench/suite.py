@@ -21,7 +21,7 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -114,7 +114,7 @@ def mujoco(args: argparse.Namespace) -> None:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     if args.report:
-        report(out, args.task)
+        report(out, args.task, args.seeds)
         return
     torch.set_num_threads(args.threads)
     label = " ".join(args.override)
@@ -165,9 +165,11 @@ def mujoco(args: argparse.Namespace) -> None:
             )
 
 
-def report(out: Path, task: str | None = None) -> None:
-    """Per task: one row per seed (the latest run of each system), then the means and the ratio."""
-    rows = read_summary(out)
+def report(out: Path, task: str | None = None, seeds: Sequence[int] | None = None) -> None:
+    """Per task: one row per seed (the latest run of each system; only ``seeds`` when given, so that
+    runs of extra seeds can share the folder with the seeds a goal is judged on), then the means and
+    the ratio."""
+    rows = [r for r in read_summary(out) if seeds is None or int(r["seed"]) in seeds]
     for name in [t for t in MUJOCO_TASKS if t == task or task is None]:
         runs = {(r["system"], int(r["seed"])): r for r in rows if r["task"] == name}  # the latest wins
         if not runs:

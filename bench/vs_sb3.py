@@ -20,7 +20,8 @@
         stream), the last evaluation at --steps being the run's return. Each run writes its curve to
         bench/results/mujoco/TASK_<asac|sb3>_seed<k>.csv as it goes and, at its end, a row (return,
         wall seconds, of which evaluating, overrides, code version) to bench/results/mujoco/summary.csv;
-        runs already there are skipped. `mujoco [TASK] --report` prints the tables. ASAC's runs train
+        runs already there are skipped. `mujoco [TASK] --report [--seeds 0 1 2]` prints the tables of those
+        seeds (0-2 unless told, the seeds the goal is judged on). ASAC's runs train
         in folders under --runs ($ASAC_BENCH_RUNS, else ~/asac_long_runs): Ctrl-C or SIGTERM saves the
         run in progress and the same command resumes it (bench/suite.py).
     python -m bench.vs_sb3 suite [--tasks hopper walker2d ant half_cheetah] [--seeds 0 1 2]

@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 
 from algorithm.run_dir import RunDir
-from bench.suite import curve_mean, ratio_interval, run_folder
+from bench.suite import curve_mean, ratio_interval, report, run_folder
 from bench.systems import RunResult, RunStopped, run_ours
 
 TINY = ["nn.hidden_units=[16,16]", "replay.batch_size=16", "actor.random_steps=100", "replay.min_size_to_sample=100",
@@ -52,3 +52,24 @@ def test_the_curve_mean_averages_the_evaluations_past_the_random_warm_up_only(tm
     rows = [(5000, -1.0), (10000, 7.0), (15000, 200.0), (20000, 400.0), (100000, 900.0)]
     curve.write_text("env_steps,return_mean,return_std,wall_seconds\n" + "".join(f"{s},{r},0.0,1\n" for s, r in rows))
     assert curve_mean(curve) == pytest.approx(500.0)  # 15k, 20k and 100k: the untrained policy's scores left out
+
+
+def test_the_report_counts_only_the_seeds_asked_for(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    # Extra seeds share the folder with the seeds a goal is judged on; the report of seeds 0-2 must not
+    # fold them in.
+    summary = ["task,system,seed,steps,return,wall_s,eval_s,overrides,code,finished"]
+    for system, returns in (("asac", [100.0, 200.0, 300.0, 1000.0]), ("sb3", [200.0, 200.0, 200.0, 200.0])):
+        for seed, ret in enumerate(returns):
+            summary.append(f"walker2d,{system},{seed},20000,{ret},10,1,,abc,today")
+            rows = [(5000, 0.0), (15000, ret), (20000, ret)]
+            (tmp_path / f"walker2d_{system}_seed{seed}.csv").write_text(
+                "env_steps,return_mean,return_std,wall_seconds\n" + "".join(f"{s},{r},0.0,1\n" for s, r in rows)
+            )
+    (tmp_path / "summary.csv").write_text("\n".join(summary) + "\n")
+    report(tmp_path, "walker2d", [0, 1, 2])
+    three = capsys.readouterr().out
+    assert "asac: mean 200.0" in three and "over 3 seeds" in three and "ASAC / SB3 means: 1.00x" in three
+    assert "| 3 |" not in three
+    report(tmp_path, "walker2d")
+    every = capsys.readouterr().out
+    assert "asac: mean 400.0" in every and "over 4 seeds" in every and "ASAC / SB3 means: 2.00x" in every
