@@ -20,6 +20,10 @@ bootstrap row's zeros, and it never reads another chunk. Eviction is FIFO by key
 when a new key overwrites it); because keys increase, a stored step row's whole chunk tail is
 still stored, so every sampleable window is intact.
 
+The ring's arrays and the windows read from them are :class:`~algorithm.replay.ring.ChunkRing`'s; the
+checks of what callers hand in are algorithm/replay/checks.py's; this class adds priorities, the rate
+limiter, duplicate detection, normalizer statistics and snapshots.
+
 Priorities are ``clip(raw, td_error_min, td_error_max) ** alpha`` in a float64 :class:`SumTree`.
 All operations run under one lock (the rate limiter's condition, so that admission and action are
 atomic); the hot paths are vectorised numpy plus compiled tree loops, with no per-item Python loops.
@@ -36,13 +40,13 @@ import numpy as np
 from algorithm.normalizer import RunningMeanStd
 from algorithm.replay import persistence
 from algorithm.replay.base import NormalizerStats, ReplayInfo
+from algorithm.replay.checks import check_chunk, check_priorities, check_table_args, keys_int64
 from algorithm.replay.dedup import FORGOTTEN, MAX_PRODUCERS, ChunkIds, ChunkLedger, Inserted
 from algorithm.replay.rate_limiter import InsertTimeout, RateLimiter
+from algorithm.replay.ring import ChunkRing
 from algorithm.replay.sum_tree import SumTree
 from algorithm.spaces import SensorSpec
 from algorithm.types import Batch, Chunk
-
-_EMPTY = -1  # row key of a row that has never been written
 
 
 class ReplayConfigLike(Protocol):
@@ -100,23 +104,9 @@ class PrioritizedTable:
         burn_in: int = 0,
         max_producers: int = MAX_PRODUCERS,
     ) -> None:
-        if int(capacity) < 2:
-            raise ValueError(f"replay capacity must be >= 2 rows, got {capacity}")
-        if int(window) < 1:
-            raise ValueError(f"replay window (burn_in_step + n_step) must be >= 1, got {window}")
-        if not 0 <= int(burn_in) < int(window):
-            raise ValueError(f"replay burn_in must be in [0, window), got burn_in={burn_in}, window={window}")
-        if int(action_size) < 1:
-            raise ValueError(f"action_size must be >= 1, got {action_size}")
-        if int(rnn_state_size) < 0:
-            raise ValueError(f"rnn_state_size must be >= 0, got {rnn_state_size}")
-        if not 0.0 <= alpha <= 1.0:
-            raise ValueError(f"replay alpha must be in [0, 1], got {alpha}")
-        if not 0.0 <= td_error_min <= td_error_max or not np.isfinite(td_error_max):
-            raise ValueError(f"need 0 <= td_error_min <= td_error_max < inf, got {td_error_min}, {td_error_max}")
-        names = [s.name for s in sensors]
-        if not sensors or len(set(names)) != len(names):
-            raise ValueError(f"replay needs at least one sensor and unique sensor names, got {names}")
+        check_table_args(
+            capacity, sensors, action_size, window, burn_in, rnn_state_size, alpha, td_error_min, td_error_max
+        )
         self.capacity = int(capacity)
         self.sensors = tuple(sensors)
         self.action_size = int(action_size)
@@ -135,23 +125,11 @@ class PrioritizedTable:
         self._lock = self.rate_limiter.condition
         self._rng = np.random.default_rng(seed)
 
-        cap, a = self.capacity, self.action_size
-        self._obs = [np.zeros((cap, *s.shape), dtype=s.dtype) for s in self.sensors]
-        self._steps = {  # per-step fields, named as in Chunk and Batch
-            "actions": np.zeros((cap, a), dtype=np.float32),
-            "prev_actions": np.zeros((cap, a), dtype=np.float32),
-            "rewards": np.zeros(cap, dtype=np.float32),
-            "terminated": np.zeros(cap, dtype=bool),
-            "truncated": np.zeros(cap, dtype=bool),
-            "behaviour_logp": np.zeros(cap, dtype=np.float32),
-        }
-        self._rnn = np.zeros((cap, self.rnn_state_size), dtype=np.float32) if self.rnn_state_size else None
-        self._row_key = np.full(cap, _EMPTY, dtype=np.int64)
-        self._end_key = np.full(cap, _EMPTY, dtype=np.int64)
-        self._start_key = np.full(cap, _EMPTY, dtype=np.int64)  # key of the chunk's first row
-        self._tree = SumTree(cap)
+        self._ring = ChunkRing(
+            self.capacity, self.sensors, self.action_size, self.rnn_state_size, self.window, self.burn_in
+        )
+        self._tree = SumTree(self.capacity)  # the rows' priorities
         self._normalizers = {s.name: RunningMeanStd(s.shape) for s in self.sensors if not s.is_image}
-        self._next_key = 0
         self.max_producers = int(max_producers)
         self._ledger = ChunkLedger(self.max_producers)  # which producers' chunks are stored (insert_once)
         self._max_priority = float(self._transform(np.ones(1))[0])
@@ -220,7 +198,7 @@ class PrioritizedTable:
         A chunk that does not match the table's specs raises ``ValueError`` and stores nothing.
         """
         t = self._check_chunk(chunk)
-        new_p = None if priorities is None else self._transform(self._check_priorities(priorities, t, "insert"))
+        new_p = None if priorities is None else self._transform(check_priorities(priorities, t, "insert"))
         with self._lock:
             self.rate_limiter.await_insert(t, timeout)
             return self._store(chunk, t, new_p)
@@ -279,7 +257,7 @@ class PrioritizedTable:
             p = None if priorities is None else priorities[i]
             try:
                 t = self._check_chunk(chunk)
-                new_p = None if p is None else self._transform(self._check_priorities(p, t, "insert"))
+                new_p = None if p is None else self._transform(check_priorities(p, t, "insert"))
             except ValueError as e:
                 raise ValueError(f"chunks[{i}]: {e}") from e
             checked.append((chunk, t, new_p))
@@ -323,29 +301,8 @@ class PrioritizedTable:
 
     def _store(self, chunk: Chunk, t: int, new_p: np.ndarray | None) -> np.ndarray:
         """Write a validated, admitted chunk into the ring (the caller holds the lock)."""
-        first = self._next_key
-        keys = np.arange(first, first + t + 1, dtype=np.int64)
-        rows = keys % self.capacity
-        old = self._row_key[rows]
-        stored = old != _EMPTY
-        evicted_steps = int(np.count_nonzero(stored & (old != self._end_key[rows])))
-
-        # Plain slices when the chunk does not wrap the ring: much cheaper than index arrays.
-        wraps = rows[t] < rows[0]
-        span = rows if wraps else slice(rows[0], rows[t] + 1)
-        steps = rows[:t] if wraps else slice(rows[0], rows[t])
-        boot = rows[t]
-        for store, data in zip(self._obs, chunk.obs, strict=True):
-            store[span] = data
-        for name, store in self._steps.items():
-            store[steps] = getattr(chunk, name)
-            store[boot] = 0  # masked window steps read these zeros
-        if self._rnn is not None:
-            self._rnn[steps] = chunk.rnn_state
-        self._row_key[span] = keys
-        self._end_key[span] = first + t
-        self._start_key[span] = first
-
+        first = self._ring.next_key
+        rows, evicted_steps, evicted_rows = self._ring.write(chunk, t)
         if new_p is None:
             new_p = np.full(t, self._max_priority)
         else:
@@ -358,11 +315,10 @@ class PrioritizedTable:
             if spec.name in self._normalizers:
                 self._normalizers[spec.name].update(data if ended else data[:-1])
 
-        self._next_key = first + t + 1
         self._counters["inserted_chunks"] += 1
-        self._counters["evicted_rows"] += int(np.count_nonzero(stored))
+        self._counters["evicted_rows"] += evicted_rows
         self.rate_limiter.record_insert(t, evicted_steps)
-        return keys[:t].astype(np.uint64)
+        return np.arange(first, first + t, dtype=np.uint64)
 
     def sample(self, batch_size: int, timeout: float | None = None) -> Batch:
         """Draw ``batch_size`` windows with probability ``priority / total`` (stratified).
@@ -381,9 +337,9 @@ class PrioritizedTable:
                 rows = self._tree.sample_stratified(b, self._rng)
                 probabilities = self._tree.get(rows) / total
             else:
-                rows = self._uniform_rows(b)
+                rows = self._ring.uniform_rows(b, self._rng)
                 probabilities = np.full(b, 1.0 / size)
-            batch = self._gather(rows, probabilities, size)
+            batch = self._ring.gather(rows, probabilities, size)
             self._counters["sample_calls"] += 1
             self.rate_limiter.record_sample(b)
         return batch
@@ -398,26 +354,22 @@ class PrioritizedTable:
         if int(key) < 0:
             raise ValueError(f"windows_after: key must be >= 0, got {key}")
         with self._lock:
-            low = max(int(key), self._next_key - self.capacity)
-            # Bootstrap rows are at most one in two rows, so 2 * limit candidates hold limit steps.
-            candidates = np.arange(low, min(self._next_key, low + 2 * int(limit)), dtype=np.int64)
-            rows = candidates % self.capacity
-            rows = rows[self._live(candidates, rows)][: int(limit)]
+            rows = self._ring.live_rows_from(int(key), int(limit))
             if not rows.shape[0]:
                 return None
             total = self._tree.total
             size = self.rate_limiter.size
             probabilities = self._tree.get(rows) / total if total > 0.0 else np.full(rows.shape[0], 1.0 / size)
-            return self._gather(rows, probabilities, size)
+            return self._ring.gather(rows, probabilities, size)
 
     def update_priorities(self, keys: np.ndarray, priorities: np.ndarray) -> None:
         """Set raw priorities (e.g. mean |TD| over heads) of ``keys``; keys that are evicted,
         bootstrap rows or never issued are ignored. Shapes must match; values finite and >= 0."""
-        k64 = _keys_int64(keys, "update_priorities")
-        p = self._transform(self._check_priorities(priorities, k64.shape[0], "update_priorities"))
+        k64 = keys_int64(keys, "update_priorities")
+        p = self._transform(check_priorities(priorities, k64.shape[0], "update_priorities"))
         rows = k64 % self.capacity
         with self._lock:
-            valid = self._live(k64, rows)
+            valid = self._ring.live(k64, rows)
             n_valid = int(np.count_nonzero(valid))
             if n_valid:
                 self._tree.set(rows[valid], p[valid])
@@ -429,9 +381,9 @@ class PrioritizedTable:
         """Overwrite the stored recurrent state of the steps ``keys`` with ``states [N, S]``
         (``sac_config.refresh_rnn_states``); evicted keys, bootstrap rows and keys never issued are
         ignored, as in :meth:`update_priorities`. States must be finite float32."""
-        if self._rnn is None:
+        if not self.rnn_state_size:
             raise ValueError("update_rnn_states: this table stores no recurrent state (rnn_state_size=0)")
-        k64 = _keys_int64(keys, "update_rnn_states")
+        k64 = keys_int64(keys, "update_rnn_states")
         s = np.asarray(states)
         if s.shape != (k64.shape[0], self.rnn_state_size) or s.dtype != np.float32:
             raise ValueError(
@@ -442,13 +394,10 @@ class PrioritizedTable:
             raise ValueError("update_rnn_states: states hold non-finite values")
         rows = k64 % self.capacity
         with self._lock:
-            valid = self._live(k64, rows)
-            self._rnn[rows[valid]] = s[valid]
+            valid = self._ring.live(k64, rows)
+            assert self._ring.rnn is not None
+            self._ring.rnn[rows[valid]] = s[valid]
             self._counters["rnn_state_updates"] += int(np.count_nonzero(valid))
-
-    def _live(self, k64: np.ndarray, rows: np.ndarray) -> np.ndarray:
-        """Which keys still name a stored step (not evicted, not a bootstrap row, issued). Under the lock."""
-        return (k64 >= 0) & (self._row_key[rows] == k64) & (self._end_key[rows] != k64)
 
     def info(self) -> ReplayInfo:
         """Flat ``replay/*`` numbers plus ``"normalizer"``: ``{sensor name: {count, mean, var}}``."""
@@ -457,12 +406,12 @@ class PrioritizedTable:
             out: dict[str, Any] = {
                 "size": lim.size,
                 "capacity": self.capacity,
-                "stored_rows": int(min(self._next_key, self.capacity)),
+                "stored_rows": self._ring.stored_rows,
                 "inserted_steps": lim.inserted,
                 "evicted_steps": lim.evicted,
                 "sampled_windows": lim.sampled,
                 "samples_per_insert_actual": lim.sampled / lim.inserted if lim.inserted else 0.0,
-                "next_key": self._next_key,
+                "next_key": self._ring.next_key,
                 "max_priority": self._max_priority,
                 "total_priority": self._tree.total,
                 "producers": len(self._ledger),
@@ -489,7 +438,7 @@ class PrioritizedTable:
             arrays = self._state_arrays()
             meta = {
                 **self._layout(),
-                "next_key": self._next_key,
+                "next_key": self._ring.next_key,
                 "max_priority": self._max_priority,
                 "counters": dict(self._counters),
                 "rate_limiter": self.rate_limiter.state_dict(),
@@ -524,6 +473,7 @@ class PrioritizedTable:
             before_install()
         with self._lock:
             self.rate_limiter.load_state_dict(limiter_state)
+            self._ring.install(data, int(meta["next_key"]))
             for name, value in attributes.items():
                 setattr(self, name, value)
 
@@ -542,16 +492,7 @@ class PrioritizedTable:
         }
 
     def _state_arrays(self, copy: bool = True) -> dict[str, np.ndarray]:
-        arrays = {f"obs_{i}": store for i, store in enumerate(self._obs)}
-        arrays.update(self._steps)
-        arrays.update(
-            row_key=self._row_key,
-            end_key=self._end_key,
-            start_key=self._start_key,
-            priorities=self._tree.leaves,
-        )
-        if self._rnn is not None:
-            arrays["rnn_state"] = self._rnn
+        arrays = {**self._ring.arrays(), "priorities": self._tree.leaves}
         for i, s in enumerate(self.sensors):
             if s.name in self._normalizers:
                 state = self._normalizers[s.name].state_dict()
@@ -561,25 +502,10 @@ class PrioritizedTable:
     def _validated_state(
         self, data: dict[str, np.ndarray], meta: dict[str, Any]
     ) -> tuple[dict[str, Any], dict[str, int]]:
-        """Check a loaded file's internal consistency; return the attributes to install and the
-        rate limiter's counters."""
-        cap, next_key = self.capacity, int(meta["next_key"])
-        row_key, end_key, leaves = data["row_key"], data["end_key"], data["priorities"]
-        start_key = data["start_key"]
-        stored = row_key != _EMPTY
-        rk, ek = row_key[stored], end_key[stored]
-        if not (
-            (rk % cap == np.flatnonzero(stored)).all()
-            and (rk >= next_key - cap).all()
-            and (ek >= rk).all()
-            and (ek < next_key).all()
-            and (row_key[ek % cap] == ek).all()
-            and (end_key[~stored] == _EMPTY).all()
-            and (start_key[stored] <= rk).all()
-            and (start_key[~stored] == _EMPTY).all()
-        ):
-            raise ValueError("row keys are not a ring of consecutive chunks")
-        is_step = stored & (row_key != end_key)
+        """Check a loaded file's internal consistency; return the attributes to install besides the
+        ring's arrays and the rate limiter's counters."""
+        next_key, leaves = int(meta["next_key"]), data["priorities"]
+        is_step = self._ring.checked_step_rows(data, next_key)
         if not np.isfinite(leaves).all() or (leaves < 0).any() or (leaves[~is_step] != 0).any():
             raise ValueError("priorities must be finite, >= 0, and 0 on bootstrap and empty rows")
         lim = {k: int(meta["rate_limiter"][k]) for k in ("inserted", "evicted", "sampled")}
@@ -590,7 +516,7 @@ class PrioritizedTable:
         max_priority = float(meta["max_priority"])
         if not 0.0 <= max_priority < np.inf:
             raise ValueError(f"max_priority must be finite and >= 0, got {max_priority}")
-        tree = SumTree(cap)
+        tree = SumTree(self.capacity)
         tree.set_all(leaves)
         rng = np.random.default_rng()
         rng.bit_generator.state = meta["rng"]
@@ -608,15 +534,8 @@ class PrioritizedTable:
                 )
                 normalizers[s.name] = rms
         attributes = {
-            "_obs": [data[f"obs_{i}"] for i in range(len(self.sensors))],
-            "_steps": {name: data[name] for name in self._steps},
-            "_rnn": data.get("rnn_state"),
-            "_row_key": row_key,
-            "_end_key": end_key,
-            "_start_key": start_key,
             "_tree": tree,
             "_normalizers": normalizers,
-            "_next_key": next_key,
             "_max_priority": max_priority,
             "_counters": counters,
             "_rng": rng,
@@ -630,105 +549,5 @@ class PrioritizedTable:
     def _normalizer_state(self) -> dict[str, NormalizerStats]:
         return {name: cast(NormalizerStats, rms.state_dict()) for name, rms in self._normalizers.items()}
 
-    def _uniform_rows(self, n: int) -> np.ndarray:
-        """``n`` rows drawn uniformly among stored step rows (rejecting bootstrap rows; at most
-        half of the stored rows are bootstrap rows, so a few vectorised rounds suffice)."""
-        low = max(0, self._next_key - self.capacity)
-        picked = np.empty(0, dtype=np.int64)
-        while picked.shape[0] < n:
-            keys = self._rng.integers(low, self._next_key, size=2 * n)
-            rows = keys % self.capacity
-            picked = np.concatenate([picked, rows[self._end_key[rows] != keys]])
-        return picked[:n]
-
-    def _gather(self, rows: np.ndarray, probabilities: np.ndarray, size: int) -> Batch:
-        keys = self._row_key[rows]
-        ends = self._end_key[rows][:, None]
-        pos = (keys - self.burn_in)[:, None] + np.arange(self.window + 1, dtype=np.int64)
-        if not self.burn_in:
-            read = np.minimum(pos, ends) % self.capacity  # [B, L+1]; clamped to the bootstrap row
-            step = read[:, :-1]  # bootstrap rows hold zeros, so masked steps come out zero/False
-            return Batch(
-                keys=keys.astype(np.uint64),
-                probabilities=probabilities,
-                table_size=int(size),
-                obs=[store[read] for store in self._obs],
-                mask=pos[:, :-1] < ends,
-                rnn_state=None if self._rnn is None else self._rnn[rows],
-                **{name: store[step] for name, store in self._steps.items()},
-            )
-        # Look-back: rows before the chunk's first live row (evicted ones included) read as zeros.
-        starts = np.maximum(self._start_key[rows], self._next_key - self.capacity)[:, None]
-        read = np.clip(pos, starts, ends) % self.capacity
-        before = pos < starts
-        step = read[:, :-1]
-        mask = ~before[:, :-1] & (pos[:, :-1] < ends)
-
-        def zero_before(x: np.ndarray, where: np.ndarray) -> np.ndarray:
-            return np.where(where.reshape(where.shape + (1,) * (x.ndim - 2)), np.zeros((), x.dtype), x)
-
-        return Batch(
-            keys=keys.astype(np.uint64),
-            probabilities=probabilities,
-            table_size=int(size),
-            obs=[zero_before(store[read], before) for store in self._obs],
-            mask=mask,
-            rnn_state=None if self._rnn is None else self._rnn[read[:, 0]],
-            **{name: zero_before(store[step], before[:, :-1]) for name, store in self._steps.items()},
-        )
-
-    def _check_priorities(self, priorities: np.ndarray, n: int, where: str) -> np.ndarray:
-        p = np.asarray(priorities, dtype=np.float64)
-        if p.shape != (n,):
-            raise ValueError(f"{where}: priorities must have shape ({n},), got {p.shape}")
-        if not np.isfinite(p).all() or (p < 0).any():
-            raise ValueError(f"{where}: priorities must be finite and >= 0")
-        return p
-
     def _check_chunk(self, chunk: Chunk) -> int:
-        """Validate ``chunk`` against the table's specs; returns ``T``. Raises ``ValueError``."""
-        rewards = np.asarray(chunk.rewards)
-        if rewards.ndim != 1 or rewards.shape[0] < 1:
-            raise ValueError(f"chunk.rewards must have shape [T] with T >= 1, got {rewards.shape}")
-        t = rewards.shape[0]
-        if t + 1 > self.capacity:
-            raise ValueError(f"chunk of {t} steps needs {t + 1} rows but replay capacity is {self.capacity}")
-        if len(chunk.obs) != len(self.sensors):
-            raise ValueError(f"chunk has {len(chunk.obs)} observation sensors, the table expects {len(self.sensors)}")
-        a = self.action_size
-        fields: list[tuple[str, Any, tuple[int, ...], np.dtype]] = [
-            (f"obs[{i}] ({s.name})", chunk.obs[i], (t + 1, *s.shape), np.dtype(s.dtype))
-            for i, s in enumerate(self.sensors)
-        ]
-        fields += [
-            ("actions", chunk.actions, (t, a), np.dtype(np.float32)),
-            ("prev_actions", chunk.prev_actions, (t, a), np.dtype(np.float32)),
-            ("rewards", chunk.rewards, (t,), np.dtype(np.float32)),
-            ("terminated", chunk.terminated, (t,), np.dtype(bool)),
-            ("truncated", chunk.truncated, (t,), np.dtype(bool)),
-            ("behaviour_logp", chunk.behaviour_logp, (t,), np.dtype(np.float32)),
-        ]
-        if self.rnn_state_size:
-            fields.append(("rnn_state", chunk.rnn_state, (t, self.rnn_state_size), np.dtype(np.float32)))
-        elif chunk.rnn_state is not None:
-            raise ValueError("chunk.rnn_state is set but the table was built with rnn_state_size=0")
-        for name, arr, shape, dtype in fields:
-            if not isinstance(arr, np.ndarray):
-                raise ValueError(f"chunk.{name} must be a numpy array, got {type(arr).__name__}")
-            if arr.shape != shape or arr.dtype != dtype:
-                raise ValueError(f"chunk.{name}: expected {dtype} {shape}, got {arr.dtype} {arr.shape}")
-            if dtype.kind == "f" and not np.isfinite(arr).all():
-                raise ValueError(f"chunk.{name} has non-finite values")
-        for name in ("terminated", "truncated"):
-            if getattr(chunk, name)[:-1].any():
-                raise ValueError(f"chunk.{name}: only the last step of a chunk may be terminated or truncated")
-        return t
-
-
-def _keys_int64(keys: np.ndarray, what: str) -> np.ndarray:
-    """``keys`` (a 1-D integer array) as int64; uint64 keys >= 2**63 wrap to negatives, which were
-    never issued and so are ignored like evicted ones."""
-    k = np.asarray(keys)
-    if k.ndim != 1 or (k.size and k.dtype.kind not in "ui"):
-        raise ValueError(f"{what}: keys must be a 1-D integer array, got {k.dtype} {k.shape}")
-    return k.astype(np.int64)
+        return check_chunk(chunk, self.sensors, self.action_size, self.rnn_state_size, self.capacity)

@@ -449,7 +449,7 @@ def test_concurrent_clients_do_not_corrupt_the_table() -> None:
                 )
         leaves = np.asarray(table._tree.leaves)
         assert math.isclose(info["total_priority"], math.fsum(leaves), rel_tol=1e-12)
-        steps = (table._row_key >= 0) & (table._row_key != table._end_key)
+        steps = (table._ring.row_key >= 0) & (table._ring.row_key != table._ring.end_key)
         assert info["size"] == int(steps.sum()) and (leaves[~steps] == 0).all()
     finally:
         server.stop(None)

@@ -93,7 +93,7 @@ def test_concurrent_insert_sample_update_and_save(tmp_path: Path) -> None:
     # the tree, the key ring and the counters agree after the storm
     leaves = np.asarray(tab._tree.leaves)
     assert math.isclose(info["total_priority"], math.fsum(leaves), rel_tol=1e-12)
-    row_key, end_key = tab._row_key, tab._end_key
+    row_key, end_key = tab._ring.row_key, tab._ring.end_key
     steps = (row_key >= 0) & (row_key != end_key)
     assert info["size"] == int(steps.sum())
     assert (leaves[~steps] == 0).all() and (leaves[steps] > 0).all()
