@@ -53,8 +53,8 @@ from ds.actor.actor import ReplaySink
 from ds.learner.learner import Learner
 from ds.learner.service import ParamsStore
 from ds.net.params import ParamsPublisher
+from ds.replay.client import ReplayClient
 from ds.replay.codec import message_limit_bytes
-from ds.replay.service import ReplayClient
 from envs.make import make_vector_env
 
 ROOT = Path(__file__).resolve().parents[1]

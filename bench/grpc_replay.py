@@ -93,7 +93,7 @@ def client(kind: str, port: int, seconds: float, start: Barrier, results: Any) -
     its envs) or learner (``sample``, ``sample_update``) process: warms its channel up, waits for
     the others, then calls for ``seconds`` and reports ``(calls, steps stored, elapsed)``."""
     from ds.actor.actor import ReplaySink
-    from ds.replay.service import ReplayClient
+    from ds.replay.client import ReplayClient
 
     rng = np.random.default_rng(os.getpid())
     chunks = [random_chunk(SENSORS, ACT, CHUNK, rng) for _ in range(8)]  # a few distinct payloads, as real actors send

@@ -30,7 +30,7 @@ from pathlib import Path
 
 from ds.launch.local import free_port
 from ds.net.rpc import LOCAL_HOST, RetryPolicy
-from ds.replay.service import ReplayClient
+from ds.replay.client import ReplayClient
 
 ROOT = Path(__file__).resolve().parents[1]
 ENV = {**os.environ, "OMP_WAIT_POLICY": "PASSIVE", "OMP_NUM_THREADS": "1", "MUJOCO_GL": "egl"}

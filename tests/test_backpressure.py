@@ -21,7 +21,8 @@ from algorithm.sac import SAC
 from ds.actor.actor import DistributedActor
 from ds.actor.sink import LAST_INSERTS_WAIT_S
 from ds.learner.client import LearnerClient, Registration
-from ds.replay.service import ReplayClient, serve_replay
+from ds.replay.client import ReplayClient
+from ds.replay.service import serve_replay
 from envs.make import vector_env_factory
 from tests.ds.test_reconnect import CONFIG, FAST_RETRY, SPEC, Learner, free_port
 

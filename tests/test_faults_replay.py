@@ -27,7 +27,7 @@ import pytest
 
 from algorithm.spaces import EnvSpec
 from ds.launch.local import free_port
-from ds.replay.service import ReplayClient, ReplayRpcError
+from ds.replay.client import ReplayClient, ReplayRpcError
 from envs.make import vector_env_factory
 
 pytestmark = [pytest.mark.slow, pytest.mark.grpc, pytest.mark.fault]

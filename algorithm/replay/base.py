@@ -36,7 +36,7 @@ class SampleTimeout(TimeoutError):
 class ReplayUnavailable(ConnectionError):
     """The table cannot be reached now (a remote table's server went away or did not answer within
     the call's deadline); the call may be repeated later. An in-process table never raises it, so a
-    learner catches this one error whatever transport it has (ds/replay/service.py raises it)."""
+    learner catches this one error whatever transport it has (ds/replay/client.py raises it)."""
 
 
 class NormalizerStats(TypedDict):

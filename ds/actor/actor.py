@@ -62,7 +62,7 @@ from ds.net.params import ParamsError, ParamsSubscriber, decode_params, params_s
 from ds.net.rpc import peer_unresponsive, wait_until_serving
 from ds.net.stream_key import StreamKey
 from ds.replay import service as replay_service
-from ds.replay.service import ReplayClient
+from ds.replay.client import ReplayClient
 
 log = logging.getLogger("asac.actor")
 ACTOR_SEED_STRIDE = 1000  # actor i's env j gets seed + 1000 * (i + 1) + j: never a training or eval seed

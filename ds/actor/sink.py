@@ -28,8 +28,8 @@ import grpc
 from algorithm.logging import Throttle
 from algorithm.replay import ChunkIds, InsertTimeout
 from algorithm.types import Chunk
+from ds.replay.client import PendingInsert, ReplayClient, ReplayRpcError
 from ds.replay.codec import chunk_payload_bytes
-from ds.replay.service import PendingInsert, ReplayClient, ReplayRpcError
 
 log = logging.getLogger("asac.actor")
 # How long an actor's last inserts at the end of a run may wait in the rate limiter, all together: the learner

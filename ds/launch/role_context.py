@@ -46,8 +46,8 @@ from ds.evolver import service as evolver_service
 from ds.evolver.service import EvolverClient
 from ds.net.rpc import LOCAL_HOST, wait_until_serving
 from ds.net.security import NO_CREDENTIALS, Credentials
+from ds.replay.client import ReplayClient
 from ds.replay.codec import message_limit_bytes
-from ds.replay.service import ReplayClient
 
 if TYPE_CHECKING:  # torch: imported by the roles that build models, never by the replay or the evolver
     from algorithm.nn.user import ModelBuilder

@@ -38,7 +38,7 @@ from ds.net.rpc import set_serving, wait_until_serving
 from ds.net.security import warn_if_exposed
 from ds.net.stream_key import StreamKey
 from ds.replay import service as replay_service
-from ds.replay.service import ReplayClient
+from ds.replay.client import ReplayClient
 
 log = logging.getLogger("asac.roles")
 

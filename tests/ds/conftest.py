@@ -10,7 +10,8 @@ from typing import Any
 import pytest
 
 from algorithm.replay import PrioritizedTable
-from ds.replay.service import ReplayClient, serve_replay
+from ds.replay.client import ReplayClient
+from ds.replay.service import serve_replay
 
 ServeOverGrpc = Callable[..., ReplayClient]
 

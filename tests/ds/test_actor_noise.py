@@ -14,7 +14,7 @@ import pytest
 from algorithm.sac import SAC
 from ds.actor.actor import DistributedActor
 from ds.learner.client import LearnerClient
-from ds.replay.service import ReplayClient
+from ds.replay.client import ReplayClient
 from envs.make import vector_env_factory
 from tests.ds.test_reconnect import CONFIG, FAST_RETRY, SPEC, Learner, Replay, free_port
 

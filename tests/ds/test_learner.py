@@ -25,7 +25,9 @@ from ds.learner.feeds import BatchPrefetcher, PriorityUpdater, merge_priorities
 from ds.learner.learner import EnvSteps, Learner
 from ds.learner.service import ParamsStore
 from ds.net.params import ParamsPublisher, decode_params, params_spec
-from ds.replay.service import ReplayClient, RetryPolicy, serve_replay
+from ds.net.rpc import RetryPolicy
+from ds.replay.client import ReplayClient
+from ds.replay.service import serve_replay
 from envs.make import make_vector_env
 from tests.algorithm.replay.chunks import VECTOR, make_chunk
 from tests.damage import flip_in_largest_record, tree_digest

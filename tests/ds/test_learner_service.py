@@ -24,7 +24,8 @@ from ds.learner.service import SERVICE_NAME, ActorRegistry, LearnerServicer, Par
 from ds.net.params import ParamsPublisher, decode_params, params_spec
 from ds.net.rpc import RetryPolicy, set_serving
 from ds.net.stream_key import StreamKey
-from ds.replay.service import ReplayClient, serve_replay
+from ds.replay.client import ReplayClient
+from ds.replay.service import serve_replay
 from envs.make import vector_env_factory
 
 pytestmark = pytest.mark.grpc

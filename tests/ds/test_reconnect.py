@@ -25,9 +25,10 @@ from ds.actor.actor import DistributedActor
 from ds.learner.client import LearnerClient
 from ds.learner.service import SERVICE_NAME, ActorRegistry, LearnerServicer, ParamsStore, serve_learner
 from ds.net.params import ParamsError, ParamsPublisher
-from ds.net.rpc import set_serving
+from ds.net.rpc import RetryPolicy, set_serving
 from ds.net.stream_key import StreamKey
-from ds.replay.service import ReplayClient, RetryPolicy, serve_replay
+from ds.replay.client import ReplayClient
+from ds.replay.service import serve_replay
 from envs.make import vector_env_factory
 
 pytestmark = pytest.mark.grpc

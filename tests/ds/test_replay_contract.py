@@ -2,7 +2,7 @@
 
 Each test below is the in-process test itself, imported and collected again here with ``connect``
 overridden: the test builds its table as before, and ``connect`` starts a real server for it on
-127.0.0.1 and hands back a :class:`~ds.replay.service.ReplayClient`, through which the test then
+127.0.0.1 and hands back a :class:`~ds.replay.client.ReplayClient`, through which the test then
 does everything (docs/architecture.md section 13). Not listed, because they reach inside the table or test its
 constructor rather than its interface: ``test_constructor_rejects_bad_arguments``, the
 thread-safety test of test_table_threads.py (its gRPC counterpart is in test_replay_service.py)

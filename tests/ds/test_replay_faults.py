@@ -16,7 +16,8 @@ import pytest
 from algorithm.replay import ChunkIds, PrioritizedTable
 from algorithm.types import Chunk
 from ds.actor.actor import ReplaySink
-from ds.replay.service import ReplayClient, serve_replay
+from ds.replay.client import ReplayClient
+from ds.replay.service import serve_replay
 from tests.algorithm.replay.chunks import VECTOR, make_chunk
 
 from .faults import FlakyCalls

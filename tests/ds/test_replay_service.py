@@ -20,16 +20,11 @@ from grpc_health.v1 import health, health_pb2, health_pb2_grpc
 
 from algorithm.replay import InsertTimeout, PrioritizedTable, RateLimiter, ReplayUnavailable, SampleTimeout
 from algorithm.types import Batch
+from ds.net.rpc import RetryPolicy
 from ds.net.wire import WireError, to_tensor
+from ds.replay.client import ReplayClient, ReplayRequestRejected, ReplayRpcError
 from ds.replay.codec import chunk_to_proto, message_limit_bytes
-from ds.replay.service import (
-    ReplayClient,
-    ReplayRequestRejected,
-    ReplayRpcError,
-    RetryPolicy,
-    serve_replay,
-    set_serving,
-)
+from ds.replay.service import serve_replay, set_serving
 from protos import replay_pb2, replay_pb2_grpc
 from tests.algorithm.replay.chunks import IMAGE, VECTOR, make_chunk
 

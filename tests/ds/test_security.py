@@ -39,7 +39,8 @@ from ds.net.params import encode_params, params_spec
 from ds.net.rpc import RetryPolicy, set_serving, wait_until_serving
 from ds.net.security import ROLES, Credentials, load_credentials
 from ds.replay import service as replay_service
-from ds.replay.service import ReplayClient, ReplayRpcError, serve_replay
+from ds.replay.client import ReplayClient, ReplayRpcError
+from ds.replay.service import serve_replay
 from protos import evolver_pb2, evolver_pb2_grpc, learner_pb2, replay_pb2
 from tests.algorithm.replay.chunks import VECTOR, make_chunk
 from tests.pki import Pki

@@ -2,7 +2,7 @@
 
 Here it returns the table itself. tests/ds/test_replay_contract.py collects the interface-level
 tests of this folder again with ``connect`` overridden to start a gRPC server around the table on
-loopback and return a :class:`ds.replay.service.ReplayClient`, so that the network path passes the
+loopback and return a :class:`ds.replay.client.ReplayClient`, so that the network path passes the
 same contract tests as the in-process one (docs/architecture.md section 13). A test that only uses the public table
 interface (``insert``, ``insert_many``, ``sample``, ``update_priorities``, ``info``,
 ``normalizer_stats``, ``save``, ``load``, and the ``sensors``/``action_size`` attributes) on what
