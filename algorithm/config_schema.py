@@ -188,6 +188,15 @@ class SacConfig(Section):
     discrete_target_entropy_anneal_updates: int = Field(
         10000, ge=1, description="Updates over which the discrete target entropy moves to its final ratio."
     )
+    learning_rate_final: float | None = Field(
+        None,
+        ge=0.0,
+        description="Anneal every optimizer's step size linearly from learning_rate to this value over "
+        "learning_rate_anneal_updates updates, constant after; null = constant learning_rate.",
+    )
+    learning_rate_anneal_updates: int = Field(
+        100000, ge=1, description="Updates over which the step size moves to learning_rate_final."
+    )
     use_priority: bool = Field(True, description="Weight the Q loss by PER importance weights.")
     use_n_step_is: bool = Field(False, description="V-trace correction of n-step targets.")
     use_prediction: bool = Field(False, description="Transition/reward/observation models shape the representation.")

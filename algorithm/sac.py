@@ -41,6 +41,7 @@ from algorithm.nn.noisy import reset_noise
 from algorithm.nn.prediction import gated_gradients, observation_targets
 from algorithm.policy import Policy
 from algorithm.sac_losses import Losses, SacLosses
+from algorithm.schedules import linear_anneal
 from algorithm.spaces import EnvSpec
 from algorithm.types import Batch
 from algorithm.update_graph import graph_for
@@ -186,6 +187,7 @@ class SAC(SacLosses, Policy):
             self._skip(checks)
         else:
             self._consecutive_nonfinite = 0
+            self._anneal_learning_rate()
             for opt in self._optimizers():
                 opt.step()
             self.updates += 1
@@ -216,6 +218,8 @@ class SAC(SacLosses, Policy):
                     "learner/updates": float(self.updates),
                 }
             )
+            if sac.learning_rate_final is not None:
+                metrics["learner/learning_rate"] = self.learning_rate_at(self.updates)
             if self._max_discrete_entropy:
                 metrics["learner/discrete_target_entropy"] = float(self.discrete_target_entropy.mean())
         refreshed = None
@@ -233,8 +237,7 @@ class SAC(SacLosses, Policy):
         final, start = self.sac.discrete_target_entropy_ratio, self.sac.discrete_target_entropy_start
         if start is None:
             return final
-        done = min(1.0, updates / self.sac.discrete_target_entropy_anneal_updates)
-        return start + (final - start) * done
+        return linear_anneal(start, final, updates, self.sac.discrete_target_entropy_anneal_updates)
 
     def _discrete_target_entropy(self, updates: int) -> Tensor:
         ratio = self._target_entropy_ratio(updates)
@@ -245,6 +248,24 @@ class SAC(SacLosses, Policy):
         loss reads, so torch.compile sees no new constant)."""
         if self.sac.discrete_target_entropy_start is not None and self._max_discrete_entropy:
             self.discrete_target_entropy.copy_(self._discrete_target_entropy(self.updates))
+
+    def learning_rate_at(self, updates: int) -> float:
+        """The step size of the update after ``updates`` applied ones: ``learning_rate``, or with
+        ``learning_rate_final`` set, moving linearly from it to that value over
+        ``learning_rate_anneal_updates`` updates and constant after (as SB3's linear schedules,
+        with any end). It follows the applied-update count, which checkpoints keep."""
+        start, final = self.sac.learning_rate, self.sac.learning_rate_final
+        if final is None:
+            return start
+        return linear_anneal(start, final, updates, self.sac.learning_rate_anneal_updates)
+
+    def _anneal_learning_rate(self) -> None:
+        if self.sac.learning_rate_final is None:
+            return
+        lr = self.learning_rate_at(self.updates)
+        for opt in self._optimizers():
+            for group in opt.param_groups:
+                group["lr"] = lr
 
     def td_errors(self, batch: Batch) -> np.ndarray:
         """``|TD| [B]`` float32 of each window's trained step under the current weights (mean over all

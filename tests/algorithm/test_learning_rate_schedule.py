@@ -1,0 +1,80 @@
+"""sac_config.learning_rate_final: every optimizer's step size annealed linearly with the applied-update
+count, constant after, and a resumed learner going on where it was."""
+
+from __future__ import annotations
+
+import copy
+
+import numpy as np
+import pytest
+import torch
+
+from algorithm.config_schema import SacConfig
+from algorithm.sac import SAC
+from algorithm.schedules import linear_anneal
+from tests.algorithm.test_sac import make_batch, make_sac
+
+
+def step_size(sac: SAC) -> float:
+    """The one step size every parameter group of every optimizer has."""
+    sizes = {group["lr"] for opt in sac._optimizers() for group in opt.param_groups}
+    assert len(sizes) == 1, sizes
+    return sizes.pop()
+
+
+def weights(sac: SAC) -> list[torch.Tensor]:
+    return [p.detach().clone() for p in sac.models.parameters()]
+
+
+def test_linear_anneal_moves_from_start_to_final_and_stays() -> None:
+    assert [linear_anneal(1.0, 0.2, u, 4) for u in range(6)] == pytest.approx([1.0, 0.8, 0.6, 0.4, 0.2, 0.2])
+
+
+def test_every_optimizer_steps_with_the_annealed_rate_and_reports_it() -> None:
+    sac = make_sac(learning_rate=1e-3, learning_rate_final=2e-4, learning_rate_anneal_updates=4, use_priority=False)
+    assert len(sac._optimizers()) == 3  # critic, policy and alpha all follow the schedule
+    used, reported = [], []
+    for i in range(6):
+        result = sac.update(make_batch(seed=i), with_metrics=True)
+        used.append(step_size(sac))
+        reported.append(result.metrics["learner/learning_rate"])
+    expected = [1e-3, 8e-4, 6e-4, 4e-4, 2e-4, 2e-4]  # the rate of update i: i updates applied before it
+    assert used == pytest.approx(expected)
+    # reported after each update: the rate the next one will use
+    assert reported == pytest.approx([8e-4, 6e-4, 4e-4, 2e-4, 2e-4, 2e-4])
+
+
+def test_a_rate_annealed_to_zero_stops_training() -> None:
+    sac = make_sac(learning_rate=1e-3, learning_rate_final=0.0, learning_rate_anneal_updates=3, use_priority=False)
+    for i in range(3):
+        sac.update(make_batch(seed=i))
+    before = weights(sac)
+    sac.update(make_batch(seed=7))
+    for a, b in zip(before, weights(sac), strict=True):
+        torch.testing.assert_close(a, b, rtol=0, atol=0)
+    # and a constant rate (the default) still moves them
+    constant = make_sac(learning_rate=1e-3, use_priority=False)
+    for i in range(3):
+        constant.update(make_batch(seed=i))
+    before = weights(constant)
+    constant.update(make_batch(seed=7))
+    assert any(not torch.equal(a, b) for a, b in zip(before, weights(constant), strict=True))
+
+
+def test_a_resumed_learner_goes_on_with_the_rate_where_it_was() -> None:
+    config = dict(learning_rate=1e-3, learning_rate_final=1e-4, learning_rate_anneal_updates=10, use_priority=False)
+    sac = make_sac(**config)
+    for i in range(4):
+        sac.update(make_batch(seed=i))
+    resumed = make_sac(**config)
+    resumed.load_state_dict(copy.deepcopy(sac.state_dict()))
+    a, b = sac.update(make_batch(seed=5)), resumed.update(make_batch(seed=5))
+    np.testing.assert_array_equal(a.td_abs, b.td_abs)
+    assert step_size(resumed) == step_size(sac) == pytest.approx(1e-3 - 9e-4 * 4 / 10)
+
+
+def test_the_schedule_is_checked_at_load() -> None:
+    with pytest.raises(ValueError, match="learning_rate_final"):
+        SacConfig(learning_rate_final=-1e-4)
+    with pytest.raises(ValueError, match="learning_rate_anneal_updates"):
+        SacConfig(learning_rate_anneal_updates=0)
