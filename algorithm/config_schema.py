@@ -188,6 +188,12 @@ class SacConfig(Section):
     discrete_target_entropy_anneal_updates: int = Field(
         10000, ge=1, description="Updates over which the discrete target entropy moves to its final ratio."
     )
+    update_order: Literal["joint", "critic_first"] = Field(
+        "joint",
+        description="joint: every loss from the same weights, applied together (a non-finite step is skipped "
+        "whole); critic_first: the critic and temperature step first and the policy's loss is computed against "
+        "the stepped critic (SB3's order; no CUDA graph).",
+    )
     learning_rate_final: float | None = Field(
         None,
         ge=0.0,

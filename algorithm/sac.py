@@ -23,6 +23,7 @@ and, being a :class:`~algorithm.policy.Policy`, ``actions, behaviour_logp = sac.
 from __future__ import annotations
 
 import copy
+import dataclasses
 import math
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
@@ -32,6 +33,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from algorithm.batch_checks import check_batch
 from algorithm.config_schema import NNConfig, ReplayConfig, SacConfig
 from algorithm.losses import Metrics, importance_weights
 from algorithm.nn.builder import build_models
@@ -153,13 +155,14 @@ class SAC(SacLosses, Policy):
     def update(self, batch: Batch, with_metrics: bool = False) -> UpdateResult:
         """One gradient step on every part from one batch (docs/architecture.md section 5).
 
-        All losses are computed from the same parameters (:meth:`_losses`) and applied together
-        (as Acme's SAC learner does), which lets the whole step be skipped when anything is
+        By default all losses are computed from the same parameters (:meth:`_losses`) and applied
+        together (as Acme's SAC learner does; ``update_order: critic_first`` is SB3's order,
+        :meth:`_critic_first_step`), which lets the whole step be skipped when anything is
         non-finite: no optimizer step, no target update, weights and optimizer state unchanged.
         After ``sac.max_nonfinite_steps`` consecutive skips this raises RuntimeError. PER ``beta``
         advances once per call, skipped or not (it counts sampled batches).
         """
-        self._check_batch(batch)
+        check_batch(batch, self.spec, self.sac, self.rnn_state_size)
         sac, dev = self.sac, self.device
         weights = None
         if sac.use_priority:  # on the CPU: float64 is not available on every device
@@ -173,23 +176,12 @@ class SAC(SacLosses, Policy):
         noise = self._noise(batch, self._learn_rng)
         self._anneal_target_entropy()
         inputs = self._pass_inputs(batch, weights, noise, self._subset(), self._subset())
-        graph = self.update_graph
-        passed = None
-        if graph is not None and graph.usable:
-            passed = graph.run(self._forward_backward, inputs, self.device, self._kept_modules())
-        if passed is None:
-            passed = self._forward_backward(self._on_device(inputs))
-        losses, critic_norm, policy_norm, checks = passed
-
-        # 4. Apply, or skip the whole step if anything is non-finite.
-        skipped = not bool(torch.isfinite(checks).all())  # the one host sync of the step
-        if skipped:
-            self._skip(checks)
+        if sac.update_order == "critic_first":
+            losses, critic_norm, policy_norm, skipped = self._critic_first_step(self._on_device(inputs))
         else:
+            losses, critic_norm, policy_norm, skipped = self._joint_step(inputs)
+        if not skipped:
             self._consecutive_nonfinite = 0
-            self._anneal_learning_rate()
-            for opt in self._optimizers():
-                opt.step()
             self.updates += 1
             if self.updates % sac.update_target_per_step == 0:
                 with torch.no_grad():
@@ -226,6 +218,55 @@ class SAC(SacLosses, Policy):
         if sac.refresh_rnn_states and losses.fed_states is not None and not skipped:
             refreshed = self._window_rows(batch, losses.fed_states)
         return UpdateResult(td_abs=td.cpu().numpy(), metrics=metrics, skipped=skipped, refreshed_rnn_states=refreshed)
+
+    def _joint_step(self, inputs: list[np.ndarray | Tensor | None]) -> tuple[Losses, Tensor, Tensor, bool]:
+        """Every loss from the same weights, applied together, or the whole step skipped if anything is
+        non-finite (``update_order: joint``); the pass replayed as a CUDA graph where one is recorded."""
+        graph = self.update_graph
+        passed = None
+        if graph is not None and graph.usable:
+            passed = graph.run(self._forward_backward, inputs, self.device, self._kept_modules())
+        if passed is None:
+            passed = self._forward_backward(self._on_device(inputs))
+        losses, critic_norm, policy_norm, checks = passed
+        skipped = not bool(torch.isfinite(checks).all())  # the one host sync of the step
+        if skipped:
+            self._skip(checks)
+        else:
+            self._anneal_learning_rate()
+            for opt in self._optimizers():
+                opt.step()
+        return losses, critic_norm, policy_norm, skipped
+
+    def _critic_first_step(self, inputs: list[Tensor | None]) -> tuple[Losses, Tensor, Tensor, bool]:
+        """SB3's order (``update_order: critic_first``; its SAC.train steps the temperature, then the
+        critic, then the actor): the critic, temperature and exploration models step first, then the
+        policy's loss is computed again, from the same sample and temperatures, against the stepped
+        critic, and the policy steps. A non-finite first pass skips everything; a non-finite policy
+        loss after the critic's step skips the policy's step (the critic's stands) and counts as a
+        skipped update, as in :meth:`_joint_step`."""
+        losses, critic_norm, _, checks = self._forward_backward(inputs, with_policy=False)
+        if not bool(torch.isfinite(checks).all()):
+            self._skip(checks)
+            return losses, critic_norm, torch.zeros((), device=self.device), True
+        self._anneal_learning_rate()
+        for name, opt in self._named_optimizers().items():
+            if name != "policy":
+                opt.step()
+        terms = losses.policy_terms
+        if self.policy_optimizer is None or terms is None:
+            return losses, critic_norm, torch.zeros((), device=self.device), False
+        with self._autocast():
+            pi_loss, _ = self._policy_loss(terms)
+        pi_loss.backward()
+        policy_norm = _grad_norm(self._policy_params)
+        losses = dataclasses.replace(losses, policy=pi_loss)
+        if not bool(torch.isfinite(torch.stack([pi_loss.detach(), policy_norm])).all()):
+            checks[[1, 6]] = torch.stack([pi_loss.detach(), policy_norm]).to(checks.dtype)
+            self._skip(checks)
+            return losses, critic_norm, policy_norm, True
+        self.policy_optimizer.step()
+        return losses, critic_norm, policy_norm, False
 
     def _target_entropy_ratio(self, updates: int) -> float:
         """The discrete target entropy as a fraction of log|A_b| after ``updates`` updates: constant,
@@ -273,7 +314,7 @@ class SAC(SacLosses, Policy):
         for ``sac_config.insert_td_priorities``. Its noise comes from a generator of its own, so
         scoring does not change the updates' random stream, and RND's running novelty mean
         (``rnd_normalize``), which the losses move, is put back: it follows trained batches only."""
-        self._check_batch(batch)
+        check_batch(batch, self.spec, self.sac, self.rnn_state_size)
         noise = self._noise(batch, self._score_rng)
         rnd = self.models.rnd
         mean = rnd.get_buffer("novelty_mean") if rnd is not None and self.sac.rnd_normalize else None
@@ -315,20 +356,27 @@ class SAC(SacLosses, Policy):
         n = len(self.spec.sensors)
         rest: list[Any] = inputs[n:]
         obs = [o for o in inputs[:n] if o is not None]
-        cache = self.update_graph is None
-        with torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=self._low_precision, cache_enabled=cache):
+        with self._autocast():
             return self._compute_losses(self._normalize(obs), *rest)
 
-    def _forward_backward(self, inputs: list[Tensor | None]) -> tuple[Losses, Tensor, Tensor, Tensor]:
-        """One pass: the losses, their gradients in every parameter's ``.grad``, the two gradient norms
-        and what the non-finite check looks at. This is what a CUDA graph records (:attr:`update_graph`)."""
+    def _autocast(self) -> torch.autocast:
+        cache = self.update_graph is None
+        return torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=self._low_precision, cache_enabled=cache)
+
+    def _forward_backward(
+        self, inputs: list[Tensor | None], with_policy: bool = True
+    ) -> tuple[Losses, Tensor, Tensor, Tensor]:
+        """One pass: the losses, their gradients in every parameter's ``.grad`` (the policy's only
+        ``with_policy``), the two gradient norms and what the non-finite check looks at. This is what
+        a CUDA graph records (:attr:`update_graph`)."""
         losses = self._batch_losses(inputs)
         # One backward: the losses touch disjoint parameters (policy_loss detaches the critic, alpha_loss
         # detaches log_prob, the target is no-grad), so each gets exactly its own grads.
         for opt in self._optimizers():
             opt.zero_grad(set_to_none=True)
         predictions = losses.predictions
-        (losses.q + losses.policy + losses.alpha + losses.auxiliary).backward(retain_graph=bool(predictions))
+        total = losses.q + losses.alpha + losses.auxiliary + (losses.policy if with_policy else 0.0)
+        total.backward(retain_graph=bool(predictions))
         if predictions:
             self._apply_prediction_gradients(predictions, losses.metrics)
         critic_norm, policy_norm = _grad_norm(self._critic_params), _grad_norm(self._policy_params)
@@ -391,40 +439,6 @@ class SAC(SacLosses, Policy):
                 f"(sac_config.max_nonfinite_steps={self.sac.max_nonfinite_steps}); last step: {values}. "
                 "Check rewards and observations for NaN/inf, or lower the learning rate."
             )
-
-    def _check_batch(self, batch: Batch) -> None:
-        sensors, n_b, n_l = self.spec.sensors, batch.batch_size, batch.window
-        window = self.sac.burn_in_step + self.sac.n_step
-        if n_l != window:
-            raise ValueError(f"batch window is {n_l} steps, expected burn_in_step + n_step = {window}")
-        if len(batch.obs) != len(sensors):
-            raise ValueError(f"batch.obs has {len(batch.obs)} sensors, the spec has {len(sensors)}")
-        for o, s in zip(batch.obs, sensors, strict=True):
-            if o.shape != (n_b, n_l + 1, *s.shape) or o.dtype != s.dtype:
-                raise ValueError(
-                    f"batch.obs for sensor {s.name!r} must be {s.dtype} {(n_b, n_l + 1, *s.shape)}, "
-                    f"got {o.dtype} {o.shape}"
-                )
-        expected = {
-            "actions": (n_b, n_l, self.spec.action.size),
-            "rewards": (n_b, n_l),
-            "terminated": (n_b, n_l),
-            "truncated": (n_b, n_l),
-            "mask": (n_b, n_l),
-            "probabilities": (n_b,),
-        }
-        for name, shape in expected.items():
-            got = getattr(batch, name).shape
-            if got != shape:
-                raise ValueError(f"batch.{name} must have shape {shape}, got {got}")
-        burn_in = self.sac.burn_in_step
-        if not batch.mask[:, burn_in].all():
-            raise ValueError(f"batch.mask[:, {burn_in}] must be True: the sampled step of every window is stored")
-        if self.rnn_state_size and (batch.rnn_state is None or batch.rnn_state.shape != (n_b, self.rnn_state_size)):
-            got = None if batch.rnn_state is None else batch.rnn_state.shape
-            raise ValueError(f"batch.rnn_state must have shape {(n_b, self.rnn_state_size)} with use_rnn, got {got}")
-        if self.sac.use_priority and batch.table_size < 1:
-            raise ValueError(f"batch.table_size must be >= 1 with use_priority, got {batch.table_size}")
 
     # -- checkpoints ----------------------------------------------------------------------------
 

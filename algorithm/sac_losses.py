@@ -62,6 +62,20 @@ class Losses:
     td_abs: Tensor
     metrics: Metrics
     fed_states: Tensor | None
+    policy_terms: PolicyTerms | None = None  # sac.update_order critic_first: what the policy loss is redone from
+
+
+@dataclass
+class PolicyTerms:
+    """What the policy's loss is computed from besides the critic: the trained step's detached state,
+    the policy's sample on it, the Q heads it is scored by and the temperatures of the pass. With
+    ``sac.update_order: critic_first`` the loss is computed again from these after the critic's step."""
+
+    state: Tensor
+    pi: PolicySample
+    heads: Tensor | None
+    alpha: Tensor
+    alpha_discrete: Tensor
 
 
 @dataclass
@@ -190,13 +204,19 @@ class SacLosses:
         q = self.models.q
         q_loss, td_abs, q_metrics = critic_loss(self._q_taken(q, state, action0), y, weights, sac.clip_epsilon, old_q)
         pi = self._policy(state.detach(), noise[:, 0], window.masks_at(0))
-        q_pi = q(state.detach(), pi.continuous, policy_heads, detach_params=True).min(dim=0).values
-        pi_loss, pi_metrics = policy_loss(q_pi, pi, alpha, alpha_d, self._branches)
+        terms = PolicyTerms(state.detach(), pi, policy_heads, alpha, alpha_d)
+        pi_loss, pi_metrics = self._policy_loss(terms)
         a_loss = self._temperature_loss(pi)
         metrics.update({**q_metrics, **pi_metrics, "learner/next_value": v, "learner/auxiliary_loss": aux_loss})
         if every_step is not None:
             td_abs = td_abs[every_step.sampled_rows]
-        return Losses(q_loss, pi_loss, a_loss, aux_loss, predictions, td_abs, metrics, fed_states)
+        kept = terms if sac.update_order == "critic_first" else None
+        return Losses(q_loss, pi_loss, a_loss, aux_loss, predictions, td_abs, metrics, fed_states, kept)
+
+    def _policy_loss(self, terms: PolicyTerms) -> tuple[Tensor, Metrics]:
+        """The policy's loss against the online critic as its parameters are now (their gradients cut)."""
+        q = self.models.q(terms.state, terms.pi.continuous, terms.heads, detach_params=True)
+        return policy_loss(q.min(dim=0).values, terms.pi, terms.alpha, terms.alpha_discrete, self._branches)
 
     def _temperature_loss(self, pi: PolicySample) -> Tensor:
         """``use_auto_alpha``: the continuous temperature's loss toward ``-|A_c|`` and each discrete

@@ -88,6 +88,7 @@ def why_not_graphed(
         (compiled, "sac_config.compile is on (torch.compile records its own graphs)"),
         (has_rnn, "use_rnn: recurrent windows are not recorded"),
         (sac.train_every_step, "train_every_step is not recorded"),
+        (sac.update_order == "critic_first", "update_order critic_first: the policy's pass follows the critic's step"),
         (sac.use_n_step_is, "use_n_step_is: V-trace's metrics index by a data-dependent mask"),
         (has_prediction, "prediction models take a second autograd pass"),
         (sac.use_rnd and sac.rnd_normalize, "rnd_normalize: the novelty mean indexes by a data-dependent mask"),
