@@ -210,8 +210,8 @@ class SAC(SacLosses, Policy):
                     "learner/updates": float(self.updates),
                 }
             )
-            if sac.learning_rate_final is not None:
-                metrics["learner/learning_rate"] = self.learning_rate_at(self.updates)
+            if sac.learning_rate_final is not None:  # the step size this update stepped with
+                metrics["learner/learning_rate"] = float(self.critic_optimizer.param_groups[0]["lr"])
             if self._max_discrete_entropy:
                 metrics["learner/discrete_target_entropy"] = float(self.discrete_target_entropy.mean())
         refreshed = None

@@ -25,7 +25,7 @@ import pytest
 import torch
 
 from algorithm.evaluation import read_evaluations
-from tests.role_runs import as_a_shell_starts_it
+from tests.role_runs import as_a_shell_starts_it, scalars
 
 ROOT = Path(__file__).resolve().parents[1]
 pytestmark = pytest.mark.fault
@@ -257,3 +257,27 @@ def test_the_terminal_closing_under_a_run_saves_it_and_the_same_command_resumes(
     assert (
         f"resumed at {saved} env steps" in resumed.stderr and f"finished at {saved + 500} env steps" in resumed.stderr
     )
+
+
+def test_an_annealed_learning_rate_goes_on_where_it_was_after_ctrl_c(tmp_path: Path) -> None:
+    """``sac.learning_rate_final``: the step size follows the applied-update count the checkpoint keeps,
+    so the run that resumes after Ctrl-C goes on down the same line (one that restarted the schedule
+    would jump back up to ``learning_rate``), read back from the run's TensorBoard files."""
+    total = 7000  # ~ the updates of 3,000 Pendulum steps at 4 per step after 1,000 stored: the line's end
+    args = [*COMMON, "-n", "annealed", "--override", "sac.learning_rate_final=0.00003", "--override",
+            f"sac.learning_rate_anneal_updates={total}", "--override", "sac.write_summary_per_step=250"]  # fmt: skip
+    code, log = interrupt_at(tmp_path, args, r"eval at 2000 env steps", signal.SIGINT)
+    assert code == 130, log
+    run = tmp_path / "models/gym/pendulum/annealed"
+    stopped_updates = counters(run)["updates"]
+    resumed = run_main(tmp_path, *args)
+    assert resumed.returncode == 0, resumed.stderr
+    start = 1e-3  # gym/pendulum's learning_rate
+    rates = scalars(run / "log", "learner/learning_rate")
+    updates = scalars(run / "log", "learner/updates")
+    assert len(rates) == len(updates) and len(rates) >= 10, rates
+    for (_, _, rate), (_, _, done) in zip(rates, updates, strict=True):  # wall-time order, both files
+        expected = start + (3e-5 - start) * min(1.0, (done - 1) / total)  # the update that made it the done-th
+        assert rate == pytest.approx(expected, rel=1e-3), (done, rate, expected)
+    assert any(done > stopped_updates for _, _, done in updates), (stopped_updates, updates)  # after the resume
+    assert rates[-1][2] < start / 2, rates
