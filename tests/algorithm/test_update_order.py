@@ -93,3 +93,38 @@ def test_critic_first_is_not_recorded_as_a_cuda_graph_and_bad_values_are_named()
     assert why_not_graphed(SacConfig(), torch.device("cuda"), False, False, False) is None
     with pytest.raises(ValueError, match="update_order"):
         SacConfig(update_order="policy_first")
+
+
+def poison_after_critic_step(sac: Any) -> None:
+    """The critic's optimizer steps, then one Q weight becomes NaN: the first pass was finite, the
+    policy's loss against the stepped critic is not (how a critic that diverges in one step looks)."""
+    step = sac.critic_optimizer.step
+
+    def step_then_poison(*args: Any, **kwargs: Any) -> Any:
+        out = step(*args, **kwargs)
+        with torch.no_grad():
+            next(sac.models.q.parameters()).view(-1)[0] = float("nan")
+        return out
+
+    sac.critic_optimizer.step = step_then_poison
+
+
+def test_critic_first_skips_the_policy_step_when_the_stepped_critic_makes_its_loss_nonfinite() -> None:
+    sac = make_sac(update_order="critic_first", use_priority=False)
+    sac.update(make_batch(seed=1))
+    policy_before, q_before, target_before = params(sac.models.policy), params(sac.models.q), params(sac.target_q)
+    poison_after_critic_step(sac)
+    result = sac.update(make_batch(seed=2), with_metrics=True)
+    assert result.skipped and sac.updates == 1 and sac.nonfinite_skipped == 1
+    assert not np.isfinite(result.metrics["learner/policy_loss"])
+    assert all(torch.equal(a, b) for a, b in zip(policy_before, params(sac.models.policy), strict=True))
+    assert all(torch.equal(a, b) for a, b in zip(target_before, params(sac.target_q), strict=True))
+    assert any(not torch.equal(a, b) for a, b in zip(q_before, params(sac.models.q), strict=True))  # it stands
+    assert np.isfinite(result.td_abs).all()
+
+
+def test_critic_first_names_the_policy_loss_when_nonfinite_steps_run_out() -> None:
+    sac = make_sac(update_order="critic_first", use_priority=False, max_nonfinite_steps=1)
+    poison_after_critic_step(sac)
+    with pytest.raises(RuntimeError, match=r"policy_loss=nan"):
+        sac.update(make_batch(seed=2))
