@@ -1,5 +1,6 @@
-"""The learner's check of a sampled batch against the task's spec and the SAC config, before any of it
-reaches the device: a wrong shape, dtype or window names the field and what was expected."""
+"""The learner's checks against the task's spec: SAC options that need a kind of action space, when the
+learner is built, and a sampled batch, before any of it reaches the device (a wrong shape, dtype or window
+names the field and what was expected)."""
 
 from __future__ import annotations
 
@@ -42,3 +43,14 @@ def check_batch(batch: Batch, spec: EnvSpec, sac: SacConfig, rnn_state_size: int
         raise ValueError(f"batch.rnn_state must have shape {(n_b, rnn_state_size)} with use_rnn, got {got}")
     if sac.use_priority and batch.table_size < 1:
         raise ValueError(f"batch.table_size must be >= 1 with use_priority, got {batch.table_size}")
+
+
+def check_config_for_task(sac: SacConfig, spec: EnvSpec) -> None:
+    """Raise ValueError naming the ``sac_config`` key whose option this task's action space cannot take."""
+    act = spec.action
+    if sac.discrete_entropy_penalty > 0 and (act.continuous_dim or sac.discrete_dqn_like or not act.discrete_branches):
+        raise ValueError(
+            "sac_config.discrete_entropy_penalty needs a discrete-only action space and a stochastic discrete "
+            f"policy (discrete_dqn_like false); this task has {act.continuous_dim} continuous dims, discrete "
+            f"branches {list(act.discrete_branches)}, discrete_dqn_like {sac.discrete_dqn_like}"
+        )

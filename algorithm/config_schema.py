@@ -194,6 +194,12 @@ class SacConfig(Section):
         "whole); critic_first: the critic and temperature step first and the policy's loss is computed against "
         "the stepped critic (SB3's order; no CUDA graph).",
     )
+    discrete_entropy_penalty: float = Field(
+        0.0,
+        ge=0.0,
+        description="Add this times (H(pi(s)) - H(mu(s)))^2 to the policy's loss, mu the policy that acted "
+        "(SD-SAC's entropy penalty, Zhou et al.; they use 0.5); discrete actions only; 0 = off.",
+    )
     learning_rate_final: float | None = Field(
         None,
         ge=0.0,

@@ -161,6 +161,18 @@ def alpha_loss(log_alpha: Tensor, log_prob: Tensor, target_entropy: float | Tens
     return -(log_alpha * (log_prob.detach() + target_entropy).mean(dim=0)).sum(), {}
 
 
+def entropy_penalty(entropy: Tensor, behaviour_entropy: Tensor) -> Tensor:
+    """``mean_b (H(pi(s_b)) - X_b)^2``: SD-SAC's entropy penalty (Zhou et al., "Revisiting Discrete Soft
+    Actor-Critic", 2022), which holds each state's policy entropy near the entropy of the policy that
+    acted there, against the swings of a discrete policy's entropy that come with its returns' collapses.
+
+    SD-SAC stores ``H(mu(s))`` with each step; here ``X_b = -log mu(a_b|s_b)`` of the stored action,
+    whose mean over ``a ~ mu`` is ``H(mu(s))``: ``E[(H - X)^2] = (H - H(mu))^2 + Var X``, so the
+    gradient in ``H`` is SD-SAC's in expectation and nothing but the behaviour log-probability that
+    replay already keeps is needed. ``entropy [B]`` carries the gradient; ``behaviour_entropy`` none."""
+    return (entropy - behaviour_entropy.detach()).square().mean()
+
+
 def expected_log_prob(pi: PolicySample, branches: Tensor) -> Tensor:
     """``sum_a pi_b(a|s) log pi_b(a|s)`` per branch, ``[N, K]`` (minus each branch's entropy)."""
     assert pi.probs is not None and pi.log_probs is not None

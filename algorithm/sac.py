@@ -33,7 +33,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from algorithm.batch_checks import check_batch
+from algorithm.batch_checks import check_batch, check_config_for_task
 from algorithm.config_schema import NNConfig, ReplayConfig, SacConfig
 from algorithm.losses import Metrics, importance_weights
 from algorithm.nn.builder import build_models
@@ -87,6 +87,7 @@ class SAC(SacLosses, Policy):
         compile: bool = False,
         build: Callable[[EnvSpec, SacConfig, NNConfig], SacModels] = build_models,
     ) -> None:
+        check_config_for_task(sac, spec)
         super().__init__(spec, sac, nn, device, build)
         self.beta = float(replay.beta)
         self.beta_increment = float(replay.beta_increment_per_sampling)

@@ -29,6 +29,7 @@ from algorithm.losses import (
     PolicySample,
     alpha_loss,
     critic_loss,
+    entropy_penalty,
     expected_log_prob,
     policy_loss,
     soft_value,
@@ -76,6 +77,7 @@ class PolicyTerms:
     heads: Tensor | None
     alpha: Tensor
     alpha_discrete: Tensor
+    behaviour_entropy: Tensor | None = None  # discrete_entropy_penalty: -log mu(a|s) of the stored action [B]
 
 
 @dataclass
@@ -204,7 +206,8 @@ class SacLosses:
         q = self.models.q
         q_loss, td_abs, q_metrics = critic_loss(self._q_taken(q, state, action0), y, weights, sac.clip_epsilon, old_q)
         pi = self._policy(state.detach(), noise[:, 0], window.masks_at(0))
-        terms = PolicyTerms(state.detach(), pi, policy_heads, alpha, alpha_d)
+        behaviour_entropy = -window.behaviour_logp[:, 0] if sac.discrete_entropy_penalty > 0 else None
+        terms = PolicyTerms(state.detach(), pi, policy_heads, alpha, alpha_d, behaviour_entropy)
         pi_loss, pi_metrics = self._policy_loss(terms)
         a_loss = self._temperature_loss(pi)
         metrics.update({**q_metrics, **pi_metrics, "learner/next_value": v, "learner/auxiliary_loss": aux_loss})
@@ -216,7 +219,13 @@ class SacLosses:
     def _policy_loss(self, terms: PolicyTerms) -> tuple[Tensor, Metrics]:
         """The policy's loss against the online critic as its parameters are now (their gradients cut)."""
         q = self.models.q(terms.state, terms.pi.continuous, terms.heads, detach_params=True)
-        return policy_loss(q.min(dim=0).values, terms.pi, terms.alpha, terms.alpha_discrete, self._branches)
+        loss, metrics = policy_loss(q.min(dim=0).values, terms.pi, terms.alpha, terms.alpha_discrete, self._branches)
+        if terms.behaviour_entropy is None:
+            return loss, metrics
+        assert self._branches is not None
+        penalty = entropy_penalty(-expected_log_prob(terms.pi, self._branches).sum(dim=-1), terms.behaviour_entropy)
+        metrics["learner/entropy_penalty"] = penalty.detach()
+        return loss + self.sac.discrete_entropy_penalty * penalty, metrics
 
     def _temperature_loss(self, pi: PolicySample) -> Tensor:
         """``use_auto_alpha``: the continuous temperature's loss toward ``-|A_c|`` and each discrete

@@ -1,0 +1,77 @@
+"""sac_config.discrete_entropy_penalty: SD-SAC's penalty (Zhou et al. 2022) on the distance between each
+state's policy entropy and the entropy of the policy that acted there, estimated from the stored
+behaviour log-probability."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import Any
+
+import numpy as np
+import pytest
+import torch
+
+from algorithm.losses import entropy_penalty
+from tests.algorithm.test_discrete import make_batch, make_sac, masked_spec
+from tests.algorithm.test_sac import make_sac as make_continuous_sac
+
+SPEC = masked_spec((3,))
+
+
+def test_the_stored_actions_log_probability_gives_the_penaltys_gradient_in_expectation() -> None:
+    mu = torch.tensor([0.6, 0.3, 0.1], dtype=torch.float64)
+    h_mu = float(-(mu * mu.log()).sum())
+    entropy = torch.tensor([0.4], dtype=torch.float64, requires_grad=True)
+    expected = sum(p * entropy_penalty(entropy, -torch.log(p).view(1)) for p in mu)  # over a ~ mu
+    (grad,) = torch.autograd.grad(expected, entropy)
+    torch.testing.assert_close(grad, 2 * (entropy.detach() - h_mu))
+
+
+def behaviour(batch: Any, logp: float) -> Any:
+    return dataclasses.replace(batch, behaviour_logp=np.full_like(batch.behaviour_logp, logp))
+
+
+def trained_entropy(penalty: float, logp: float) -> float:
+    """The policy's mean entropy on the batch after 60 updates with the behaviour's entropy estimate
+    ``-logp`` on every row, the temperature fixed and small (so only Q and the penalty shape it)."""
+    sac = make_sac(SPEC, use_priority=False, use_auto_alpha=False, init_log_alpha=-6.0,
+                   learning_rate=3e-3, discrete_entropy_penalty=penalty)  # fmt: skip
+    batch = behaviour(make_batch(SPEC, b=32, seed=5), logp)
+    for _ in range(60):
+        metrics = sac.update(batch, with_metrics=True).metrics
+    assert ("learner/entropy_penalty" in metrics) == (penalty > 0)
+    return metrics["learner/entropy_discrete"]
+
+
+def test_the_penalty_pulls_the_policys_entropy_toward_the_behaviours() -> None:
+    free = trained_entropy(0.0, 0.0)
+    assert trained_entropy(5.0, math.log(1 / 3)) > free + 0.05  # a uniform behaviour: entropy log 3
+    assert trained_entropy(5.0, 0.0) < free - 0.05  # a deterministic behaviour: entropy 0
+
+
+def policy_grads(penalty: float) -> list[torch.Tensor]:
+    sac = make_sac(SPEC, use_priority=False, discrete_entropy_penalty=penalty)
+    rng = np.random.default_rng(1)
+    batch = make_batch(SPEC, seed=2)
+    batch = dataclasses.replace(batch, behaviour_logp=np.log(rng.uniform(0.1, 0.9, batch.behaviour_logp.shape)))
+    sac.policy_optimizer.step = lambda *a, **k: None  # keep the gradients of one pass, weights unchanged
+    batch = dataclasses.replace(batch, behaviour_logp=batch.behaviour_logp.astype(np.float32))
+    sac.update(batch)
+    return [p.grad.clone() for p in sac._policy_params]
+
+
+def test_the_penalty_enters_the_policys_gradient_scaled_by_its_weight_and_nothing_else() -> None:
+    g0, g1, g2 = policy_grads(0.0), policy_grads(0.5), policy_grads(1.0)
+    for a, b, c in zip(g0, g1, g2, strict=True):
+        torch.testing.assert_close(c - a, 2 * (b - a), rtol=1e-4, atol=1e-6)
+    assert max(float((b - a).abs().max()) for a, b in zip(g0, g1, strict=True)) > 1e-5
+
+
+@pytest.mark.parametrize("case", ["continuous", "dqn_like"])
+def test_a_task_the_penalty_cannot_take_is_refused_naming_the_key(case: str) -> None:
+    with pytest.raises(ValueError, match="sac_config.discrete_entropy_penalty"):
+        if case == "continuous":
+            make_continuous_sac(discrete_entropy_penalty=0.5)
+        else:
+            make_sac(SPEC, discrete_entropy_penalty=0.5, discrete_dqn_like=True)
