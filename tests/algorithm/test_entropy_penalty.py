@@ -54,9 +54,9 @@ def policy_grads(penalty: float) -> list[torch.Tensor]:
     sac = make_sac(SPEC, use_priority=False, discrete_entropy_penalty=penalty)
     rng = np.random.default_rng(1)
     batch = make_batch(SPEC, seed=2)
-    batch = dataclasses.replace(batch, behaviour_logp=np.log(rng.uniform(0.1, 0.9, batch.behaviour_logp.shape)))
+    logp = np.log(rng.uniform(0.1, 0.9, batch.behaviour_logp.shape)).astype(np.float32)
+    batch = dataclasses.replace(batch, behaviour_logp=logp)
     sac.policy_optimizer.step = lambda *a, **k: None  # keep the gradients of one pass, weights unchanged
-    batch = dataclasses.replace(batch, behaviour_logp=batch.behaviour_logp.astype(np.float32))
     sac.update(batch)
     return [p.grad.clone() for p in sac._policy_params]
 
