@@ -492,56 +492,31 @@ class PrioritizedTable:
         }
 
     def _state_arrays(self, copy: bool = True) -> dict[str, np.ndarray]:
-        arrays = {**self._ring.arrays(), "priorities": self._tree.leaves}
-        for i, s in enumerate(self.sensors):
-            if s.name in self._normalizers:
-                state = self._normalizers[s.name].state_dict()
-                arrays[f"norm_mean_{i}"], arrays[f"norm_var_{i}"] = state["mean"], state["var"]
+        normalized = {i: self._normalizers[s.name] for i, s in enumerate(self.sensors) if s.name in self._normalizers}
+        arrays = {**self._ring.arrays(), "priorities": self._tree.leaves, **persistence.normalizer_arrays(normalized)}
         return {name: arr.copy() for name, arr in arrays.items()} if copy else arrays
 
     def _validated_state(
         self, data: dict[str, np.ndarray], meta: dict[str, Any]
     ) -> tuple[dict[str, Any], dict[str, int]]:
-        """Check a loaded file's internal consistency; return the attributes to install besides the
-        ring's arrays and the rate limiter's counters."""
-        next_key, leaves = int(meta["next_key"]), data["priorities"]
-        is_step = self._ring.checked_step_rows(data, next_key)
-        if not np.isfinite(leaves).all() or (leaves < 0).any() or (leaves[~is_step] != 0).any():
-            raise ValueError("priorities must be finite, >= 0, and 0 on bootstrap and empty rows")
-        lim = {k: int(meta["rate_limiter"][k]) for k in ("inserted", "evicted", "sampled")}
-        if min(lim.values()) < 0 or lim["inserted"] - lim["evicted"] != int(np.count_nonzero(is_step)):
-            raise ValueError(f"rate limiter counters {lim} disagree with the stored rows")
-        # A counter added after the snapshot was written (rnn_state_updates) starts at 0.
-        counters = {name: int(meta["counters"].get(name, 0)) for name in self._counters}
-        max_priority = float(meta["max_priority"])
-        if not 0.0 <= max_priority < np.inf:
-            raise ValueError(f"max_priority must be finite and >= 0, got {max_priority}")
+        """Check a loaded file's internal consistency (:func:`persistence.restored_state`); return the
+        attributes to install besides the ring's arrays, and the rate limiter's counters."""
+        next_key = int(meta["next_key"])
+        state = persistence.restored_state(
+            data, meta, self._ring.checked_step_rows(data, next_key), tuple(self._counters),
+            {i: s for i, s in enumerate(self.sensors) if s.name in self._normalizers},
+        )  # fmt: skip
         tree = SumTree(self.capacity)
-        tree.set_all(leaves)
-        rng = np.random.default_rng()
-        rng.bit_generator.state = meta["rng"]
-        ledger = ChunkLedger.from_state(meta.get("ledger", []), next_key, self.max_producers)  # old files: none
-        normalizers = {}
-        for i, s in enumerate(self.sensors):
-            if s.name in self._normalizers:
-                rms = RunningMeanStd(s.shape)
-                rms.load_state_dict(
-                    {
-                        "count": meta["normalizer_counts"][s.name],
-                        "mean": data[f"norm_mean_{i}"],
-                        "var": data[f"norm_var_{i}"],
-                    }
-                )
-                normalizers[s.name] = rms
+        tree.set_all(state.priorities)
         attributes = {
             "_tree": tree,
-            "_normalizers": normalizers,
-            "_max_priority": max_priority,
-            "_counters": counters,
-            "_rng": rng,
-            "_ledger": ledger,
+            "_normalizers": state.normalizers,
+            "_max_priority": state.max_priority,
+            "_counters": state.counters,
+            "_rng": state.rng,
+            "_ledger": ChunkLedger.from_state(meta.get("ledger", []), next_key, self.max_producers),  # old files: none
         }
-        return attributes, lim
+        return attributes, state.limiter
 
     def _transform(self, raw: np.ndarray) -> np.ndarray:
         return np.power(np.clip(raw, self.td_error_min, self.td_error_max), self.alpha)
