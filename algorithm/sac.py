@@ -43,7 +43,7 @@ from algorithm.nn.noisy import reset_noise
 from algorithm.nn.prediction import gated_gradients, observation_targets
 from algorithm.policy import Policy
 from algorithm.sac_losses import Losses, SacLosses
-from algorithm.schedules import linear_anneal
+from algorithm.schedules import discrete_target_entropy_ratio, learning_rate_at
 from algorithm.spaces import EnvSpec
 from algorithm.types import Batch
 from algorithm.update_graph import graph_for
@@ -269,20 +269,8 @@ class SAC(SacLosses, Policy):
         self.policy_optimizer.step()
         return losses, critic_norm, policy_norm, False
 
-    def _target_entropy_ratio(self, updates: int) -> float:
-        """The discrete target entropy as a fraction of log|A_b| after ``updates`` updates: constant,
-        or with ``discrete_target_entropy_start`` moving linearly from it to the final ratio. A
-        high target early keeps both actions in use where a young critic's spurious action gaps
-        would otherwise make the policy deterministic before they are corrected; the final, lower
-        target lets it exploit. The idea is TES-SAC's (Xu et al. 2021, arXiv:2112.02852), which
-        lowers the target in steps as the policy's entropy settles; this schedule is linear."""
-        final, start = self.sac.discrete_target_entropy_ratio, self.sac.discrete_target_entropy_start
-        if start is None:
-            return final
-        return linear_anneal(start, final, updates, self.sac.discrete_target_entropy_anneal_updates)
-
     def _discrete_target_entropy(self, updates: int) -> Tensor:
-        ratio = self._target_entropy_ratio(updates)
+        ratio = discrete_target_entropy_ratio(self.sac, updates)
         return torch.tensor([ratio * log_n for log_n in self._max_discrete_entropy], device=self.device)
 
     def _anneal_target_entropy(self) -> None:
@@ -291,20 +279,10 @@ class SAC(SacLosses, Policy):
         if self.sac.discrete_target_entropy_start is not None and self._max_discrete_entropy:
             self.discrete_target_entropy.copy_(self._discrete_target_entropy(self.updates))
 
-    def learning_rate_at(self, updates: int) -> float:
-        """The step size of the update after ``updates`` applied ones: ``learning_rate``, or with
-        ``learning_rate_final`` set, moving linearly from it to that value over
-        ``learning_rate_anneal_updates`` updates and constant after (as SB3's linear schedules,
-        with any end). It follows the applied-update count, which checkpoints keep."""
-        start, final = self.sac.learning_rate, self.sac.learning_rate_final
-        if final is None:
-            return start
-        return linear_anneal(start, final, updates, self.sac.learning_rate_anneal_updates)
-
     def _anneal_learning_rate(self) -> None:
         if self.sac.learning_rate_final is None:
             return
-        lr = self.learning_rate_at(self.updates)
+        lr = learning_rate_at(self.sac, self.updates)
         for opt in self._optimizers():
             for group in opt.param_groups:
                 group["lr"] = lr
