@@ -1,4 +1,5 @@
-"""Real gRPC replay servers on loopback (port 0: the OS picks), always stopped after the test."""
+"""Real gRPC replay servers on loopback (port 0: the OS picks), always stopped after the test; the evolver
+tests' ``setup`` (tests/ds/evolver_setup.py)."""
 
 from __future__ import annotations
 
@@ -12,6 +13,7 @@ import pytest
 from algorithm.replay import PrioritizedTable
 from ds.replay.client import ReplayClient
 from ds.replay.service import serve_replay
+from tests.ds.evolver_setup import Setup
 
 ServeOverGrpc = Callable[..., ReplayClient]
 
@@ -63,3 +65,11 @@ def over_grpc(tmp_path: Path) -> Iterator[ServeOverGrpc]:
     yield serve
     for stop in stops:
         stop()
+
+
+@pytest.fixture
+def setup(tmp_path: Path) -> Iterator[Setup]:
+    """Evolvers on one state directory (``tmp_path / "evolver"``), every one stopped after the test."""
+    s = Setup(tmp_path / "evolver")
+    yield s
+    s.close()

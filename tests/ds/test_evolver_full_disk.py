@@ -11,9 +11,8 @@ import pytest
 
 from ds.evolver.evolver import Evolver
 from ds.evolver.state import SAMPLES_DIR, STATE_FILE, PendingSample, Role
+from tests.ds.evolver_setup import evolver_config, weights_of
 from tests.small_disk import small_disk
-
-from .test_evolver_service import evolver_config, weights_of
 
 
 def test_a_full_disk_keeps_the_saved_state_and_the_evolver_saves_again_once_space_is_back(

@@ -28,21 +28,14 @@ from ds.learner.learner import Learner
 from ds.learner.service import ActorRegistry, LearnerServicer, ParamsStore, serve_learner
 from ds.net.params import ParamsPublisher, encode_params, params_spec
 from envs.make import make_vector_env
+from tests.ds.evolver_setup import LEASE_S, SPEC, Setup, evolver_config, register, until, weights_of
 
 from .conftest import ServeOverGrpc
-from .test_evolver_service import LEASE_S, SPEC, Setup, evolver_config, register, until, weights_of
 
 pytestmark = pytest.mark.grpc
 ROOT = Path(__file__).resolve().parents[2]
 TINY_STD = 1e-6  # evolver_cem_std_max: a sample is the elites' mean within a few 1e-6
 JOINED = "joined after round 1: starting from a sample of the CEM distribution"
-
-
-@pytest.fixture
-def setup(tmp_path: Path) -> Iterator[Setup]:
-    s = Setup(tmp_path / "evolver")
-    yield s
-    s.close()
 
 
 def tiny_std_config(**base: object) -> Config:

@@ -1,142 +1,35 @@
 """The evolver on loopback: registration with sampled configs, PostReward that never waits for a round,
 CEM rounds over the elites' weights fetched from real learner servers, retirement, actor and replay
-assignment, leases, restart from the saved state, and clear status codes for bad input."""
+assignment, leases, and clear status codes for bad input (restart from the saved state:
+test_evolver_state.py)."""
 
 from __future__ import annotations
 
-import re
-import shutil
-import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any, cast
 
 import grpc
 import numpy as np
 import pytest
-from hypothesis import given, settings
-from hypothesis import strategies as st
 
 from algorithm.config import config_from_yaml
-from algorithm.config_schema import Config
-from algorithm.spaces import ActionSpec, EnvSpec, SensorSpec
-from ds.evolver.evolver import Evolver
-from ds.evolver.service import EvolverClient, EvolverRequestRejected, serve_evolver
+from ds.evolver.service import EvolverRequestRejected
 from ds.evolver.state import (
-    SAMPLES_DIR,
-    STATE_FILE,
-    EvolverInfo,
-    EvolverStateError,
     Instruction,
     LearnerRetired,
     NoWorkYet,
-    PendingSample,
-    Role,
     UnknownAssignment,
     UnknownLearner,
 )
 from ds.learner.client import LearnerClient
 from ds.learner.service import ActorRegistry, LearnerServicer, ParamsStore, serve_learner
-from ds.net.params import decode_params, encode_params, params_spec
-from ds.net.rpc import RetryPolicy
+from ds.net.params import decode_params, params_spec
 from protos import evolver_pb2, evolver_pb2_grpc
+from tests.ds.evolver_setup import LEASE_S, SPEC, Setup, evolver_config, register, until, weights_of
 
 pytestmark = pytest.mark.grpc
-SPEC = EnvSpec((SensorSpec("state", (3,)),), ActionSpec(continuous_dim=1, low=(-2.0,), high=(2.0,)))
-FAST_RETRY = RetryPolicy(attempts=2, initial_backoff_s=0.02, max_backoff_s=0.05)
-LEASE_S = 10.0
-
-
-def evolver_config(**base: Any) -> Config:
-    settings = {"evolver_cem_length": 2, "evolver_cem_min_length": 1, "evolver_cem_best": 0.5,
-                "evolver_cem_time": 60.0, "evolver_remove_worst": -1, "max_actors_each_learner": 2}  # fmt: skip
-    return Config.model_validate(
-        {
-            "base_config": settings | base,
-            "sac_config": {"seed": 0},
-            "random_params": {"sac_config": {"n_step": {"in": [1, 3, 5]}, "gamma": {"truncated": [0.9, 0.99]}}},
-        }
-    )
-
-
-def weights_of(value: float) -> dict[str, np.ndarray]:
-    return {
-        "q.weight": np.full((3, 4), value, np.float32),
-        "policy.bias": np.full((2,), value, np.float64),
-        "normalizer.count": np.array([7], np.int64),
-    }
-
-
-class FakeClock:
-    def __init__(self) -> None:
-        self.t = 1000.0
-
-    def __call__(self) -> float:
-        return self.t
-
-
-class FakeLearner:
-    """A real learner server whose GetWeights serves a fixed weight dict, optionally slowly."""
-
-    def __init__(self, value: float, delay_s: float = 0.0) -> None:
-        self.weights, self.delay_s = weights_of(value), delay_s
-        self.fetching = threading.Event()
-        servicer = LearnerServicer(SPEC, ActorRegistry(), ParamsStore(), params_port=0, weights=self.snapshot)
-        self.server, self.port, _ = serve_learner(servicer)
-
-    def snapshot(self) -> tuple[int, list[bytes]]:
-        self.fetching.set()
-        time.sleep(self.delay_s)
-        return 5, encode_params(5, self.weights)
-
-
-class Setup:
-    """Evolvers (each with a server and a client) on one state directory; all stopped at the end."""
-
-    def __init__(self, state_dir: Path) -> None:
-        self.state_dir = state_dir
-        self.clock = FakeClock()
-        self._stops: list[Callable[[], None]] = []
-
-    def evolver(self, config: Config, real_clock: bool = False, **kwargs: Any) -> tuple[Evolver, EvolverClient]:
-        clock = time.monotonic if real_clock else self.clock
-        evolver = Evolver(config, self.state_dir, "exp", lease_s=LEASE_S, clock=clock, **kwargs)
-        server, port, _ = serve_evolver(evolver)
-        client = EvolverClient(f"127.0.0.1:{port}", retry=FAST_RETRY, rpc_timeout_s=5.0)
-        self._stops += [evolver.stop, lambda: server.stop(None), client.close]
-        return evolver, client
-
-    def learner(self, value: float, delay_s: float = 0.0) -> FakeLearner:
-        fake = FakeLearner(value, delay_s)
-        self._stops.append(lambda: fake.server.stop(None))
-        return fake
-
-    def close(self) -> None:
-        while self._stops:
-            self._stops.pop()()
-
-
-@pytest.fixture
-def setup(tmp_path: Path) -> Iterator[Setup]:
-    s = Setup(tmp_path / "evolver")
-    yield s
-    s.close()
-
-
-def register(client: EvolverClient, fakes: list[FakeLearner]) -> list[int]:
-    """Register each fake learner, each with its own replay; their ids."""
-    return [
-        client.register_learner(f"l{k}", "127.0.0.1", f.port, 0, f"replay-{k}:1").learner_id
-        for k, f in enumerate(fakes)
-    ]
-
-
-def until(condition: Callable[[], bool], timeout_s: float = 10.0) -> None:
-    deadline = time.monotonic() + timeout_s
-    while not condition():
-        assert time.monotonic() < deadline, "condition not met in time"
-        time.sleep(0.02)
 
 
 # ---------------------------------------------------------------------- learners
@@ -371,136 +264,6 @@ def test_bad_requests_get_clear_status_codes_and_the_server_keeps_serving(setup:
     with pytest.raises(EvolverRequestRejected, match="loaded_round: must be >= 0"):
         client.heartbeat(me, 0, loaded_round=-1)
     assert client.post_reward(me, 1.0, 10) and len(client.info().learners) == 1
-
-
-# ---------------------------------------------------------------------- persistence
-
-
-def test_a_restarted_evolver_carries_on_where_it_stopped(setup: Setup) -> None:
-    fakes = [setup.learner(v) for v in (0.0, 1.0, 2.0)]
-    evolver, client = setup.evolver(evolver_config())
-    ids = register(client, fakes)
-    for i in ids:
-        client.post_reward(i, float(i), 10)
-        client.post_reward(i, float(i), 20)
-    assert evolver.run_round_if_due() is not None
-    job = client.assign_actor("a0")
-    before = client.get_sample(ids[0])
-    client.post_reward(ids[2], 5.0, 30)  # after the round: the thread has not saved it, stop() does
-    info_before = client.info()
-    setup.close()
-
-    evolver, client = setup.evolver(evolver_config())
-    info = client.info()
-    assert (info.rounds, info.last_elites) == (info_before.rounds, info_before.last_elites)
-    assert info.learners == info_before.learners and info.assignments == info_before.assignments
-    orders = client.heartbeat(ids[0], 40)
-    assert (orders.instruction, orders.sample_round) == (Instruction.LOAD_WEIGHTS, 1)
-    after = client.get_sample(ids[0])
-    assert before is not None and after is not None and after.round == before.round
-    for name, array in before.weights.items():
-        np.testing.assert_array_equal(after.weights[name], array)
-    again = client.register_learner("l1 restarted", "127.0.0.1", fakes[1].port, previous_id=ids[1])
-    assert again.learner_id == ids[1] and again.params == info.learners[1].params
-    assert client.renew_assignment(job.assignment_id).learner_id == job.learner_id
-    assert client.register_learner("new", "127.0.0.1", 61009).learner_id == 3
-
-    client.heartbeat(ids[0], 50, loaded_round=1)
-    evolver.save()
-    # Left: only the new learner's, drawn from round 1's distribution (tests/ds/test_evolver_late_join.py).
-    assert sorted(p.name for p in (setup.state_dir / SAMPLES_DIR).iterdir()) == ["learner_3.round_1.npz"]
-
-
-def test_a_killed_evolver_loses_at_most_the_last_save_interval(setup: Setup, tmp_path: Path) -> None:
-    evolver, client = setup.evolver(evolver_config(), real_clock=True, save_every_s=0.05)
-    evolver.start()
-    me = client.register_learner("l0", "127.0.0.1", 61001).learner_id
-    client.post_reward(me, 3.0, 10)
-    time.sleep(0.5)
-    copy = tmp_path / "copy"  # the directory as a kill -9 now would leave it
-    shutil.copytree(setup.state_dir, copy)
-    revived = Evolver(evolver_config(), copy, "exp")
-    assert [x.returns for x in revived.info().learners] == [1]
-
-
-def test_an_unreadable_state_is_an_error_naming_the_file_and_nothing_is_overwritten(setup: Setup) -> None:
-    fakes = [setup.learner(v) for v in (0.0, 1.0)]
-    evolver, client = setup.evolver(evolver_config())
-    for i in register(client, fakes):
-        client.post_reward(i, float(i), 10)
-        client.post_reward(i, float(i), 20)
-    assert evolver.run_round_if_due() is not None
-    setup.close()
-    state = setup.state_dir / STATE_FILE
-    good = state.read_bytes()
-    state.write_bytes(good[: len(good) // 2])
-    with pytest.raises(EvolverStateError, match=re.escape(f"evolver state {state} is unreadable or truncated")):
-        Evolver(evolver_config(), setup.state_dir, "exp")
-    assert state.read_bytes() == good[: len(good) // 2]
-    state.write_bytes(good)
-    with pytest.raises(EvolverStateError, match="belongs to experiment 'exp', not 'other'"):
-        Evolver(evolver_config(), setup.state_dir, "other")
-    (sample,) = (setup.state_dir / SAMPLES_DIR).iterdir()
-    sample.write_bytes(b"not a zip file")
-    with pytest.raises(EvolverStateError, match=re.escape(f"pending sample {sample} ") + ".* is unreadable"):
-        Evolver(evolver_config(), setup.state_dir, "exp")
-
-
-@pytest.fixture(scope="module")
-def saved_population(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, EvolverInfo]:
-    """A saved evolver state with learners, a return, an assignment and a pending sample file."""
-    folder = tmp_path_factory.mktemp("population") / "evolver"
-    evolver = Evolver(evolver_config(), folder, "exp", lease_s=600.0)
-    ids = [evolver.register_learner(f"l{k}", "h", 61001 + k, 0, f"replay-{k}:1").learner_id for k in range(2)]
-    evolver.post_reward(ids[0], 1.5, 10)
-    evolver.assign(Role.ACTOR, "a0")
-    evolver.registry.pending[ids[1]] = PendingSample(ids[1], 1, weights_of(0.5))
-    evolver.save()
-    return folder, evolver.info()
-
-
-@settings(max_examples=40, deadline=None)
-@given(file=st.sampled_from(["state", "sample"]), how=st.sampled_from(["cut", "flip"]), at=st.integers(0, 10**6),
-       xor=st.integers(1, 255))  # fmt: skip
-def test_a_damaged_state_or_sample_is_an_error_naming_it_or_loads_unchanged(
-    saved_population: tuple[Path, EvolverInfo], tmp_path_factory: pytest.TempPathFactory, file: str, how: str,
-    at: int, xor: int
-) -> None:  # fmt: skip
-    """A flipped digit is still valid JSON: the state's digest catches it (and the zip CRC a sample's)."""
-    good, info = saved_population
-    folder = tmp_path_factory.mktemp("damaged") / "evolver"
-    shutil.copytree(good, folder)
-    path = folder / STATE_FILE if file == "state" else next((folder / SAMPLES_DIR).iterdir())
-    data = bytearray(path.read_bytes())
-    if how == "cut":
-        data = data[: at % len(data)]
-    else:
-        data[at % len(data)] ^= xor
-    path.write_bytes(bytes(data))
-    try:
-        loaded = Evolver(evolver_config(), folder, "exp", lease_s=600.0)
-    except EvolverStateError as e:
-        assert str(path) in str(e)
-    else:
-        assert loaded.info() == info
-        if file == "sample":
-            np.testing.assert_array_equal(loaded.registry.pending[1].weights["q.weight"], weights_of(0.5)["q.weight"])
-    assert path.read_bytes() == bytes(data)  # loading wrote nothing over it
-
-
-def test_a_state_changed_to_other_valid_json_is_refused(
-    saved_population: tuple[Path, EvolverInfo], tmp_path: Path
-) -> None:
-    """One digit of a port flipped: valid JSON and a plausible population, but not the one saved."""
-    folder = tmp_path / "evolver"
-    shutil.copytree(saved_population[0], folder)
-    state = folder / STATE_FILE
-    edited = state.read_text().replace('"learner_port": 61001', '"learner_port": 61009', 1)
-    assert edited != state.read_text()
-    state.write_text(edited)
-    with pytest.raises(EvolverStateError, match=re.escape(f"evolver state {state} is damaged")):
-        Evolver(evolver_config(), folder, "exp")
-    assert state.read_text() == edited
 
 
 # ---------------------------------------------------------------------- the learner's GetWeights and metrics
