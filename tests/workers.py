@@ -41,6 +41,7 @@ SERIAL: dict[str, tuple[str, ...]] = {
         "tests/test_soak.py",
         "tests/test_population.py",
         "tests/test_local_journeys.py",
+        "tests/test_local_stop_order.py",
         "tests/test_faults_roles.py",
         "tests/test_faults_replay.py",
         "tests/test_cross_host.py",
