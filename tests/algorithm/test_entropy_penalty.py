@@ -50,6 +50,40 @@ def test_the_penalty_pulls_the_policys_entropy_toward_the_behaviours() -> None:
     assert trained_entropy(5.0, 0.0) < free - 0.05  # a deterministic behaviour: entropy 0
 
 
+def three_step_windows(first: float, later: float) -> Any:
+    """make_batch's windows stretched to 3 steps (every action allowed, every step valid), the behaviour's
+    log-probability ``first`` at the trained step (position 0) and ``later`` at the bootstrap steps."""
+    one = make_batch(SPEC, b=32, seed=5)
+    b, size = one.actions.shape[0], one.actions.shape[-1]
+    masks = np.ones((b, 4, one.obs[0].shape[-1]), np.float32)
+    logp = np.full((b, 3), later, np.float32)
+    logp[:, 0] = first
+    return dataclasses.replace(
+        one, obs=[masks, one.obs[1][:, [0, 1, 1, 1]]], actions=np.repeat(one.actions, 3, axis=1),
+        prev_actions=np.zeros((b, 3, size), np.float32), rewards=np.repeat(one.rewards, 3, axis=1),
+        terminated=np.zeros((b, 3), bool), truncated=np.zeros((b, 3), bool), behaviour_logp=logp,
+        mask=np.ones((b, 3), bool),
+    )  # fmt: skip
+
+
+def trained_entropy_on_windows(penalty: float, first: float, later: float) -> float:
+    sac = make_sac(SPEC, use_priority=False, use_auto_alpha=False, init_log_alpha=-6.0, learning_rate=3e-3,
+                   discrete_entropy_penalty=penalty, n_step=3)  # fmt: skip
+    batch = three_step_windows(first, later)
+    for _ in range(60):
+        metrics = sac.update(batch, with_metrics=True).metrics
+    return metrics["learner/entropy_discrete"]
+
+
+def test_in_an_n_step_window_the_penalty_takes_the_behaviour_of_the_trained_step() -> None:
+    """The policy is trained on position 0's state, so the acting entropy there is position 0's estimate;
+    the bootstrap steps' log-probabilities (another state each) must not enter."""
+    free = trained_entropy_on_windows(0.0, 0.0, 0.0)
+    uniform = math.log(1 / 3)
+    assert trained_entropy_on_windows(5.0, uniform, 0.0) > free + 0.05
+    assert trained_entropy_on_windows(5.0, 0.0, uniform) < free - 0.05
+
+
 def policy_grads(penalty: float) -> list[torch.Tensor]:
     sac = make_sac(SPEC, use_priority=False, discrete_entropy_penalty=penalty)
     rng = np.random.default_rng(1)
