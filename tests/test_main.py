@@ -250,6 +250,10 @@ FEATURES = {
     "image": ("toy/pixel_point", None, []),
     "dqn_like": ("gym/cartpole", "dqn", []),
     "mixed": ("toy/mixed_target", None, ["sac.use_rnd=true"]),
+    "update_options": ("gym/cartpole", None, [
+        "sac.update_order=critic_first", "sac.clip_epsilon=5", "sac.discrete_entropy_penalty=0.5",
+        "sac.learning_rate_final=0.0", "sac.learning_rate_anneal_updates=100", "sac.discrete_target_entropy_start=0.98",
+    ]),
 }  # fmt: skip
 
 
