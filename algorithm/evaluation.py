@@ -36,8 +36,14 @@ class EvalResult:
         return float(self.returns.std())
 
 
-def evaluate(env: VectorEnvLike, policy: Policy, episodes: int, seed: int | None) -> EvalResult:
-    """Run ``episodes`` deterministic episodes, spread evenly over ``env``'s sub-envs.
+def evaluate(
+    env: VectorEnvLike, policy: Policy, episodes: int, seed: int | None, deterministic: bool = True
+) -> EvalResult:
+    """Run ``episodes`` episodes, spread evenly over ``env``'s sub-envs.
+
+    ``deterministic`` (the default, what every reported evaluation uses) acts with the policy's mode;
+    ``deterministic=False`` acts as an actor does (sampling, with the policy's acting noise, colored
+    when the config asks for it) -- a diagnostic of how much of a return the mode alone earns.
 
     Each sub-env runs a fixed quota of episodes (not "the first N to finish"), so short episodes
     are not over-represented. ``seed`` reseeds the envs; callers pass it on the first evaluation
@@ -59,9 +65,9 @@ def evaluate(env: VectorEnvLike, policy: Policy, episodes: int, seed: int | None
     prev_actions = np.zeros((n, env.spec.action.size), dtype=np.float32)
     while (done_count < quota).any():
         if rnn_size:
-            actions, _, rnn_state = policy.act_recurrent(obs, prev_actions, rnn_state, deterministic=True)
+            actions, _, rnn_state = policy.act_recurrent(obs, prev_actions, rnn_state, deterministic=deterministic)
         else:
-            actions, _ = policy.act(obs, deterministic=True)
+            actions, _ = policy.act(obs, deterministic=deterministic)
         result = env.step(actions)
         done = result.terminated | result.truncated
         if rnn_size:  # a recurrent policy starts each episode from zeros
