@@ -67,9 +67,12 @@ def test_prefetcher_fills_its_queue_then_blocks_and_counts(over_grpc: ServeOverG
         assert prefetcher.metrics()["learner/prefetch_queue"] == 2
         batches = [prefetcher.get(timeout=5) for _ in range(5)]
         assert all(b is not None and b.batch_size == 8 for b in batches)
-        until(lambda: prefetcher.full_waits >= 2)
-        # every batch drawn was delivered (5), is queued (2) or is held by the blocked thread (1)
+        # every batch drawn was delivered (5), is queued (2) or is held by the blocked thread (1);
+        # full_waits may have reached 2 during the gets already, so wait on the counts themselves
+        until(lambda: prefetcher.sampled == 5 + 2 + 1 and prefetcher.metrics()["learner/prefetch_queue"] == 2)
+        time.sleep(0.3)  # blocked, not dropping: nothing more is drawn while the queue stays full
         assert prefetcher.sampled == 5 + 2 + 1
+        assert prefetcher.full_waits >= 2
     finally:
         prefetcher.stop()
 
