@@ -1,6 +1,7 @@
 """Each checkpoint of a run scored twice on the same start states: by the policy's mode and by sampling.
 
     python -m bench.eval_modes RUN_DIR [--episodes 20] [--seed 12345]
+    python -m bench.eval_modes RUN_DIR --critic STEP [--episodes 20] [--seed 12345]
 
 Reported evaluations act with the mode (``argmax`` for a discrete policy, ``tanh(mean)`` for a
 continuous one). When a discrete policy's actions are near-equal in value for long stretches (a
@@ -10,6 +11,14 @@ would jitter around it. This prints, per checkpoint, both returns, and how the m
 ended: by the time limit, or (for CartPole, from the last observation) by the cart leaving the
 track (``|x| > 2.4``) or the pole falling (``|theta| > 12 degrees``) -- the diagnostic behind
 BENCHMARKS.md section 8's question of why CartPole's late evaluations dip.
+
+``--critic STEP`` (a discrete policy) asks whether the critic of checkpoint STEP saw such an ending
+coming: along each mode episode that ended before the time limit it prints the chosen action's
+``min_i Q_i(s, a)`` (the value the targets use) k steps before the end against what a perfect
+critic of that policy would say, the discounted count of steps left ``(1 - gamma^k) / (1 - gamma)``
+(rewards of 1; the entropy bonus adds a little); and over all episodes, how often the mode is the
+action of the highest min-Q (how closely the policy follows its critic) and the mean Q along the
+episodes that reached the time limit.
 """
 
 from __future__ import annotations
@@ -20,17 +29,18 @@ from pathlib import Path
 import numpy as np
 
 from algorithm.checkpoint import checkpoint_path, list_checkpoints, load_checkpoint
-from algorithm.config import config_from_file
+from algorithm.config import Config, config_from_file
 from algorithm.evaluation import evaluate
 from algorithm.policy import Policy
 from algorithm.run_dir import RunDir
 from cli import _load_policy, env_factory, run_model_builder
+from envs.make import VectorEnv
 
 CART_EDGE = 2.4  # CartPole-v1's termination thresholds (gymnasium's cartpole.py)
 POLE_EDGE = 12 * 2 * np.pi / 360
 
 
-def mode_endings(env, policy: Policy, episodes: int, seed: int) -> dict[str, int]:
+def mode_endings(env: VectorEnv, policy: Policy, episodes: int, seed: int) -> dict[str, int]:
     """How ``episodes`` mode-acting episodes on the single CartPole env ``env`` ended, from ``seed``'s
     start states."""
     counts = {"time limit": 0, "cart edge": 0, "pole": 0, "other": 0}
@@ -52,11 +62,57 @@ def mode_endings(env, policy: Policy, episodes: int, seed: int) -> dict[str, int
     return counts
 
 
+def critic_along_failures(env: VectorEnv, policy: Policy, config: Config, episodes: int, seed: int) -> list[str]:
+    """The ``--critic`` report's lines for ``episodes`` mode-acting episodes on the single env ``env``."""
+    import torch
+
+    if policy.models.discrete_policy is None:
+        raise SystemExit("--critic: the run's policy is not discrete")
+    gamma = float(config.sac_config.gamma)
+    lines = ["episode,ending,length,steps_before_end,q_chosen,discounted_steps_left,x"]
+    chosen_q: list[tuple[float, float]] = []  # (Q of the chosen action, cart position) per step
+    q_at_time_limit: list[float] = []
+    reached_time_limit = 0
+    follows: list[bool] = []
+    obs = env.reset(seed=seed)
+    done = 0
+    while done < episodes:
+        with torch.no_grad():
+            state = policy.models.representation(policy._obs_tensors(obs))
+            q_min = policy.models.q(state, None)[:, 0].min(dim=0).values.numpy()  # [actions]
+        actions, _ = policy.act(obs, deterministic=True)
+        chosen = int(np.argmax(np.asarray(actions).reshape(-1)))  # one-hot over the branch's actions
+        follows.append(chosen == int(np.argmax(q_min)))
+        chosen_q.append((float(q_min[chosen]), float(obs[0][0][0])))
+        result = env.step(actions)
+        if result.terminated[0] or result.truncated[0]:
+            if result.truncated[0]:
+                q_at_time_limit += [q for q, _ in chosen_q]
+                reached_time_limit += 1
+            else:
+                ending = "cart edge" if abs(result.final_obs[0][0][0]) > CART_EDGE else "pole"
+                length = len(chosen_q)
+                for k in (300, 200, 100, 50, 20, 10, 5, 1):
+                    if k <= length:
+                        q, x = chosen_q[length - k]
+                        left = (1 - gamma**k) / (1 - gamma)
+                        lines.append(f"{done},{ending},{length},{k},{q:.1f},{left:.1f},{x:+.2f}")
+            chosen_q = []
+            done += 1
+        obs = result.obs
+    lines.append(f"# the mode is the action of the highest min-Q on {np.mean(follows):.3f} of {len(follows)} steps")
+    if q_at_time_limit:
+        lines.append(f"# mean Q along the {reached_time_limit} episodes that reached the time limit: "
+                     f"{np.mean(q_at_time_limit):.1f} (1 / (1 - gamma) = {1 / (1 - gamma):.1f})")  # fmt: skip
+    return lines
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("run", type=Path)
     parser.add_argument("--episodes", type=int, default=20)
     parser.add_argument("--seed", type=int, default=12345)
+    parser.add_argument("--critic", type=int, metavar="STEP", help="the critic along checkpoint STEP's failures")
     args = parser.parse_args(argv)
     paths = RunDir(args.run)
     config = config_from_file(paths.config)
@@ -64,13 +120,15 @@ def main(argv: list[str] | None = None) -> int:
     if not steps:
         raise SystemExit(f"{args.run}: no checkpoints under {paths.model}")
     is_cartpole = "CartPole" in str(config.base_config.build_path)
+    if args.critic is not None:
+        if args.critic not in steps:
+            raise SystemExit(f"--critic {args.critic}: no such checkpoint; the run has {steps}")
+        env, policy = _checkpoint_policy(paths, config, args.critic, args.seed)
+        print("\n".join(critic_along_failures(env, policy, config, args.episodes, args.seed)))
+        return 0
     print("step,mode_return,sampled_return" + (",time_limit,cart_edge,pole,other" if is_cartpole else ""))
     for step in steps:
-        path = checkpoint_path(paths.model, step)
-        state = load_checkpoint(path)
-        env = env_factory(config)(1, args.seed)
-        policy = Policy(env.spec, config.sac_config, config.nn_config, device="cpu", build=run_model_builder(paths))
-        _load_policy(policy, state, path)
+        env, policy = _checkpoint_policy(paths, config, step, args.seed)
         mode = evaluate(env, policy, args.episodes, args.seed).mean
         sampled = evaluate(env, policy, args.episodes, args.seed, deterministic=False).mean
         row = f"{step},{mode:.1f},{sampled:.1f}"
@@ -79,6 +137,16 @@ def main(argv: list[str] | None = None) -> int:
             row += f",{ends['time limit']},{ends['cart edge']},{ends['pole']},{ends['other']}"
         print(row, flush=True)
     return 0
+
+
+def _checkpoint_policy(paths: RunDir, config: Config, step: int, seed: int) -> tuple[VectorEnv, Policy]:
+    """One env of the run's task and the policy of its checkpoint at ``step``."""
+    path = checkpoint_path(paths.model, step)
+    state = load_checkpoint(path)
+    env = env_factory(config)(1, seed)
+    policy = Policy(env.spec, config.sac_config, config.nn_config, device="cpu", build=run_model_builder(paths))
+    _load_policy(policy, state, path)
+    return env, policy
 
 
 if __name__ == "__main__":

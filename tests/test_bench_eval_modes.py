@@ -1,5 +1,6 @@
 """bench/eval_modes.py on a real run folder: a CartPole run trained briefly by main.py with a checkpoint
-every 1,000 env steps, each checkpoint scored by its mode and by sampling, and the table read back."""
+every 1,000 env steps, each checkpoint scored by its mode and by sampling, the critic read along the
+mode's failed episodes, and the tables read back."""
 
 from __future__ import annotations
 
@@ -7,18 +8,31 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 ROOT = Path(__file__).resolve().parents[1]
 EPISODES = 4
 
 
-def test_every_checkpoint_gets_both_returns_and_its_mode_episodes_endings(tmp_path: Path) -> None:
+@pytest.fixture(scope="module")
+def run(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    cwd = tmp_path_factory.mktemp("eval_modes")
     train = [sys.executable, str(ROOT / "main.py"), "gym/cartpole", "-n", "modes", "--no_progress",
-             "--override", "base.max_step=2000", "--override", "replay.min_size_to_sample=200",
+             "--override", "base.max_step=2000", "--override", "sac.seed=0",
              "--override", "sac.save_model_per_step=1000", "--override", "sac.keep_checkpoints=5"]  # fmt: skip
-    assert subprocess.run(train, cwd=tmp_path, capture_output=True, timeout=300).returncode == 0
-    run = tmp_path / "models/gym/cartpole/modes"
-    done = subprocess.run([sys.executable, "-m", "bench.eval_modes", str(run), "--episodes", str(EPISODES)],
+    # updates start at 1,000 steps (the config's min_size_to_sample): checkpoint 1000 holds the untrained
+    # policy, whose mode episodes fail within a few dozen steps, and checkpoint 2000 ~1,000 updates
+    assert subprocess.run(train, cwd=cwd, capture_output=True, timeout=300).returncode == 0
+    return cwd / "models/gym/cartpole/modes"
+
+
+def eval_modes(*args: str) -> subprocess.CompletedProcess[str]:
+    return subprocess.run([sys.executable, "-m", "bench.eval_modes", *args, "--episodes", str(EPISODES)],
                           cwd=ROOT, text=True, capture_output=True, timeout=300)  # fmt: skip
+
+
+def test_every_checkpoint_gets_both_returns_and_its_mode_episodes_endings(run: Path) -> None:
+    done = eval_modes(str(run))
     assert done.returncode == 0, done.stderr
     header, *rows = done.stdout.splitlines()
     assert header == "step,mode_return,sampled_return,time_limit,cart_edge,pole,other"
@@ -31,3 +45,27 @@ def test_every_checkpoint_gets_both_returns_and_its_mode_episodes_endings(tmp_pa
         # The endings are counted on the mode's own episodes (same start states): every one at the time
         # limit is a return of 500, and a mean below 500 has at least one that fell.
         assert (ends[0] == EPISODES) == (mode == 500.0)
+
+
+def test_the_critic_is_read_along_the_failed_episodes_against_the_steps_left(run: Path) -> None:
+    done = eval_modes(str(run), "--critic", "1000")
+    assert done.returncode == 0, done.stderr
+    header, *rows = [line for line in done.stdout.splitlines() if not line.startswith("#")]
+    assert header == "episode,ending,length,steps_before_end,q_chosen,discounted_steps_left,x"
+    assert rows, "the untrained policy balances the pole: no mode episode failed"
+    for row in rows:
+        episode, ending, length, k, q, left, x = row.split(",")
+        assert ending in ("cart edge", "pole") and 0 <= int(episode) < EPISODES
+        assert int(k) <= int(length) < 500
+        assert float(left) == pytest.approx((1 - 0.99 ** int(k)) / (1 - 0.99), abs=0.05)  # gym/cartpole's gamma
+        assert abs(float(x)) <= 2.4
+    follows = [line for line in done.stdout.splitlines() if line.startswith("# the mode is the action")]
+    assert len(follows) == 1
+    share = float(follows[0].split(" on ")[1].split(" of ")[0])
+    assert 0.0 <= share <= 1.0
+
+
+def test_a_missing_checkpoint_is_named(run: Path) -> None:
+    done = eval_modes(str(run), "--critic", "1500")
+    assert done.returncode != 0
+    assert "--critic 1500: no such checkpoint" in done.stderr and "[1000, 2000]" in done.stderr
