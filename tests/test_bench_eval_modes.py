@@ -31,6 +31,18 @@ def eval_modes(*args: str) -> subprocess.CompletedProcess[str]:
                           cwd=ROOT, text=True, capture_output=True, timeout=300)  # fmt: skip
 
 
+def scored_in_process(run: Path, step: int) -> tuple[float, float]:
+    from algorithm.config import config_from_file
+    from algorithm.evaluation import evaluate
+    from algorithm.run_dir import RunDir
+    from bench.eval_modes import _checkpoint_policy
+
+    paths = RunDir(run)
+    env, policy = _checkpoint_policy(paths, config_from_file(paths.config), step, 12345)
+    mode = evaluate(env, policy, EPISODES, 12345).mean
+    return mode, evaluate(env, policy, EPISODES, 12345, deterministic=False).mean
+
+
 def test_every_checkpoint_gets_both_returns_and_its_mode_episodes_endings(run: Path) -> None:
     done = eval_modes(str(run))
     assert done.returncode == 0, done.stderr
@@ -38,9 +50,10 @@ def test_every_checkpoint_gets_both_returns_and_its_mode_episodes_endings(run: P
     assert header == "step,mode_return,sampled_return,time_limit,cart_edge,pole,other"
     assert [row.split(",")[0] for row in rows] == ["1000", "2000"]
     for row in rows:
-        mode, sampled = map(float, row.split(",")[1:3])
+        step, mode, sampled = int(row.split(",")[0]), *map(float, row.split(",")[1:3])
         ends = list(map(int, row.split(",")[3:]))
-        assert 1 <= mode <= 500 and 1 <= sampled <= 500
+        # each row is its own checkpoint scored both ways from the same start states
+        assert (mode, sampled) == pytest.approx(scored_in_process(run, step), abs=0.051)
         assert sum(ends) == EPISODES
         # The endings are counted on the mode's own episodes (same start states): every one at the time
         # limit is a return of 500, and a mean below 500 has at least one that fell.
