@@ -148,7 +148,7 @@ class Policy:
 
     @torch.inference_mode()
     def _act_torch(self, obs: list[np.ndarray], deterministic: bool) -> tuple[np.ndarray, np.ndarray]:
-        return self._act_with_noise(self._obs_tensors(obs), deterministic, None)
+        return self._act_with_noise(self.obs_tensors(obs), deterministic, None)
 
     @torch.inference_mode()
     def act_recurrent(
@@ -164,7 +164,7 @@ class Policy:
                 f"act_recurrent: prev_actions must be [N, {self.spec.action.size}] and rnn_state "
                 f"[N, {self.rnn_state_size}], got {prev_actions.shape} and {rnn_state.shape}"
             )
-        tensors = self._obs_tensors(obs)
+        tensors = self.obs_tensors(obs)
         prev = torch.as_tensor(prev_actions, dtype=torch.float32, device=self.device)
         state = torch.as_tensor(rnn_state, dtype=torch.float32, device=self.device)
         rep = self.models.representation
@@ -185,7 +185,9 @@ class Policy:
             if o.ndim != len(s.shape) + 1 or tuple(o.shape[1:]) != s.shape:
                 raise ValueError(f"act: sensor {s.name!r} must be [N, {', '.join(map(str, s.shape))}], got {o.shape}")
 
-    def _obs_tensors(self, obs: list[np.ndarray]) -> list[Tensor]:
+    def obs_tensors(self, obs: list[np.ndarray]) -> list[Tensor]:
+        """``obs`` as the models take it: each sensor checked against the spec, float32 on the policy's
+        device, normalized when the run normalizes observations (what :meth:`act` feeds the networks)."""
         self._check_obs(obs)
         tensors = [torch.as_tensor(o, dtype=torch.float32, device=self.device) for o in obs]
         return self._normalize(tensors)

@@ -79,7 +79,7 @@ def critic_along_failures(env: VectorEnv, policy: Policy, config: Config, episod
     done = 0
     while done < episodes:
         with torch.no_grad():
-            state = policy.models.representation(policy._obs_tensors(obs))
+            state = policy.models.representation(policy.obs_tensors(obs))
             q_min = policy.models.q(state, None)[:, 0].min(dim=0).values.numpy()  # [actions]
         actions, _ = policy.act(obs, deterministic=True)
         chosen = int(np.argmax(np.asarray(actions).reshape(-1)))  # one-hot over the branch's actions

@@ -46,7 +46,7 @@ def torch_sample(
     behaviour log-prob of the action as ``stored`` (both paths evaluate it at the stored float32
     action, where atanh turns a 1e-6 difference near |a| = 1 into a visible one)."""
     with torch.no_grad():
-        state = sac.models.representation(sac._obs_tensors(obs))
+        state = sac.models.representation(sac.obs_tensors(obs))
         assert sac.models.policy is not None
         action, _ = sac._behaviour_sample(state, torch.from_numpy(noise), extra)
         mean, log_std = sac.models.policy(state)
