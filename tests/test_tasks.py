@@ -68,3 +68,17 @@ def test_mujoco_tasks_use_the_published_sac_setup(task: str) -> None:
     )
     assert c.sac_config.use_auto_alpha and c.replay_config.updates_per_step == 1.0
     assert c.replay_config.alpha == 0.0 and not c.sac_config.use_priority  # uniform replay
+
+
+@pytest.mark.parametrize("task", TASKS)
+def test_an_annealed_step_size_ends_with_its_run(task: str) -> None:
+    """A section that anneals its step sizes (``sac.learning_rate_final``) anneals over its own run's updates:
+    a shorter schedule leaves the rest of the run at the final step size (0: no learning), a longer one never
+    gets there. ``gym/cartpole`` (BENCHMARKS.md 8, round 17) anneals to 0 over 30,000 env steps."""
+    sections = [k for k in yaml.safe_load((ROOT / "envs" / task / "config.yaml").read_text()) if k != "default"]
+    for section in [None, *sections]:
+        c = load_config(ROOT / "envs" / task, section).config
+        if c.sac_config.learning_rate_final is None:
+            continue
+        updates = c.replay_config.updates_per_step * (c.base_config.max_step - c.replay_config.min_size_to_sample)
+        assert c.sac_config.learning_rate_anneal_updates == updates, (task, section)
