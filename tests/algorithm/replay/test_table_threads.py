@@ -73,7 +73,6 @@ def test_concurrent_insert_sample_update_and_save(tmp_path: Path) -> None:
 
         def work() -> None:
             try:
-                time.sleep(1.0)
                 batch = tab.sample(64, timeout=0.05)
             except SampleTimeout:
                 return
