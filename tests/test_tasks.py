@@ -30,6 +30,12 @@ TINY = [
 ]
 
 
+def sections(task: str) -> list[str | None]:
+    """The task's config sections, ``None`` (the default) first."""
+    named = yaml.safe_load((ROOT / "envs" / task / "config.yaml").read_text())
+    return [None, *(k for k in named if k != "default")]
+
+
 def test_the_documented_tasks_exist() -> None:
     expected = {
         "gym/pendulum",
@@ -46,8 +52,7 @@ def test_the_documented_tasks_exist() -> None:
 
 @pytest.mark.parametrize("task", TASKS)
 def test_task_trains_a_few_steps(task: str, tmp_path: Path) -> None:
-    sections = [k for k in yaml.safe_load((ROOT / "envs" / task / "config.yaml").read_text()) if k != "default"]
-    for section in [None, *sections]:
+    for section in sections(task):
         config = load_config(ROOT / "envs" / task, section, TINY).config
         factory = vector_env_factory(config.base_config.build_path, max_episode_steps=15)
         trainer = EmbeddedTrainer(config, tmp_path / str(section), factory, progress=False)
@@ -75,8 +80,7 @@ def test_an_annealed_step_size_ends_with_its_run(task: str) -> None:
     """A section that anneals its step sizes (``sac.learning_rate_final``) anneals over its own run's updates:
     a shorter schedule leaves the rest of the run at the final step size (0: no learning), a longer one never
     gets there. ``gym/cartpole`` (BENCHMARKS.md 8, round 17) anneals to 0 over 30,000 env steps."""
-    sections = [k for k in yaml.safe_load((ROOT / "envs" / task / "config.yaml").read_text()) if k != "default"]
-    for section in [None, *sections]:
+    for section in sections(task):
         c = load_config(ROOT / "envs" / task, section).config
         if c.sac_config.learning_rate_final is None:
             continue
