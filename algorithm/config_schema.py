@@ -206,8 +206,12 @@ class SacConfig(Section):
         description="Anneal every optimizer's step size linearly from learning_rate to this value over "
         "learning_rate_anneal_updates updates, constant after; null = constant learning_rate.",
     )
-    learning_rate_anneal_updates: int = Field(
-        100000, ge=1, description="Updates over which the step size moves to learning_rate_final."
+    learning_rate_anneal_updates: int | None = Field(
+        None,
+        ge=1,
+        description="Updates over which the step size moves to learning_rate_final; null = over the run: "
+        "replay_config.updates_per_step x (base_config.max_step - replay_config.min_size_to_sample), filled in "
+        "when the config is read (as SB3's schedules follow the run's progress).",
     )
     use_priority: bool = Field(True, description="Weight the Q loss by PER importance weights.")
     use_n_step_is: bool = Field(False, description="V-trace correction of n-step targets.")
@@ -431,6 +435,22 @@ class Config(Section):
     @model_validator(mode="after")
     def _check_random_params(self) -> Config:
         parse_random_params(self.random_params, self)  # raises ParamSpecError naming the key path
+        return self
+
+    @model_validator(mode="after")
+    def _anneal_over_the_run(self) -> Config:
+        """``sac_config.learning_rate_anneal_updates: null`` becomes the run's number of updates, so a
+        schedule set for a task still ends with the run when ``base_config.max_step`` is overridden."""
+        sac, base, replay = self.sac_config, self.base_config, self.replay_config
+        if sac.learning_rate_final is None or sac.learning_rate_anneal_updates is not None:
+            return self
+        if base.max_step < 0:
+            raise ValueError(
+                "sac_config.learning_rate_anneal_updates is null (anneal over the run) but base_config.max_step is "
+                "-1 (the run has no end): set learning_rate_anneal_updates to a number of updates"
+            )
+        updates = replay.updates_per_step * (base.max_step - replay.min_size_to_sample)
+        sac.learning_rate_anneal_updates = max(1, round(updates))
         return self
 
     @model_validator(mode="after")

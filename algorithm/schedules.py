@@ -33,4 +33,6 @@ def learning_rate_at(sac: SacConfig, updates: int) -> float:
     start, final = sac.learning_rate, sac.learning_rate_final
     if final is None:
         return start
+    if sac.learning_rate_anneal_updates is None:  # a whole Config fills it in from the run's length
+        raise ValueError("sac_config.learning_rate_anneal_updates is null outside a whole config: give it a number")
     return linear_anneal(start, final, updates, sac.learning_rate_anneal_updates)

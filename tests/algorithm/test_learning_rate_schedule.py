@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 import torch
 
-from algorithm.config_schema import SacConfig
+from algorithm.config_schema import Config, SacConfig
 from algorithm.sac import SAC
-from algorithm.schedules import linear_anneal
+from algorithm.schedules import learning_rate_at, linear_anneal
 from tests.algorithm.test_sac import make_batch, make_sac
 
 
@@ -77,3 +77,18 @@ def test_the_schedule_is_checked_at_load() -> None:
         SacConfig(learning_rate_final=-1e-4)
     with pytest.raises(ValueError, match="learning_rate_anneal_updates"):
         SacConfig(learning_rate_anneal_updates=0)
+
+
+def test_a_schedule_left_at_null_spans_the_run_and_needs_an_end() -> None:
+    """``learning_rate_anneal_updates: null`` (the default) is the run's updates, from the run's own length."""
+    run = {"base_config": {"max_step": 5000}, "replay_config": {"min_size_to_sample": 1000, "batch_size": 64,
+                                                                "samples_per_insert": 128}}  # fmt: skip
+    config = Config.model_validate({**run, "sac_config": {"learning_rate_final": 0.0}})
+    assert config.sac_config.learning_rate_anneal_updates == 2 * (5000 - 1000)
+    given = Config.model_validate({**run, "sac_config": {"learning_rate_final": 0.0, "learning_rate_anneal_updates": 9}})
+    assert given.sac_config.learning_rate_anneal_updates == 9
+    endless = {"base_config": {"max_step": -1}, "sac_config": {"learning_rate_final": 0.0}}
+    with pytest.raises(ValueError, match="learning_rate_anneal_updates is null.*max_step is -1"):
+        Config.model_validate(endless)
+    with pytest.raises(ValueError, match="learning_rate_anneal_updates is null"):
+        learning_rate_at(SacConfig(learning_rate_final=0.0), 10)
