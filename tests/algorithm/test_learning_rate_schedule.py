@@ -85,7 +85,9 @@ def test_a_schedule_left_at_null_spans_the_run_and_needs_an_end() -> None:
                                                                 "samples_per_insert": 128}}  # fmt: skip
     config = Config.model_validate({**run, "sac_config": {"learning_rate_final": 0.0}})
     assert config.sac_config.learning_rate_anneal_updates == 2 * (5000 - 1000)
-    given = Config.model_validate({**run, "sac_config": {"learning_rate_final": 0.0, "learning_rate_anneal_updates": 9}})
+    given = Config.model_validate(
+        {**run, "sac_config": {"learning_rate_final": 0.0, "learning_rate_anneal_updates": 9}}
+    )
     assert given.sac_config.learning_rate_anneal_updates == 9
     endless = {"base_config": {"max_step": -1}, "sac_config": {"learning_rate_final": 0.0}}
     with pytest.raises(ValueError, match="learning_rate_anneal_updates is null.*max_step is -1"):
