@@ -11,6 +11,7 @@ previous step's action; every sampled window keeps to one chunk the same way.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import signal
@@ -146,6 +147,15 @@ def updates(stats: dict[str, Any]) -> int:
     return (stats.get("priority_updates", 0) + stats.get("priority_updates_ignored", 0)) // 32
 
 
+def stopped(pid: int) -> bool:
+    """Every thread of ``pid`` is in the stopped state (``T`` in /proc's stat, after the command's ``)``)."""
+    states = []
+    for stat in Path(f"/proc/{pid}/task").glob("*/stat"):
+        with contextlib.suppress(FileNotFoundError):  # a thread that ended meanwhile
+            states.append(stat.read_text().rpartition(") ")[2][:1])
+    return bool(states) and all(state == "T" for state in states)
+
+
 def read_table(path: Path) -> dict[str, Any]:
     with np.load(path, allow_pickle=False) as f:
         return {name: f[name] for name in f.files}
@@ -245,8 +255,15 @@ def test_a_killed_replay_comes_back_from_its_snapshot_and_the_actors_carry_on(tm
             saved, meta = read_table(snapshot), meta_of(snapshot)
             until(run, "both actors find the replay gone and keep their chunks",
                   lambda: all("keeping the chunks and retrying" in run.log(a).read_text() for a in actors))  # fmt: skip
-            # Freeze the peers so that nothing changes the restored table before the test has read it.
+            # Freeze the peers so that nothing changes the restored table before the test has read it: every
+            # thread stopped, as a thread inside a system call stops only when the call returns.
             run.signal(peers, signal.SIGSTOP)
+            until(
+                run,
+                "every thread of the peers is stopped",
+                lambda: all(stopped(run.procs[p].pid) for p in peers),
+                timeout_s=30,
+            )
             run.start("replay")
             until(run, "the replay serves again", lambda: bool(info(client)), timeout_s=90)
             restored = client.info()
