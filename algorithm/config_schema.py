@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, PrivateAttr, field_validator, model_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from algorithm.random_params import parse_random_params
 
@@ -427,9 +427,6 @@ class Config(Section):
         "main.py draws them once for a new run, from its seed, and records the values in the run's config.yaml.",
     )
 
-    # Dotted keys this config filled in from others (null in the file): a copy with other values derives them anew.
-    _derived: set[str] = PrivateAttr(default_factory=set)
-
     @field_validator("random_params", mode="before")
     @classmethod
     def _empty_random_params(cls, value: Any) -> Any:
@@ -454,7 +451,6 @@ class Config(Section):
             )
         updates = replay.updates_per_step * (base.max_step - replay.min_size_to_sample)
         sac.learning_rate_anneal_updates = max(1, round(updates))
-        self._derived.add("sac_config.learning_rate_anneal_updates")
         return self
 
     @model_validator(mode="after")

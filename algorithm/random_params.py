@@ -257,9 +257,6 @@ def apply_params(config: ConfigT, values: Mapping[str, Any]) -> ConfigT:
     says what it ran. ``ValueError`` names the keys when the values are rejected.
     """
     data = config.model_dump()
-    for path in getattr(config, "_derived", ()):  # filled in from other keys: derived again from the new ones
-        section, _, key = path.partition(".")
-        data[section][key] = None
     for path, value in values.items():
         section, _, key = path.partition(".")
         if not isinstance(data.get(section), dict) or key not in data[section]:

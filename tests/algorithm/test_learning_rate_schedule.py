@@ -10,7 +10,6 @@ import pytest
 import torch
 
 from algorithm.config_schema import Config, SacConfig
-from algorithm.random_params import apply_params
 from algorithm.sac import SAC
 from algorithm.schedules import learning_rate_at, linear_anneal
 from tests.algorithm.test_sac import make_batch, make_sac
@@ -95,21 +94,3 @@ def test_a_schedule_left_at_null_spans_the_run_and_needs_an_end() -> None:
         Config.model_validate(endless)
     with pytest.raises(ValueError, match="learning_rate_anneal_updates is null"):
         learning_rate_at(SacConfig(learning_rate_final=0.0), 10)
-
-
-def test_a_drawn_hyper_parameter_moves_a_schedule_left_at_null() -> None:
-    """The evolver's and main.py's drawn values (``apply_params``) re-derive a schedule the config filled in from
-    the run's length, and keep one the user gave."""
-    run = {"base_config": {"max_step": 5000}, "replay_config": {"min_size_to_sample": 1000, "samples_per_insert": 128}}
-    derived = Config.model_validate({**run, "sac_config": {"learning_rate_final": 0.0}})
-    assert apply_params(derived, {"replay_config.batch_size": 32}).sac_config.learning_rate_anneal_updates == 16000
-    assert (
-        apply_params(
-            derived.model_copy(deep=True), {"base_config.max_step": 3000}
-        ).sac_config.learning_rate_anneal_updates
-        == 2000 * 128 // 256
-    )
-    given = Config.model_validate(
-        {**run, "sac_config": {"learning_rate_final": 0.0, "learning_rate_anneal_updates": 9}}
-    )
-    assert apply_params(given, {"replay_config.batch_size": 32}).sac_config.learning_rate_anneal_updates == 9
