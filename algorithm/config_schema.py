@@ -441,17 +441,34 @@ class Config(Section):
     def _anneal_over_the_run(self) -> Config:
         """``sac_config.learning_rate_anneal_updates: null`` becomes the run's number of updates, so a
         schedule set for a task still ends with the run when ``base_config.max_step`` is overridden."""
-        sac, base, replay = self.sac_config, self.base_config, self.replay_config
+        sac = self.sac_config
         if sac.learning_rate_final is None or sac.learning_rate_anneal_updates is not None:
             return self
-        if base.max_step < 0:
+        if self.base_config.max_step < 0:
             raise ValueError(
                 "sac_config.learning_rate_anneal_updates is null (anneal over the run) but base_config.max_step is "
                 "-1 (the run has no end): set learning_rate_anneal_updates to a number of updates"
             )
-        updates = replay.updates_per_step * (base.max_step - replay.min_size_to_sample)
-        sac.learning_rate_anneal_updates = max(1, round(updates))
+        sac.learning_rate_anneal_updates = self._run_updates()
         return self
+
+    def _run_updates(self) -> int:
+        """The run's number of updates: updates per env step over the env steps after the replay's warm-up."""
+        base, replay = self.base_config, self.replay_config
+        return max(1, round(replay.updates_per_step * (base.max_step - replay.min_size_to_sample)))
+
+    def derived_keys(self) -> set[str]:
+        """Dotted keys whose value is the one this config derives from its other keys (a null in the file
+        filled in by a validator), so a copy with other values (``apply_params``: the evolver's learners,
+        ``main.py``'s draw) derives them again. Read from the values alone: an explicit anneal equal to the
+        run's number of updates counts as derived, the same schedule under another name."""
+        sac = self.sac_config
+        spans_the_run = (
+            sac.learning_rate_final is not None
+            and self.base_config.max_step >= 0
+            and sac.learning_rate_anneal_updates == self._run_updates()
+        )
+        return {"sac_config.learning_rate_anneal_updates"} if spans_the_run else set()
 
     @model_validator(mode="after")
     def _check_insert_td_priorities(self) -> Config:

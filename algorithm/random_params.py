@@ -254,9 +254,14 @@ def apply_params(config: ConfigT, values: Mapping[str, Any]) -> ConfigT:
     """A validated copy of ``config`` with ``values`` (by dotted key) set and ``random_params`` emptied.
 
     The copy is the config one learner runs with: concrete values only, so its saved config.yaml
-    says what it ran. ``ValueError`` names the keys when the values are rejected.
+    says what it ran. Keys the config derives from others (its ``derived_keys()``, where it has one)
+    are set back to null first, so they follow the drawn values. ``ValueError`` names the keys when the values are rejected.
     """
     data = config.model_dump()
+    derived = getattr(config, "derived_keys", None)  # keys the config fills in from others: derive them anew
+    for path in derived() if callable(derived) else ():
+        section, _, key = path.partition(".")
+        data[section][key] = None
     for path, value in values.items():
         section, _, key = path.partition(".")
         if not isinstance(data.get(section), dict) or key not in data[section]:

@@ -10,6 +10,7 @@ import pytest
 import torch
 
 from algorithm.config_schema import Config, SacConfig
+from algorithm.random_params import apply_params, draw_for_run
 from algorithm.sac import SAC
 from algorithm.schedules import learning_rate_at, linear_anneal
 from tests.algorithm.test_sac import make_batch, make_sac
@@ -94,3 +95,27 @@ def test_a_schedule_left_at_null_spans_the_run_and_needs_an_end() -> None:
         Config.model_validate(endless)
     with pytest.raises(ValueError, match="learning_rate_anneal_updates is null"):
         learning_rate_at(SacConfig(learning_rate_final=0.0), 10)
+
+
+def test_drawn_hyper_parameters_move_a_schedule_that_spans_the_run() -> None:
+    """The evolver's and main.py's drawn values (``apply_params``) derive the run's anneal again from the drawn
+    batch size or run length, and keep an anneal given as another number. Pins the gap left by the null default:
+    a copy kept the count derived from the values before the draw (2000 instead of 16000 below)."""
+    run = {"base_config": {"max_step": 5000}, "replay_config": {"min_size_to_sample": 1000, "samples_per_insert": 128}}
+    derived = Config.model_validate({**run, "sac_config": {"learning_rate_final": 0.0}})
+    assert derived.sac_config.learning_rate_anneal_updates == 4000 * 128 // 256
+    assert apply_params(derived, {"replay_config.batch_size": 32}).sac_config.learning_rate_anneal_updates == 16000
+    shorter = apply_params(derived, {"base_config.max_step": 3000})
+    assert shorter.sac_config.learning_rate_anneal_updates == 2000 * 128 // 256
+    given = Config.model_validate(
+        {**run, "sac_config": {"learning_rate_final": 0.0, "learning_rate_anneal_updates": 9}}
+    )
+    assert apply_params(given, {"replay_config.batch_size": 32}).sac_config.learning_rate_anneal_updates == 9
+    constant = Config.model_validate(run)  # no schedule: nothing derived, nothing moved
+    assert apply_params(constant, {"replay_config.batch_size": 32}).sac_config.learning_rate_anneal_updates is None
+    drawn = {"random_params": {"replay_config": {"batch_size": {"in": [32]}}}}
+    run_config, values = draw_for_run(
+        Config.model_validate({**run, **drawn, "sac_config": {"learning_rate_final": 0.0}}), seed=0
+    )
+    assert values == {"replay_config.batch_size": 32}
+    assert run_config.sac_config.learning_rate_anneal_updates == 16000
