@@ -255,7 +255,8 @@ def apply_params(config: ConfigT, values: Mapping[str, Any]) -> ConfigT:
 
     The copy is the config one learner runs with: concrete values only, so its saved config.yaml
     says what it ran. Keys the config derives from others (its ``derived_keys()``, where it has one)
-    are set back to null first, so they follow the drawn values. ``ValueError`` names the keys when the values are rejected.
+    are set back to null first, so they follow the drawn values. ``ValueError`` names the keys when
+    the values are rejected.
     """
     data = config.model_dump()
     derived = getattr(config, "derived_keys", None)  # keys the config fills in from others: derive them anew

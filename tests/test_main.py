@@ -142,6 +142,19 @@ def test_random_params_are_drawn_once_per_new_run_from_its_seed_and_kept_on_resu
     assert yaml.safe_load(after)["sac_config"]["tau"] == yaml.safe_load(before)["sac_config"]["tau"]
 
 
+def test_a_drawn_batch_size_sets_the_length_of_a_run_long_step_size_schedule(tmp_path: Path) -> None:
+    # A schedule left at null spans the run's updates (updates per env step x env steps past the warm-up);
+    # a drawn batch size changes the updates per env step, so the run anneals over its drawn length:
+    # 64 samples per insert / batch 32 = 2 per step, over 250 - 64 steps (not 4 per step, batch 16's).
+    draws = ["--override", "replay.samples_per_insert=64", "--override", "sac.learning_rate_final=0.0",
+             "--override", "random_params.replay_config={batch_size: {in: [32]}}"]  # fmt: skip
+    done = run_main("gym/pendulum", "-n", "drawn", *TINY, *draws, cwd=tmp_path)
+    assert done.returncode == 0, done.stderr
+    saved = yaml.safe_load((tmp_path / "models/gym/pendulum/drawn/config.yaml").read_text())
+    assert saved["replay_config"]["batch_size"] == 32
+    assert saved["sac_config"]["learning_rate_anneal_updates"] == 2 * (250 - 64)
+
+
 def test_bad_task_name_is_a_clear_error(tmp_path: Path) -> None:
     done = run_main("gym/pendlum", cwd=tmp_path)
     assert done.returncode == 2
