@@ -244,3 +244,49 @@ def test_an_actor_warns_of_a_gone_learner_only_once_it_has_been_gone_a_while_and
     finally:
         replay.close()
         learner.close()
+
+
+class LearnerGoneAtGetParams(LearnerClient):
+    """A client whose learner stops its server just as the actor asks for the first parameters (and,
+    with ``stop``, the actor is told to stop at that moment: a Ctrl-C during a local run's start-up,
+    whose launcher stops the learner first)."""
+
+    def __init__(self, address: str, learner: Learner, stop: threading.Event | None) -> None:
+        super().__init__(address, SPEC, retry=FAST_RETRY, rpc_timeout_s=2.0)
+        self.served, self.stop_event = learner, stop
+
+    def get_params(self) -> tuple[int, list[bytes]]:
+        self.served.stop()
+        if self.stop_event is not None:
+            self.stop_event.set()
+        return super().get_params()
+
+
+@pytest.mark.parametrize("told_to_stop", [True, False])
+def test_an_actor_stopped_during_start_up_while_its_learner_goes_ends_cleanly_and_only_then(
+    tmp_path: Path, told_to_stop: bool
+) -> None:
+    """The race a Ctrl-C'd ``main_ds.py ... local`` run hit (a traceback from the actor's GetParams after the
+    learner had stopped). Told to stop, the actor ends with a stopped summary; a learner that goes away
+    without a stop is still an error."""
+    replay_port, learner_port = free_port(), free_port()
+    replay, served = Replay(replay_port), Learner(learner_port, version=1, seed=1)
+    stop = threading.Event()
+    replay_client = ReplayClient(f"127.0.0.1:{replay_port}", SPEC.sensors, SPEC.action.size, retry=FAST_RETRY)
+    learner_client = LearnerGoneAtGetParams(f"127.0.0.1:{learner_port}", served, stop if told_to_stop else None)
+    sac = SAC(SPEC, CONFIG.sac_config, CONFIG.nn_config, CONFIG.replay_config)
+    actor = DistributedActor(CONFIG, tmp_path, vector_env_factory("Pendulum-v1"), sac, replay_client,
+                             learner_client, "127.0.0.1", stop=stop)  # fmt: skip
+    try:
+        if told_to_stop:
+            summary = actor.run()
+            assert summary.interrupted and summary.env_steps == 0
+        else:
+            with pytest.raises(grpc.RpcError) as gone:
+                actor.run()
+            assert gone.value.code() == grpc.StatusCode.UNAVAILABLE
+    finally:
+        replay_client.close()
+        learner_client.close()
+        replay.stop()
+        served.stop()
