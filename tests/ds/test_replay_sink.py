@@ -193,10 +193,12 @@ def test_a_held_back_actor_waits_checks_in_between_and_returns_once_stopping(
         sink.flush()
     assert time.monotonic() - start < 0.6  # last tries are answered at once: no waiting in the rate limiter
     info = client.info()
-    # Sizes 0, 4, 8 let in while the rate limiter's surplus was not positive; the other 64 steps are the
-    # last tries of a stopping producer, stored past the limiter, not thrown away.
+    # Requests are let in while the table holds at most min_size_to_sample (8) steps: 12 to 16 steps, as the
+    # sink batches up to two chunks a request, which depends on when the answers come (a loaded machine
+    # made it 12 where 16 is usual). Every other step is a last try of a stopping producer, stored past
+    # the limiter, not thrown away.
     assert info["inserted_steps"] == sink.inserted_steps == 20 * 4 and sink.unsent_steps == 0
-    assert info["stored_past_limiter"] == 64
+    assert 80 - 16 <= info["stored_past_limiter"] <= 80 - 12
     assert not [r.getMessage() for r in caplog.records if "were not inserted" in r.getMessage()]
 
 
