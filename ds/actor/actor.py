@@ -161,17 +161,24 @@ class DistributedActor:
 
     # -- the loop ---------------------------------------------------------------------------
     def run(self) -> ActorSummary:
-        reg = self._join()
-        if reg is None:
+        if not self._wait_for_peers():
             return ActorSummary(-1, 0, 0, True)
+        try:
+            reg = self._register()
+            if self.update_mode:
+                self._fetch_params()
+        except grpc.RpcError as e:
+            if not (self.stop.is_set() and peer_unresponsive(e.code())):
+                raise
+            # A Ctrl-C during start-up: a local run stops the learner first, so this is an orderly stop.
+            log.info("stopped while starting: the learner at %s has gone (%s)", self.learner.address, e.code().name)
+            return ActorSummary(-1 if self.registration is None else self.registration.index, 0, 0, True)
         index = reg.index
         noise = actor_noise(self.config, index, self.noise_override)
         seed = int(self.config.sac_config.seed or 0) + ACTOR_SEED_STRIDE * (index + 1)
         self.sac.exploration_noise = noise
         self.sac.seed_acting(seed)  # every actor's policy is built from the same config: its own noise
         policy = self.sac if self.update_mode else RemotePolicy(self.learner, noise)
-        if self.update_mode and not self._stopped_during(self._fetch_params):
-            return ActorSummary(index, 0, 0, True)
         env = self.make_env(self.config.base_config.n_agents, seed)
         self.loop = loop = ActorLoop(
             env,
@@ -251,31 +258,6 @@ class DistributedActor:
         }
 
     # -- peers ------------------------------------------------------------------------------
-    def _join(self) -> Registration | None:
-        """Wait for the replay and the learner, then register; None when told to stop meanwhile."""
-        if not self._wait_for_peers():
-            return None
-        reg = None
-
-        def register() -> None:
-            nonlocal reg
-            reg = self._register()
-
-        return reg if self._stopped_during(register) else None
-
-    def _stopped_during(self, call: Callable[[], None]) -> bool:
-        """Run one start-up call to the learner; False when a stop came and the learner went away meanwhile
-        (a Ctrl-C during start-up: a local run stops the learner first, so this is an orderly stop, not a
-        failure). Any other failure is raised as before."""
-        try:
-            call()
-        except grpc.RpcError as e:
-            if self.stop.is_set() and peer_unresponsive(e.code()):
-                log.info("stopped while starting: the learner at %s has gone (%s)", self.learner.address, e.code().name)
-                return False
-            raise
-        return True
-
     def _wait_for_peers(self) -> bool:
         return wait_until_serving(
             self.replay.channel, replay_service.SERVICE_NAME, "replay", self.replay.address, self.stop
