@@ -20,6 +20,10 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 # actor with 64 envs acted 3.5x slower with a second core busy: 516 vs 149 us).
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
+from algorithm.signals import exit_quietly_on_sigint
+
+exit_quietly_on_sigint()  # a Ctrl-C while still importing: exit 130, no traceback
+
 import argparse
 import logging
 import random

@@ -14,6 +14,10 @@ import os
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
+from algorithm.signals import exit_quietly_on_sigint
+
+exit_quietly_on_sigint()  # a Ctrl-C while still importing: exit 130, no traceback
+
 import argparse
 import json
 import logging

@@ -46,6 +46,19 @@ class StopRequest(threading.Event):
         return 128 + int(self.signum or signal.SIGINT)
 
 
+def exit_quietly_on_sigint() -> None:
+    """Until :func:`stop_on_signals` installs a run's handlers, make SIGINT end the process with 130 and no
+    traceback. The entry points call it first: their imports (torch, a role's code) and set-up take a second
+    or two, and a Ctrl-C then, which every role of a local run gets at once, printed a KeyboardInterrupt
+    traceback per process from wherever its import stood. SystemExit unwinds as that did (context managers
+    that remove a run folder not yet started still run)."""
+    signal.signal(signal.SIGINT, _exit_by_signal)
+
+
+def _exit_by_signal(signum: int, frame: FrameType | None) -> None:
+    raise SystemExit(128 + signum)
+
+
 def stop_on_signals(doing: str = "stopping after this step, saving") -> StopRequest:
     """Install handlers for SIGINT, SIGTERM and SIGHUP that set the returned :class:`StopRequest`; ``doing``
     says in the log line what the process does now (``SIGINT: <doing> (again to force)``)."""
