@@ -50,6 +50,11 @@ def run_folder(runs: Path, task: str, seed: int, steps: int, overrides: str) -> 
     return runs / "mujoco_suite" / task / (f"asac_s{seed}_{steps // 1000}k" + (f"_{label}" if label else ""))
 
 
+def sb3_model_path(runs: Path, task: str, seed: int, steps: int) -> Path:
+    """Where SB3's trained model of ``task`` and ``seed`` is saved, beside ASAC's run folders."""
+    return runs / "mujoco_suite" / task / f"sb3_s{seed}_{steps // 1000}k.zip"
+
+
 def code_version() -> str:
     """The commit the run's code is at (ASAC_BENCH_CODE when set, e.g. by a run from an exported
     snapshot), with +dirty when algorithm/, envs/ or bench/ differ from it."""
@@ -131,8 +136,9 @@ def mujoco(args: argparse.Namespace) -> None:
                 if system == "asac":
                     result = asac_run(args, seed, functools.partial(write_curve, path), stop)
                 else:
+                    saved = sb3_model_path(args.runs, args.task, seed, args.steps)
                     result = run_sb3(args.task, seed, args.steps, args.every, functools.partial(write_curve, path),
-                                     stop=stop)  # fmt: skip
+                                     stop=stop, save_to=saved)  # fmt: skip
             except RunStopped as e:
                 then = "saved; the same command resumes it" if system == "asac" else "not resumable"
                 print(f"{args.task} {system} seed {seed}: stopped at {e.env_steps} env steps, {then}", flush=True)

@@ -184,10 +184,13 @@ def run_sb3(
     every: int = 0,
     on_eval: Callable[[RunResult], None] | None = None,
     stop: threading.Event | None = None,
+    save_to: Path | None = None,
 ) -> RunResult:
     """SB3 SAC with the same hyper-parameters and warm-up, evaluated by the same code on the same
     envs at the same cadence as :func:`run_ours` (``every`` == 0: once at the end). ``stop`` set:
-    RunStopped between two evaluations (nothing saved: SB3's runs start again)."""
+    RunStopped between two evaluations (nothing saved: SB3's runs start again). ``save_to``: the
+    trained model is saved there at the end (SB3's zip, without its replay buffer), for
+    ``python -m bench.saturation``."""
     env_id = MUJOCO_TASKS[task]
     model = sb3_model(env_id, seed, learning_starts=warmup_steps(task))
     env = make_vector_env(env_id, EVAL_ENVS, seed=seed + 100_000)
@@ -206,5 +209,8 @@ def run_sb3(
         result.curve.append((model.num_timesteps, r.mean, r.std, time.perf_counter() - start))
         if on_eval is not None:
             on_eval(result)
+    if save_to is not None:
+        save_to.parent.mkdir(parents=True, exist_ok=True)
+        model.save(save_to)
     result.final = result.curve[-1][1]
     return result

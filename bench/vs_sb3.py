@@ -23,7 +23,8 @@
         runs already there are skipped. `mujoco [TASK] --report [--seeds 0 1 2]` prints the tables of those
         seeds (0-2 unless told, the seeds the goal is judged on). ASAC's runs train
         in folders under --runs ($ASAC_BENCH_RUNS, else ~/asac_long_runs): Ctrl-C or SIGTERM saves the
-        run in progress and the same command resumes it (bench/suite.py).
+        run in progress and the same command resumes it (bench/suite.py). SB3's trained model is saved
+        there too (mujoco_suite/TASK/sb3_s<k>_<steps>k.zip), for `python -m bench.saturation`.
     python -m bench.vs_sb3 suite [--tasks hopper walker2d ant half_cheetah] [--seeds 0 1 2]
                                  [--out DIR] [--override sac.compute_dtype=float32]
         every `mujoco` run of the comparison, one process at a time, task by task and per seed ASAC

@@ -8,6 +8,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 ROOT = Path(__file__).resolve().parents[1]
 
 
@@ -27,3 +29,29 @@ def test_the_probe_reports_the_pre_tanh_spread_of_a_trained_run(tmp_path: Path) 
     assert said, done.stdout
     median, p90, top, over4, over_edge, std = map(float, said.groups())
     assert median <= p90 <= top and over_edge <= over4 <= 1 and std > 0
+
+
+def test_an_sb3_model_the_suite_saved_is_probed_on_the_same_env(tmp_path: Path) -> None:
+    pytest.importorskip("stable_baselines3")  # the optional peer (pip install -e '.[bench]')
+    from bench.suite import sb3_model_path
+    from bench.systems import run_sb3
+
+    saved = sb3_model_path(tmp_path, "hopper", 0, 300)
+    run_sb3("hopper", 0, 300, save_to=saved)  # inside the 10,000 random steps: an untrained policy
+    assert saved.is_file()
+    done = subprocess.run([sys.executable, "-m", "bench.saturation", str(saved)], cwd=ROOT, text=True,
+                          capture_output=True, timeout=300)  # fmt: skip
+    assert done.returncode == 0, done.stderr
+    assert re.fullmatch(
+        r".*sb3_s0_0k\.zip \(SB3\): \d+ steps, return -?\d+; \|mean u\| median [\d.]+, .*\n", done.stdout
+    )
+
+
+def test_a_model_outside_a_task_folder_is_refused_by_name(tmp_path: Path) -> None:
+    stray = tmp_path / "elsewhere" / "model.zip"
+    stray.parent.mkdir()
+    stray.write_bytes(b"")
+    done = subprocess.run([sys.executable, "-m", "bench.saturation", str(stray)], cwd=ROOT, text=True,
+                          capture_output=True, timeout=300)  # fmt: skip
+    assert done.returncode == 1
+    assert f"{stray}: its folder names no task of" in done.stderr and "mujoco_suite/<task>/" in done.stderr
