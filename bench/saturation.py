@@ -65,6 +65,7 @@ def probe_sb3(model_zip: Path, seed: int) -> str:
             f"{model_zip}: its folder names no task of {sorted(MUJOCO_TASKS)} (the suite saves to mujoco_suite/<task>/)"
         )
     from stable_baselines3 import SAC as SB3SAC
+
     model = SB3SAC.load(model_zip, device="cpu")
     env = make_vector_env(MUJOCO_TASKS[task], 1, seed=seed)
 
