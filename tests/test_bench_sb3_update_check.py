@@ -1,0 +1,67 @@
+"""bench/sb3_update_check.py: ASAC's SAC update against SB3's from the same weights, batches and noise.
+
+The comparison itself needs SB3 (the optional peer, ``pip install -e '.[bench]'``) and is skipped without
+it; the density it swaps in and the gap it reports are checked without SB3."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from algorithm.nn import models
+from bench import sb3_update_check as check
+
+UPDATES = 20
+
+
+def test_sb3s_density_is_asacs_away_from_the_edge_and_capped_near_it() -> None:
+    noise = torch.randn(64, 3)
+    log_std = torch.full((64, 3), -0.5)
+    pre_tanh = torch.linspace(-3, 3, 64)[:, None].expand(64, 3)
+    exact = models._squashed_gaussian_log_density(noise, log_std, pre_tanh)
+    torch.testing.assert_close(check.sb3_log_density(noise, log_std, pre_tanh), exact, rtol=1e-4, atol=5e-3)
+    far = torch.full((1, 1), 12.0)  # 1 - tanh^2 is 1.5e-10 there: SB3's log is held at about log(1e-6)
+    sb3_log_det = float(check.sb3_log_density(torch.zeros(1, 1), torch.zeros(1, 1), far)) + 0.5 * math.log(2 * math.pi)
+    assert -sb3_log_det == pytest.approx(math.log(1e-6), abs=1e-3)
+    assert float(models._squashed_gaussian_log_density(torch.zeros(1, 1), torch.zeros(1, 1), far)) > 20
+
+
+def test_the_gap_is_zero_for_the_same_change_and_relative_per_group() -> None:
+    start = {
+        "policy.w": torch.zeros(4),
+        "q.w": torch.zeros(2),
+        "target_q.w": torch.zeros(2),
+        "log_alpha": torch.zeros(()),
+    }
+    theirs = {
+        "policy.w": torch.ones(4),
+        "q.w": torch.full((2,), 2.0),
+        "target_q.w": torch.ones(2),
+        "log_alpha": torch.ones(()),
+    }
+    ours = {**theirs, "q.w": torch.tensor([2.0, 0.0])}
+    gaps = check.relative_gaps(start, ours, theirs)
+    assert gaps == {"policy": 0.0, "q": pytest.approx(2 / math.sqrt(8)), "target_q": 0.0, "log_alpha": 0.0}
+
+
+@pytest.fixture(scope="module")
+def gaps() -> dict[tuple[str, str, str], dict[str, float]]:
+    pytest.importorskip("stable_baselines3")
+    return {
+        v: check.compare("hopper", UPDATES, v, 0, lambda update, gaps: None)
+        for v in (check.VARIANTS[0], check.VARIANTS[-1])
+    }
+
+
+def test_with_sb3s_three_choices_asacs_update_is_sb3s_to_rounding(
+    gaps: dict[tuple[str, str, str], dict[str, float]],
+) -> None:
+    """Any change to ASAC's losses, targets or optimizers that SB3 does not share shows up here."""
+    assert max(gaps[check.VARIANTS[-1]].values()) < 1e-4, gaps
+
+
+def test_asacs_default_is_told_apart_from_sb3(gaps: dict[tuple[str, str, str], dict[str, float]]) -> None:
+    """The check can fail: ASAC's exact density and joint order move the policy's update measurably."""
+    assert gaps[check.VARIANTS[0]]["policy"] > 1e-3, gaps
