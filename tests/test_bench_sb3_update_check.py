@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import pytest
 import torch
 
@@ -46,6 +47,15 @@ def test_the_gap_is_zero_for_the_same_change_and_relative_per_group() -> None:
     assert gaps == {"policy": 0.0, "q": pytest.approx(2 / math.sqrt(8)), "target_q": 0.0, "log_alpha": 0.0}
 
 
+def test_the_floor_is_two_asac_learners_apart_by_rounding_only() -> None:
+    """Without SB3: the same update on each batch's rows in another order (noise reordered with them) is the
+    same update, so a row paired with another row's noise or a loss that depends on row order shows here."""
+    seen: list[dict[str, float]] = []
+    last = check.rounding_floor("hopper", 5, 0, lambda update, gaps: seen.append(gaps), reorder=1)
+    assert len(seen) == 5 and seen[-1] == last
+    assert max(last.values()) < 1e-4, last
+
+
 @pytest.fixture(scope="module")
 def gaps() -> dict[tuple[str, str, str], dict[str, float]]:
     pytest.importorskip("stable_baselines3")
@@ -65,3 +75,18 @@ def test_with_sb3s_three_choices_asacs_update_is_sb3s_to_rounding(
 def test_asacs_default_is_told_apart_from_sb3(gaps: dict[tuple[str, str, str], dict[str, float]]) -> None:
     """The check can fail: ASAC's exact density and joint order move the policy's update measurably."""
     assert gaps[check.VARIANTS[0]]["policy"] > 1e-3, gaps
+
+
+def test_the_critics_rows_on_either_side_of_a_relu_are_found_only_where_they_are() -> None:
+    """The same weights put every row on the same side of every ReLU, to rounding; one input weight of one
+    unit moved puts the rows whose input to it is near 0 on the other side, named by head, layer and unit."""
+    pytest.importorskip("stable_baselines3")
+    sac, sb3, batch = check.paired_learners("hopper", "critic_first", 0)
+    data = check.random_transitions(check.MUJOCO_TASKS["hopper"], 500, 0)
+    rows = np.arange(batch)
+    assert check.relu_disagreements(sac, sb3, data, rows) == []
+    with torch.no_grad():
+        sb3.policy.critic.qf1[0].bias[7] += 0.05
+    found = check.relu_disagreements(sac, sb3, data, rows)
+    assert found and all(line.startswith(("Q head 1 layer 0 unit 7 row ", "Q head 1 layer 1 ")) for line in found)
+    assert any(line.startswith("Q head 1 layer 0 unit 7 row ") for line in found), found
