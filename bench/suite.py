@@ -119,7 +119,7 @@ def mujoco(args: argparse.Namespace) -> None:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     if args.report:
-        report(out, args.task, args.seeds)
+        report(out, args.task, args.seeds, args.also)
         return
     torch.set_num_threads(args.threads)
     label = " ".join(args.override)
@@ -171,11 +171,17 @@ def mujoco(args: argparse.Namespace) -> None:
             )
 
 
-def report(out: Path, task: str | None = None, seeds: Sequence[int] | None = None) -> None:
+def report(out: Path, task: str | None = None, seeds: Sequence[int] | None = None, also: Sequence[Path] = ()) -> None:
     """Per task: one row per seed (the latest run of each system; only ``seeds`` when given, so that
     runs of extra seeds can share the folder with the seeds a goal is judged on), then the means and
-    the ratio."""
-    rows = [r for r in read_summary(out) if seeds is None or int(r["seed"]) in seeds]
+    the ratio. Runs in the ``also`` folders count as if they were in ``out`` (e.g. extra seeds run into
+    a folder of their own); a run of the same system and seed in a later folder wins."""
+    rows = [
+        {**r, "folder": str(folder)}
+        for folder in (out, *also)
+        for r in read_summary(folder)
+        if seeds is None or int(r["seed"]) in seeds
+    ]
     for name in [t for t in MUJOCO_TASKS if t == task or task is None]:
         runs = {(r["system"], int(r["seed"])): r for r in rows if r["task"] == name}  # the latest wins
         if not runs:
@@ -200,9 +206,10 @@ def report(out: Path, task: str | None = None, seeds: Sequence[int] | None = Non
                 continue
             means[system], finals[system] = float(np.mean(rets)), rets
             # less noisy than one evaluation: each seed's mean of its last LAST evaluations
-            last = [last_evaluations(curve_path(out, name, sy, s)) for (sy, s) in runs if sy == system]
+            curves = [curve_path(Path(r["folder"]), name, sy, s) for (sy, s), r in runs.items() if sy == system]
+            last = [last_evaluations(path) for path in curves]
             lasts[system] = float(np.mean(last))
-            areas[system] = [curve_mean(curve_path(out, name, sy, s)) for (sy, s) in runs if sy == system]
+            areas[system] = [curve_mean(path) for path in curves]
             print(
                 f"{system}: mean {means[system]:.1f}, min {min(rets):.1f}, max {max(rets):.1f} over {len(rets)} seeds;"
                 f" mean of the last {LAST} evaluations {lasts[system]:.1f} ({' / '.join(f'{v:.1f}' for v in last)});"

@@ -20,8 +20,9 @@
         stream), the last evaluation at --steps being the run's return. Each run writes its curve to
         bench/results/mujoco/TASK_<asac|sb3>_seed<k>.csv as it goes and, at its end, a row (return,
         wall seconds, of which evaluating, overrides, code version) to bench/results/mujoco/summary.csv;
-        runs already there are skipped. `mujoco [TASK] --report [--seeds 0 1 2]` prints the tables of those
-        seeds (0-2 unless told, the seeds the goal is judged on). ASAC's runs train
+        runs already there are skipped. `mujoco [TASK] --report [--seeds 0 1 2] [--also DIR]` prints the
+        tables of those seeds (0-2 unless told, the seeds the goal is judged on), taking runs from the
+        folders --also names as well (extra seeds run into a folder of their own). ASAC's runs train
         in folders under --runs ($ASAC_BENCH_RUNS, else ~/asac_long_runs): Ctrl-C or SIGTERM saves the
         run in progress and the same command resumes it (bench/suite.py). SB3's trained model is saved
         there too (mujoco_suite/TASK/sb3_s<k>_<steps>k.zip), for `python -m bench.saturation`.
@@ -245,6 +246,9 @@ def main() -> None:
         help="extra config override for ASAC (repeatable); recorded with the run",
     )
     mj.add_argument("--report", action="store_true", help="only print the table of runs so far")
+    mj.add_argument(
+        "--also", type=Path, action="append", default=[], metavar="DIR", help="--report: runs in DIR too (repeatable)"
+    )
     su = sub.add_parser("suite")
     su.add_argument("--tasks", nargs="+", choices=list(MUJOCO_TASKS), default=list(SUITE_TASKS))
     su.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])

@@ -73,3 +73,25 @@ def test_the_report_counts_only_the_seeds_asked_for(tmp_path: Path, capsys: pyte
     report(tmp_path, "walker2d")
     every = capsys.readouterr().out
     assert "asac: mean 400.0" in every and "over 4 seeds" in every and "ASAC / SB3 means: 2.00x" in every
+
+
+def test_the_report_takes_runs_from_other_folders_with_their_curves(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    # Extra seeds run into a folder of their own (bench/results/walker2d_seeds5to9) are reported with the
+    # goal's seeds; each run's curve is read from its own folder.
+    for folder, seeds, asac in (("first", [0, 1], 100.0), ("extra", [5, 6], 300.0)):
+        out = tmp_path / folder
+        out.mkdir()
+        summary = ["task,system,seed,steps,return,wall_s,eval_s,overrides,code,finished"]
+        for system, ret in (("asac", asac), ("sb3", 200.0)):
+            for seed in seeds:
+                summary.append(f"walker2d,{system},{seed},20000,{ret},10,1,,abc,today")
+                (out / f"walker2d_{system}_seed{seed}.csv").write_text(
+                    "env_steps,return_mean,return_std,wall_seconds\n" + f"15000,{ret / 2},0.0,1\n20000,{ret},0.0,1\n"
+                )
+        (out / "summary.csv").write_text("\n".join(summary) + "\n")
+    report(tmp_path / "first", "walker2d", [0, 1, 5, 6], also=[tmp_path / "extra"])
+    said = capsys.readouterr().out
+    assert "| 5 | 20000 | 300.0 |" in said and "asac: mean 200.0" in said and "over 4 seeds" in said
+    assert "mean of all evaluations past 10000 steps 150.0 (75.0 / 75.0 / 225.0 / 225.0)" in said
