@@ -194,6 +194,14 @@ class SacConfig(Section):
         "whole); critic_first: the critic and temperature step first and the policy's loss is computed against "
         "the stepped critic (SB3's order; no CUDA graph).",
     )
+    tanh_log_det_epsilon: float = Field(
+        0.0,
+        ge=0.0,
+        le=0.01,
+        description="The learner's losses take the policy's tanh change of variables as log(1 - tanh(u)^2 + "
+        "epsilon); 0 computes it exactly. SB3 adds 1e-6, which holds the penalty on saturated actions near "
+        "log(1e-6) past |u| ~ 6.5. Acting and V-trace's stored-action densities stay exact.",
+    )
     discrete_entropy_penalty: float = Field(
         0.0,
         ge=0.0,

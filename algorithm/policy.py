@@ -330,7 +330,9 @@ class Policy:
         pi = PolicySample()
         policy_state = self.models.representation.policy_state(state)
         if self.models.policy is not None:
-            pi.continuous, pi.continuous_log_prob = self.models.policy.sample(policy_state, noise)
+            pi.continuous, pi.continuous_log_prob = self.models.policy.sample(
+                policy_state, noise, self.sac.tanh_log_det_epsilon
+            )
         if self.models.discrete_policy is not None:
             pi.log_probs = self.models.discrete_policy(policy_state, mask)
             pi.probs = pi.log_probs.exp()

@@ -10,9 +10,10 @@ shared start: 0 where the updates agree.
 
 ASAC runs in five variants (:data:`VARIANTS`), from its default to SB3's own choices in the three places
 the two implementations differ: the squashed Gaussian's log-density (exact, or SB3's ``+ 1e-6`` inside
-the log), the order inside an update (``sac.update_order``) and the arithmetic of the target average
-(the same average rounded another way). The last lines are the floor: two ASAC learners, one given each
-batch's rows in another order (``--floors`` orders), which is what float32 rounding alone makes of the gap::
+the log: ``sac.tanh_log_det_epsilon``), the order inside an update (``sac.update_order``) and the
+arithmetic of the target average (the same average rounded another way). The last lines are the floor:
+two ASAC learners, one given each batch's rows in another order (``--floors`` orders), which is what
+float32 rounding alone makes of the gap::
 
     python -m bench.sb3_update_check walker2d
 
@@ -23,7 +24,6 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import math
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -33,7 +33,6 @@ import gymnasium as gym
 import numpy as np
 import torch
 
-import algorithm.nn.models as models
 from algorithm.config import load_config
 from algorithm.nn.layers import EnsembleLinear
 from algorithm.sac import SAC
@@ -52,6 +51,7 @@ VARIANTS = (
     ("sb3", "critic_first", "sb3"),
 )
 TRANSITIONS = 4000
+SB3_LOG_DET_EPSILON = 1e-6  # SB3's SquashedDiagGaussianDistribution adds it inside log(1 - tanh(u)^2)
 Report = Callable[[int, dict[str, float]], None]
 Params = dict[str, torch.Tensor]
 
@@ -85,10 +85,11 @@ def random_transitions(env_id: str, steps: int, seed: int) -> Transitions:
     return Transitions(*(np.stack(rows[k]).astype(bool if k == "terminated" else np.float32) for k in rows))
 
 
-def asac_learner(task: str, order: str) -> tuple[SAC, int]:
-    """An ASAC learner from ``envs/mujoco/<task>``'s config in float32 with the update ``order``, and the
-    config's batch size."""
-    overrides = ["sac.compute_dtype=float32", f"sac.update_order={order}"]
+def asac_learner(task: str, order: str, log_density: str = "exact") -> tuple[SAC, int]:
+    """An ASAC learner from ``envs/mujoco/<task>``'s config in float32 with the update ``order`` and the
+    ``log_density`` (exact, or sb3: ``sac.tanh_log_det_epsilon`` 1e-6), and the config's batch size."""
+    epsilon = {"exact": 0.0, "sb3": SB3_LOG_DET_EPSILON}[log_density]
+    overrides = ["sac.compute_dtype=float32", f"sac.update_order={order}", f"sac.tanh_log_det_epsilon={epsilon}"]
     config = load_config(ROOT / "envs" / "mujoco" / task, overrides=overrides).config
     env = gym.make(MUJOCO_TASKS[task])
     spec = env_spec(env.observation_space, env.action_space)
@@ -177,13 +178,6 @@ def patched(owner: Any, name: str, value: Any) -> Iterator[None]:
         setattr(owner, name, original)
 
 
-def sb3_log_density(noise: torch.Tensor, log_std: torch.Tensor, pre_tanh: torch.Tensor) -> torch.Tensor:
-    """SB3's squashed-Gaussian log-density per dimension (its SquashedDiagGaussianDistribution): the
-    change of variables as ``log(1 - tanh(u)^2 + 1e-6)``, where ASAC's is exact."""
-    gaussian = -0.5 * noise.pow(2) - log_std - 0.5 * math.log(2 * math.pi)
-    return gaussian - torch.log(1 - torch.tanh(pre_tanh).pow(2) + 1e-6)
-
-
 def sb3_polyak(targets: list[torch.Tensor], params: list[torch.Tensor], tau: float) -> None:
     """SB3's polyak_update arithmetic, ``t (1 - tau)`` then ``+ tau p``, for ASAC's ``t + tau (p - t)``."""
     for target, param in zip(targets, params, strict=True):
@@ -191,11 +185,10 @@ def sb3_polyak(targets: list[torch.Tensor], params: list[torch.Tensor], tau: flo
         torch.add(target, param, alpha=tau, out=target)
 
 
-def as_variant(log_density: str, arithmetic: str) -> contextlib.ExitStack:
-    """While open, ASAC computes its policy density and target average as the variant says."""
+def as_variant(arithmetic: str) -> contextlib.ExitStack:
+    """While open, ASAC computes its target average as the variant says (the density and the order are
+    config options: :func:`asac_learner`)."""
     stack = contextlib.ExitStack()
-    if log_density == "sb3":
-        stack.enter_context(patched(models, "_squashed_gaussian_log_density", sb3_log_density))
     if arithmetic == "sb3":
         stack.enter_context(patched(torch, "_foreach_lerp_", sb3_polyak))
     return stack
@@ -265,15 +258,15 @@ def relu_disagreements(sac: SAC, sb3: Any, data: Transitions, rows: np.ndarray) 
     return found
 
 
-def paired_learners(task: str, order: str, seed: int) -> tuple[SAC, Any, int]:
-    """SB3 SAC built for ``task`` as the suite builds it, an ASAC learner (update ``order``) holding its
-    initial weights, and the batch size."""
+def paired_learners(task: str, order: str, seed: int, log_density: str = "exact") -> tuple[SAC, Any, int]:
+    """SB3 SAC built for ``task`` as the suite builds it, an ASAC learner (:func:`asac_learner`) holding
+    its initial weights, and the batch size."""
     from stable_baselines3.common.logger import configure
 
     torch.manual_seed(seed)
     sb3 = sb3_model(MUJOCO_TASKS[task], seed, learning_starts=0, buffer_size=1000)
     sb3.set_logger(configure(None, []))  # SB3's train() records to the logger its learn() would make
-    sac, batch = asac_learner(task, order)
+    sac, batch = asac_learner(task, order, log_density)
     with torch.no_grad():
         theirs = sb3_parameters(sb3)
         for name, ours in asac_parameters(sac).items():
@@ -293,14 +286,14 @@ def compare(
     ``report(update, gaps)`` after each (:func:`relative_gaps`); ``boundaries(update, found)`` before
     each, where :func:`relu_disagreements` finds any. Returns the last gaps."""
     log_density, order, arithmetic = variant
-    sac, sb3, batch = paired_learners(task, order, seed)
+    sac, sb3, batch = paired_learners(task, order, seed, log_density)
     start = copied(asac_parameters(sac))
     data = random_transitions(MUJOCO_TASKS[task], TRANSITIONS, seed)
     gaps: dict[str, float] = {}
     for update, (rows, noise) in enumerate(batches(data, batch, sac.spec.action.continuous_dim, updates, seed), 1):
         if boundaries is not None and (found := relu_disagreements(sac, sb3, data, rows)):
             boundaries(update, found)
-        with as_variant(log_density, arithmetic):
+        with as_variant(arithmetic):
             asac_step(sac, data, rows, noise)
         sb3_step(sb3, data, rows, noise)
         gaps = relative_gaps(start, copied(asac_parameters(sac)), copied(sb3_parameters(sb3)))
