@@ -184,6 +184,7 @@ def report(out: Path, task: str | None = None, seeds: Sequence[int] | None = Non
     ]
     for name in [t for t in MUJOCO_TASKS if t == task or task is None]:
         runs = {(r["system"], int(r["seed"])): r for r in rows if r["task"] == name}  # the latest wins
+        runs = dict(sorted(runs.items(), key=lambda run: run[0][1]))  # per-seed lists in the table's order
         if not runs:
             continue
         seeds = sorted({s for _, s in runs})

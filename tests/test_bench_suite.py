@@ -80,18 +80,19 @@ def test_the_report_takes_runs_from_other_folders_with_their_curves(
 ) -> None:
     # Extra seeds run into a folder of their own (bench/results/walker2d_seeds5to9) are reported with the
     # goal's seeds; each run's curve is read from its own folder.
-    for folder, seeds, asac in (("first", [0, 1], 100.0), ("extra", [5, 6], 300.0)):
+    for folder, seeds, asac in (("first", [1, 0], 100.0), ("extra", [6, 5], 300.0)):
         out = tmp_path / folder
         out.mkdir()
         summary = ["task,system,seed,steps,return,wall_s,eval_s,overrides,code,finished"]
         for system, ret in (("asac", asac), ("sb3", 200.0)):
             for seed in seeds:
                 summary.append(f"walker2d,{system},{seed},20000,{ret},10,1,,abc,today")
+                last = ret + seed  # tells the seeds apart in the per-seed lists, which follow the table's order
                 (out / f"walker2d_{system}_seed{seed}.csv").write_text(
-                    "env_steps,return_mean,return_std,wall_seconds\n" + f"15000,{ret / 2},0.0,1\n20000,{ret},0.0,1\n"
+                    "env_steps,return_mean,return_std,wall_seconds\n" + f"15000,{ret / 2},0.0,1\n20000,{last},0.0,1\n"
                 )
         (out / "summary.csv").write_text("\n".join(summary) + "\n")
     report(tmp_path / "first", "walker2d", [0, 1, 5, 6], also=[tmp_path / "extra"])
     said = capsys.readouterr().out
     assert "| 5 | 20000 | 300.0 |" in said and "asac: mean 200.0" in said and "over 4 seeds" in said
-    assert "mean of all evaluations past 10000 steps 150.0 (75.0 / 75.0 / 225.0 / 225.0)" in said
+    assert "mean of all evaluations past 10000 steps 151.5 (75.0 / 75.5 / 227.5 / 228.0)" in said
