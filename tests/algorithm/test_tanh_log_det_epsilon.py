@@ -4,6 +4,7 @@ log(1 - tanh(u)^2 + epsilon), as SB3 does with 1e-6; 0 (the default) keeps it ex
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import pytest
 import torch
@@ -28,9 +29,10 @@ def test_the_density_with_epsilon_is_sb3s_formula_exact_inside_and_held_near_log
     assert log_det_exact == pytest.approx(math.log(4) - 24.0, abs=1e-3)
 
 
-def saturated_pair(push: float) -> tuple[SAC, SAC]:
+def saturated_pair(push: float, **config: Any) -> tuple[SAC, SAC]:
     """Two learners with the same weights, exact and SB3's epsilon, their policy means pushed to ``push``."""
-    exact, sb3 = make_sac(use_priority=False), make_sac(use_priority=False, tanh_log_det_epsilon=1e-6)
+    exact = make_sac(use_priority=False, **config)
+    sb3 = make_sac(use_priority=False, tanh_log_det_epsilon=1e-6, **config)
     with torch.no_grad():
         for sac in (exact, sb3):
             assert sac.models.policy is not None
@@ -56,8 +58,9 @@ def test_the_epsilon_reaches_the_learners_losses_only_where_the_policy_saturates
         assert gap < 1e-6
 
 
-def test_acting_keeps_the_exact_density() -> None:
-    exact, sb3 = saturated_pair(10.0)
+@pytest.mark.parametrize("numpy_acting", [False, True])  # torch's acting path and the NumPy copy of the policy
+def test_acting_keeps_the_exact_density(numpy_acting: bool) -> None:
+    exact, sb3 = saturated_pair(10.0, numpy_acting=numpy_acting)
     state = torch.randn(4, 3)
     for deterministic in (True, False):
         torch.manual_seed(0)
