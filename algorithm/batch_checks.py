@@ -54,3 +54,12 @@ def check_config_for_task(sac: SacConfig, spec: EnvSpec) -> None:
             f"policy (discrete_dqn_like false); this task has {act.continuous_dim} continuous dims, discrete "
             f"branches {list(act.discrete_branches)}, discrete_dqn_like {sac.discrete_dqn_like}"
         )
+    if sac.munchausen_scale > 0 and (
+        act.continuous_dim or sac.discrete_dqn_like or not act.discrete_branches or sac.use_n_step_is
+    ):
+        raise ValueError(
+            "sac_config.munchausen_scale needs a discrete-only action space, a stochastic discrete policy "
+            "(discrete_dqn_like false) and the n-step target (use_n_step_is false); this task has "
+            f"{act.continuous_dim} continuous dims, discrete branches {list(act.discrete_branches)}, "
+            f"discrete_dqn_like {sac.discrete_dqn_like}, use_n_step_is {sac.use_n_step_is}"
+        )

@@ -208,6 +208,20 @@ class SacConfig(Section):
         description="Add this times (H(pi(s)) - H(mu(s)))^2 to the policy's loss, mu the policy that acted "
         "(SD-SAC's entropy penalty, Zhou et al.; they use 0.5); discrete actions only; 0 = off.",
     )
+    munchausen_scale: float = Field(
+        0.0,
+        ge=0.0,
+        lt=1.0,
+        description="Munchausen RL (Vieillard et al. 2020): add this times clip(alpha_b log pi_b(a_b|s), "
+        "munchausen_log_floor, 0) to every reward of the target's window, pi the current policy; an implicit "
+        "KL penalty toward the previous policy that widens action gaps (they use 0.9); discrete actions "
+        "only, not with use_n_step_is; 0 = off.",
+    )
+    munchausen_log_floor: float = Field(
+        -1.0,
+        le=0.0,
+        description="The floor of munchausen_scale's term alpha_b log pi_b(a_b|s) (theirs: -1).",
+    )
     learning_rate_final: float | None = Field(
         None,
         ge=0.0,

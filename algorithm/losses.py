@@ -177,3 +177,13 @@ def expected_log_prob(pi: PolicySample, branches: Tensor) -> Tensor:
     """``sum_a pi_b(a|s) log pi_b(a|s)`` per branch, ``[N, K]`` (minus each branch's entropy)."""
     assert pi.probs is not None and pi.log_probs is not None
     return (pi.probs * pi.log_probs) @ branches
+
+
+def munchausen_bonus(taken_log_prob: Tensor, alpha_discrete: Tensor, scale: float, floor: float) -> Tensor:
+    """Munchausen RL's reward term (Vieillard et al. 2020, arXiv:2007.14430, eq. 2), one per step:
+    ``scale * clip(alpha_b log pi_b(a_b|s), floor, 0)`` averaged over the discrete branches ``b``, as
+    :func:`soft_value` averages their values. ``taken_log_prob [..., K]`` is each branch's current
+    log-probability of the stored action, ``alpha_discrete [K]``. Added to each reward of a target, it
+    makes the policy a softmax of the sum of its past Q estimates (a KL penalty toward the previous
+    policy), which averages the critic's errors and widens the action gaps."""
+    return scale * (alpha_discrete * taken_log_prob).clamp(min=floor, max=0.0).mean(dim=-1)

@@ -31,6 +31,7 @@ from algorithm.losses import (
     critic_loss,
     entropy_penalty,
     expected_log_prob,
+    munchausen_bonus,
     policy_loss,
     soft_value,
 )
@@ -187,6 +188,8 @@ class SacLosses:
             noise = every_step.per_step(noise)
         state = window.states_at(0, False)  # the trained step's online state, with gradients for the critic
         rewards, aux_loss = self._exploration_terms(window, state, metrics)
+        if sac.munchausen_scale > 0:
+            rewards = rewards + self._munchausen_terms(window, noise, alpha_d, metrics)
         action0 = window.actions[:, 0]
 
         # 1. Target y for the trained step: n-step return + gamma^m V(o_m) (eq. 2, 3, 5), or V-trace.
@@ -351,6 +354,27 @@ class SacLosses:
                 rewards = rewards + intrinsic
                 metrics["learner/rnd_reward"] = intrinsic[:, 0]
         return rewards, aux_loss
+
+    def _munchausen_terms(self, window: Window, noise: Tensor, alpha_d: Tensor, metrics: Metrics) -> Tensor:
+        """``munchausen_scale``: the Munchausen term of every window step ``[B, L]`` from the current
+        policy's log-probabilities of the stored actions (:func:`algorithm.losses.munchausen_bonus`);
+        steps past the target's end are never read (``n_step_target``)."""
+        assert self._branches is not None
+        with torch.no_grad():
+            states = window.online_states()[:, :-1]
+            b, steps = states.shape[:2]
+            masks = window.masks_at(None)
+            pi = self._policy(
+                states.flatten(0, 1),
+                noise[:, :1].expand(-1, steps, -1).flatten(0, 1),  # discrete-only: no continuous sample is drawn
+                None if masks is None else masks[:, :-1].flatten(0, 1),
+            )
+            assert pi.log_probs is not None
+            chosen = window.actions.flatten(0, 1)[:, : self.spec.action.discrete_size] > 0.5
+            taken = torch.where(chosen, pi.log_probs, 0.0) @ self._branches
+            bonus = munchausen_bonus(taken, alpha_d, self.sac.munchausen_scale, self.sac.munchausen_log_floor)
+        metrics["learner/munchausen_bonus"] = bonus.view(b, steps)[:, 0]
+        return bonus.view(b, steps)
 
     def _vtrace(
         self,
