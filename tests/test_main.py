@@ -266,6 +266,7 @@ FEATURES = {
     "update_options": ("gym/cartpole", None, [
         "sac.update_order=critic_first", "sac.clip_epsilon=5", "sac.discrete_entropy_penalty=0.5",
         "sac.learning_rate_final=0.0", "sac.learning_rate_anneal_updates=100", "sac.discrete_target_entropy_start=0.98",
+        "sac.munchausen_scale=0.9",
     ]),
 }  # fmt: skip
 
