@@ -124,12 +124,12 @@ def main(argv: list[str] | None = None) -> int:
     if args.critic is not None:
         if args.critic not in steps:
             raise SystemExit(f"--critic {args.critic}: no such checkpoint; the run has {steps}")
-        env, policy = _checkpoint_policy(paths, config, args.critic, args.seed)
+        env, policy = checkpoint_policy(paths, config, args.critic, args.seed)
         print("\n".join(critic_along_failures(env, policy, config, args.episodes, args.seed)))
         return 0
     print("step,mode_return,sampled_return" + (",time_limit,cart_edge,pole,other" if is_cartpole else ""))
     for step in steps:
-        env, policy = _checkpoint_policy(paths, config, step, args.seed)
+        env, policy = checkpoint_policy(paths, config, step, args.seed)
         mode = evaluate(env, policy, args.episodes, args.seed).mean
         sampled = evaluate(env, policy, args.episodes, args.seed, deterministic=False).mean
         row = f"{step},{mode:.1f},{sampled:.1f}"
@@ -140,7 +140,7 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
-def _checkpoint_policy(paths: RunDir, config: Config, step: int, seed: int) -> tuple[VectorEnv, Policy]:
+def checkpoint_policy(paths: RunDir, config: Config, step: int, seed: int) -> tuple[VectorEnv, Policy]:
     """One env of the run's task and the policy of its checkpoint at ``step``."""
     path = checkpoint_path(paths.model, step)
     state = load_checkpoint(path)

@@ -31,16 +31,16 @@ def eval_modes(*args: str) -> subprocess.CompletedProcess[str]:
                           cwd=ROOT, text=True, capture_output=True, timeout=300)  # fmt: skip
 
 
-def scored_in_process(run: Path, step: int) -> tuple[float, float]:
+def scored_in_process(run: Path, step: int, seed: int = 12345) -> tuple[float, float]:
     from algorithm.config import config_from_file
     from algorithm.evaluation import evaluate
     from algorithm.run_dir import RunDir
-    from bench.eval_modes import _checkpoint_policy
+    from bench.eval_modes import checkpoint_policy
 
     paths = RunDir(run)
-    env, policy = _checkpoint_policy(paths, config_from_file(paths.config), step, 12345)
-    mode = evaluate(env, policy, EPISODES, 12345).mean
-    return mode, evaluate(env, policy, EPISODES, 12345, deterministic=False).mean
+    env, policy = checkpoint_policy(paths, config_from_file(paths.config), step, seed)
+    mode = evaluate(env, policy, EPISODES, seed).mean
+    return mode, evaluate(env, policy, EPISODES, seed, deterministic=False).mean
 
 
 def test_every_checkpoint_gets_both_returns_and_its_mode_episodes_endings(run: Path) -> None:
@@ -82,3 +82,13 @@ def test_a_missing_checkpoint_is_named(run: Path) -> None:
     done = eval_modes(str(run), "--critic", "1500")
     assert done.returncode != 0
     assert "--critic 1500: no such checkpoint" in done.stderr and "[1000, 2000]" in done.stderr
+
+
+def test_bench_tasks_scores_the_runs_last_checkpoint_over_its_final_episodes(run: Path) -> None:
+    """bench.tasks' final column: the last checkpoint (2000, not the untrained 1000) on its own episodes."""
+    from bench.tasks import final_return
+
+    first, _ = scored_in_process(run, 1000, seed=777)
+    last, _ = scored_in_process(run, 2000, seed=777)
+    assert first != pytest.approx(last, abs=1.0)  # the test can tell the checkpoints apart
+    assert final_return(run, EPISODES, 777) == pytest.approx(last)

@@ -6,7 +6,7 @@ from __future__ import annotations
 import csv
 from pathlib import Path
 
-from bench.tasks import FIELDS, append, reached_and_kept
+from bench.tasks import FIELDS, append, final_cell, reached_and_kept, run
 
 
 def rows(*returns: float) -> list[dict[str, float]]:
@@ -34,3 +34,15 @@ def test_append_rewrites_an_older_header_and_keeps_its_rows(tmp_path: Path) -> N
         assert reader.fieldnames == FIELDS
         got = list(reader)
     assert [r["seed"] for r in got] == ["1", "2", "3"] and [r["kept"] for r in got] == ["", "2", "3"]
+
+
+def test_a_run_row_carries_the_final_policys_score_or_none_without_final_episodes() -> None:
+    """A real CartPole run, briefly: the row's final score is a mean of CartPole returns (1-500 each)."""
+    short = ["replay.min_size_to_sample=200", "nn.hidden_units=[16]", "eval.eval_envs=1"]
+    row = run("gym/cartpole", None, 0, 400, 200, None, short, final_episodes=2)
+    assert row["final_episodes"] == 2 and isinstance(row["final"], float) and 1.0 <= row["final"] <= 500.0
+    assert set(row) == set(FIELDS)
+    skipped = run("gym/cartpole", None, 0, 400, 200, None, short, final_episodes=0)
+    assert skipped["final"] is None and skipped["final_episodes"] is None
+    assert final_cell({k: "" if v is None else str(v) for k, v in skipped.items()}) == "-"
+    assert final_cell({"final": "471.2", "final_episodes": "100"}) == "471.2 (100)"
