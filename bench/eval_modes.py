@@ -1,6 +1,6 @@
 """Each checkpoint of a run scored twice on the same start states: by the policy's mode and by sampling.
 
-    python -m bench.eval_modes RUN_DIR [--episodes 20] [--seed 12345]
+    python -m bench.eval_modes RUN_DIR [--episodes 20] [--seed 12345] [--steps 30000 ...]
     python -m bench.eval_modes RUN_DIR --critic STEP [--episodes 20] [--seed 12345]
 
 Reported evaluations act with the mode (``argmax`` for a discrete policy, ``tanh(mean)`` for a
@@ -114,12 +114,17 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--episodes", type=int, default=20)
     parser.add_argument("--seed", type=int, default=12345)
     parser.add_argument("--critic", type=int, metavar="STEP", help="the critic along checkpoint STEP's failures")
+    parser.add_argument("--steps", type=int, nargs="+", metavar="STEP", help="score only these checkpoints")
     args = parser.parse_args(argv)
     paths = RunDir(args.run)
     config = config_from_file(paths.config)
     steps = list_checkpoints(paths.model)
     if not steps:
         raise SystemExit(f"{args.run}: no checkpoints under {paths.model}")
+    missing = sorted(set(args.steps or []) - set(steps))
+    if missing:
+        raise SystemExit(f"--steps {missing}: no such checkpoint; the run has {steps}")
+    steps = args.steps or steps
     is_cartpole = "CartPole" in str(config.base_config.build_path)
     if args.critic is not None:
         if args.critic not in steps:

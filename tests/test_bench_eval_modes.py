@@ -92,3 +92,11 @@ def test_bench_tasks_scores_the_runs_last_checkpoint_over_its_final_episodes(run
     last, _ = scored_in_process(run, 2000, seed=777)
     assert first != pytest.approx(last, abs=1.0)  # the test can tell the checkpoints apart
     assert final_return(run, EPISODES, 777) == pytest.approx(last)
+
+
+def test_steps_scores_only_the_checkpoints_asked_for_and_refuses_one_the_run_lacks(run: Path) -> None:
+    done = eval_modes(str(run), "--steps", "2000")
+    assert done.returncode == 0, done.stderr
+    assert [row.split(",")[0] for row in done.stdout.splitlines()[1:]] == ["2000"]
+    missing = eval_modes(str(run), "--steps", "1500")
+    assert missing.returncode != 0 and "--steps [1500]: no such checkpoint" in missing.stderr
