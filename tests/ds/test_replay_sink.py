@@ -164,34 +164,50 @@ def test_a_slow_learner_holds_fast_actors_back_within_the_stated_backlog(over_gr
 def test_a_held_back_actor_waits_checks_in_between_and_returns_once_stopping(
     over_grpc: ServeOverGrpc, caplog: pytest.LogCaptureFixture
 ) -> None:
-    # Nobody samples: after 16 steps the rate limiter holds every insert back for good.
+    # Nobody samples: after 16 steps the rate limiter holds every insert back for good. What is
+    # asserted is what the sink asks of the replay (each request's wait in the rate limiter) and
+    # whether it waits itself, not wall-clock times, which a loaded machine stretches.
     limiter = RateLimiter(samples_per_insert=1.0, min_size_to_sample=8, tolerance=0.0)
     client = over_grpc(PrioritizedTable(1000, (VECTOR,), 2, 1, rate_limiter=limiter, seed=0))
     stopping = False
     checks = 0
+    sends: list[tuple[bool, float, bool]] = []  # per request: (stopping when sent, its wait in the limiter, final)
+    send = client.insert_async
 
-    def between() -> None:  # the actor's heartbeat and done checks; the 5th sees the budget spent
+    def recording_send(chunks: Sequence[Chunk], timeout: float = 0.0, **kwargs: Any) -> Any:
+        sends.append((stopping, timeout, kwargs.get("producer_stopping", False)))
+        return send(chunks, timeout, **kwargs)
+
+    client.insert_async = recording_send  # type: ignore[method-assign,assignment]
+
+    def between() -> None:  # the actor's heartbeat and done checks; the 3rd sees the budget spent
         nonlocal checks, stopping
         assert not stopping, "between() runs only while the run goes on"
         checks += 1
         stopping = checks >= 3
 
     sink = ReplaySink(client, lambda: stopping, between=between, timeout_s=0.2, in_flight=2, max_chunks_per_insert=2)
-    backlog, seconds = [], []
+    backlog, settled, stopped_after = [], [], []
     for i in range(20):
-        start = time.monotonic()
+        waited_before = sink.wait_seconds
         sink(make_chunk(4, 4 * i))
-        seconds.append(time.monotonic() - start)
+        settled.append(sink.wait_seconds != waited_before)  # the call waited for an insert's answer
         backlog.append(sink.backlog())
-    waited = next(i for i, s in enumerate(seconds) if s >= 3 * 0.2)  # the call that waited for the replay
+        stopped_after.append(stopping)
+    waited = stopped_after.index(True)  # the call that waited for the replay until the run stopped
     assert checks == 3 and stopping
+    assert settled[waited] and sink.insert_waits >= 3  # it waited: three refusals, a check after each
     assert max(backlog[:waited]) <= sink.max_backlog - 1 == 5  # (the calls after it do not wait: stopping)
     assert backlog[waited] <= sink.max_backlog
-    assert max(seconds[waited + 1 :]) < 0.05  # once stopping, calls return at once
+    assert not any(settled[waited + 1 :])  # once stopping, calls return at once: no insert is waited for
+    while_running = len([s for s in sends if not s[0]])
     with caplog.at_level(logging.INFO, logger="asac.actor"):
-        start = time.monotonic()
         sink.flush()
-    assert time.monotonic() - start < 0.6  # last tries are answered at once: no waiting in the rate limiter
+    # Every request sent once stopping is a last try that the rate limiter answers at once (a wait of
+    # 0 s; the replay stores it past the limiter); only the requests sent before could still wait.
+    last_tries = sends[while_running:]
+    assert last_tries and all(stop and timeout == 0.0 and final for stop, timeout, final in last_tries), sends
+    assert all(timeout == 0.2 and not final for _, timeout, final in sends[:while_running]), sends
     info = client.info()
     # Requests are let in while the table holds at most min_size_to_sample (8) steps: 12 to 16 steps, as the
     # sink batches up to two chunks a request, which depends on when the answers come (a loaded machine
@@ -202,7 +218,7 @@ def test_a_held_back_actor_waits_checks_in_between_and_returns_once_stopping(
     assert not [r.getMessage() for r in caplog.records if "were not inserted" in r.getMessage()]
 
 
-def test_once_stopping_a_replay_that_is_gone_is_not_retried() -> None:
+def test_once_stopping_a_replay_that_is_gone_is_not_retried(caplog: pytest.LogCaptureFixture) -> None:
     # Nobody samples: inserts wait in the rate limiter (for 5 s each) until the replay goes away.
     limiter = RateLimiter(samples_per_insert=1.0, min_size_to_sample=1, tolerance=0.0)
     table = PrioritizedTable(1000, (VECTOR,), 2, 1, rate_limiter=limiter, seed=0)
@@ -219,11 +235,10 @@ def test_once_stopping_a_replay_that_is_gone_is_not_retried() -> None:
             time.sleep(0.01)
         server.stop(None).wait()  # the replay is gone (its process stopped at the end of the run)
         stopping, requests = True, sink.requests
-        start = time.monotonic()
-        sink.flush()
-        elapsed = time.monotonic() - start
+        with caplog.at_level(logging.INFO, logger="asac.actor"):
+            sink.flush()
     assert sink.requests == requests  # nothing sent again, the waiting chunks not sent at all
-    assert elapsed < 0.5  # no backoff
+    assert "retrying" not in caplog.text, caplog.text  # no backoff before a retry
     assert (sink.inserted_steps, sink.unsent_steps, sink.unsent_chunks, sink.backlog()) == (0, 20, 5, 0)
     assert sink.unavailable >= 1
 
