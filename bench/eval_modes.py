@@ -1,6 +1,6 @@
 """Each checkpoint of a run scored twice on the same start states: by the policy's mode and by sampling.
 
-    python -m bench.eval_modes RUN_DIR [--episodes 20] [--seed 12345] [--steps 30000 ...]
+    python -m bench.eval_modes RUN_DIR [--episodes 20] [--seed 12345] [--steps 30000 ...] [--critic-greedy]
     python -m bench.eval_modes RUN_DIR --critic STEP [--episodes 20] [--seed 12345]
 
 Reported evaluations act with the mode (``argmax`` for a discrete policy, ``tanh(mean)`` for a
@@ -20,6 +20,11 @@ critic of that policy would say, the discounted count of steps left ``(1 - gamma
 (rewards of 1; the entropy bonus adds a little); and over all episodes, how often the mode is the
 action of the highest min-Q (how closely the policy follows its critic) and the mean Q along the
 episodes that reached the time limit.
+
+``--critic-greedy`` (a policy with one discrete branch) adds a column: the checkpoint acting by its
+critic instead of its policy, the action of the highest ``min_i Q_i(s, a)`` at every step, on the
+same start states. Where the policy lags behind a critic that knows a better action, this column
+is the higher one; where both fail alike, the critic does not know the better action either.
 """
 
 from __future__ import annotations
@@ -61,6 +66,28 @@ def mode_endings(env: VectorEnv, policy: Policy, episodes: int, seed: int) -> di
                 counts["other"] += 1
         obs = result.obs
     return counts
+
+
+class CriticGreedy:
+    """Acts, for ``evaluate``, with the action of the highest ``min_i Q_i(s, a)`` of ``policy``'s critic."""
+
+    def __init__(self, policy: Policy) -> None:
+        action = policy.spec.action
+        if policy.models.discrete_policy is None or len(action.discrete_branches) != 1 or action.continuous_dim:
+            raise SystemExit("--critic-greedy: the run's policy does not have exactly one discrete branch")
+        if policy.rnn_state_size:
+            raise SystemExit("--critic-greedy: the run's policy is recurrent")
+        self.policy = policy
+        self.actions = action.discrete_branches[0]
+
+    def act(self, obs: list[np.ndarray], deterministic: bool = True) -> tuple[np.ndarray, np.ndarray]:
+        import torch
+
+        with torch.no_grad():
+            state = self.policy.models.representation(self.policy.obs_tensors(obs))
+            q_min = self.policy.models.q(state, None).min(dim=0).values.numpy()  # [N, actions]
+        greedy = np.eye(self.actions, dtype=np.float32)[np.argmax(q_min, axis=-1)]
+        return greedy, np.zeros(len(greedy), dtype=np.float32)
 
 
 def critic_along_failures(env: VectorEnv, policy: Policy, config: Config, episodes: int, seed: int) -> list[str]:
@@ -115,6 +142,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seed", type=int, default=12345)
     parser.add_argument("--critic", type=int, metavar="STEP", help="the critic along checkpoint STEP's failures")
     parser.add_argument("--steps", type=int, nargs="+", metavar="STEP", help="score only these checkpoints")
+    parser.add_argument("--critic-greedy", action="store_true", help="add a column: acting by the critic's min-Q")
     args = parser.parse_args(argv)
     paths = RunDir(args.run)
     config = config_from_file(paths.config)
@@ -132,7 +160,8 @@ def main(argv: list[str] | None = None) -> int:
         env, policy = checkpoint_policy(paths, config, args.critic, args.seed)
         print("\n".join(critic_along_failures(env, policy, config, args.episodes, args.seed)))
         return 0
-    print("step,mode_return,sampled_return" + (",time_limit,cart_edge,pole,other" if is_cartpole else ""))
+    header = "step,mode_return,sampled_return" + (",time_limit,cart_edge,pole,other" if is_cartpole else "")
+    print(header + (",critic_greedy_return" if args.critic_greedy else ""))
     for step in steps:
         env, policy = checkpoint_policy(paths, config, step, args.seed)
         mode = evaluate(env, policy, args.episodes, args.seed).mean
@@ -141,6 +170,8 @@ def main(argv: list[str] | None = None) -> int:
         if is_cartpole:
             ends = mode_endings(env, policy, args.episodes, args.seed)
             row += f",{ends['time limit']},{ends['cart edge']},{ends['pole']},{ends['other']}"
+        if args.critic_greedy:
+            row += f",{evaluate(env, CriticGreedy(policy), args.episodes, args.seed).mean:.1f}"  # type: ignore[arg-type]
         print(row, flush=True)
     return 0
 

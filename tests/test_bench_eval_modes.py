@@ -100,3 +100,34 @@ def test_steps_scores_only_the_checkpoints_asked_for_and_refuses_one_the_run_lac
     assert [row.split(",")[0] for row in done.stdout.splitlines()[1:]] == ["2000"]
     missing = eval_modes(str(run), "--steps", "1500")
     assert missing.returncode != 0 and "--steps [1500]: no such checkpoint" in missing.stderr
+
+
+def test_critic_greedy_acts_by_the_critics_lower_value_and_adds_its_column(run: Path) -> None:
+    import numpy as np
+    import torch
+
+    from algorithm.config import config_from_file
+    from algorithm.evaluation import evaluate
+    from algorithm.run_dir import RunDir
+    from bench.eval_modes import CriticGreedy, checkpoint_policy
+
+    paths = RunDir(run)
+    env, policy = checkpoint_policy(paths, config_from_file(paths.config), 2000, 0)
+    greedy = CriticGreedy(policy)
+    obs, rng, min_and_max_differ = env.reset(seed=0), np.random.default_rng(0), 0
+    for _ in range(300):  # states of a random walk: the critic's pick is the argmax of its heads' lower value
+        with torch.no_grad():
+            q = policy.models.q(policy.models.representation(policy.obs_tensors(obs)), None).numpy()[:, 0]
+        actions, _ = greedy.act(obs)
+        assert actions.tolist() == [np.eye(2)[int(np.argmax(q.min(axis=0)))].tolist()]
+        min_and_max_differ += int(np.argmax(q.min(axis=0)) != np.argmax(q.max(axis=0)))
+        obs = env.step(np.eye(2, dtype=np.float32)[rng.integers(2, size=1)]).obs
+    assert min_and_max_differ > 0  # the states tell the lower value's pick from the higher one's
+    done = eval_modes(str(run), "--steps", "1000", "2000", "--critic-greedy")
+    assert done.returncode == 0, done.stderr
+    header, *rows = done.stdout.splitlines()
+    assert header.endswith(",critic_greedy_return")
+    for row in rows:
+        step, column = int(row.split(",")[0]), float(row.split(",")[-1])
+        env, policy = checkpoint_policy(paths, config_from_file(paths.config), step, 12345)
+        assert column == pytest.approx(evaluate(env, CriticGreedy(policy), EPISODES, 12345).mean, abs=0.051)  # type: ignore[arg-type]
