@@ -182,6 +182,7 @@ def report(out: Path, task: str | None = None, seeds: Sequence[int] | None = Non
         for r in read_summary(folder)
         if seeds is None or int(r["seed"]) in seeds
     ]
+    pools: dict[str, list[float]] = {}  # per task: every run's return, both systems'
     for name in [t for t in MUJOCO_TASKS if t == task or task is None]:
         runs = {(r["system"], int(r["seed"])): r for r in rows if r["task"] == name}  # the latest wins
         runs = dict(sorted(runs.items(), key=lambda run: run[0][1]))  # per-seed lists in the table's order
@@ -218,6 +219,7 @@ def report(out: Path, task: str | None = None, seeds: Sequence[int] | None = Non
                 f" ({' / '.join(f'{v:.1f}' for v in areas[system])})"
             )
         if len(means) == 2 and means["sb3"] != 0:
+            pools[MUJOCO_TASKS[name]] = finals["asac"] + finals["sb3"]
             low, high = ratio_interval(finals["asac"], finals["sb3"])
             print(
                 f"ASAC / SB3 means: {means['asac'] / means['sb3']:.2f}x (seeds resampled: {INTERVAL:.0%} of draws"
@@ -229,6 +231,48 @@ def report(out: Path, task: str | None = None, seeds: Sequence[int] | None = Non
                 f"ASAC / SB3 over the whole curve (mean of the evaluations past {LEARNING_FROM} steps):"
                 f" {np.mean(areas['asac']) / np.mean(areas['sb3']):.2f}x ({INTERVAL:.0%}: {low:.2f}x-{high:.2f}x)"
             )
+    if pools:
+        print_goal_chances(pools, GOAL_SEEDS)
+
+
+GOAL_SEEDS = 3  # issue 15 judges the MuJoCo goal on seeds 0-2
+ADVANTAGES = (0.0, 0.05, 0.10, 0.20)
+
+
+def print_goal_chances(pools: dict[str, list[float]], seeds: int) -> None:
+    """The table of :func:`goal_chances` for :data:`ADVANTAGES` under the report's tasks."""
+    print(
+        f"\nHow often a system meets 'mean of {seeds} seeds >= SB3's mean of {seeds} seeds' when each side's runs are"
+        " drawn from the two systems' pooled runs above, its own shifted up by the advantage (x the pool's mean):"
+    )
+    names = list(pools)
+    print(f"| advantage | {' | '.join(names)} | all {len(names)} |\n|---{'|---' * (len(names) + 1)}|")
+    for advantage in ADVANTAGES:
+        per_task, every = goal_chances(pools, advantage, seeds)
+        cells = " | ".join(f"{per_task[n]:.0%}" for n in names)
+        print(f"| {advantage:+.0%} | {cells} | {every:.0%} |")
+
+
+def goal_chances(
+    pools: dict[str, list[float]], advantage: float, seeds: int, draws: int = 100_000
+) -> tuple[dict[str, float], float]:
+    """Per task, the chance that the mean of ``seeds`` runs drawn (with replacement) from the task's pool,
+    each raised by ``advantage`` times the pool's mean, is at least the mean of ``seeds`` runs drawn from
+    the pool as it is; and the chance of that on every task at once (tasks independent: the product).
+
+    The pool holds both systems' runs, so at advantage 0 it is the chance that a system no different from
+    its peer meets a ">= the peer's mean" goal on a few seeds: about one half per task (more by the share
+    of ties), whatever the pool, and a half to the power of the number of tasks on all of them. A larger
+    advantage shows how much better a system would have to be for the goal to be met most of the time,
+    with this sample's spread between seeds."""
+    rng = np.random.default_rng(0)
+    per_task: dict[str, float] = {}
+    for name, pool in pools.items():
+        runs = np.asarray(pool, dtype=np.float64)
+        ours = runs[rng.integers(0, runs.size, (draws, seeds))].mean(axis=1) + advantage * abs(runs.mean())
+        theirs = runs[rng.integers(0, runs.size, (draws, seeds))].mean(axis=1)
+        per_task[name] = float(np.mean(ours >= theirs))
+    return per_task, float(np.prod(list(per_task.values())))
 
 
 def ratio_interval(ours: list[float], theirs: list[float], draws: int = 10_000) -> tuple[float, float]:

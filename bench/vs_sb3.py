@@ -22,7 +22,9 @@
         wall seconds, of which evaluating, overrides, code version) to bench/results/mujoco/summary.csv;
         runs already there are skipped. `mujoco [TASK] --report [--seeds 0 1 2] [--also DIR]` prints the
         tables of those seeds (0-2 unless told, the seeds the goal is judged on), taking runs from the
-        folders --also names as well (extra seeds run into a folder of their own). ASAC's runs train
+        folders --also names as well (extra seeds run into a folder of their own), and ends with how
+        often a system meets the goal (mean of 3 seeds >= SB3's) when both sides' runs are drawn from
+        the two systems' pooled runs, its own raised by 0-20% (bench/suite.py goal_chances). ASAC's runs train
         in folders under --runs ($ASAC_BENCH_RUNS, else ~/asac_long_runs): Ctrl-C or SIGTERM saves the
         run in progress and the same command resumes it (bench/suite.py). SB3's trained model is saved
         there too (mujoco_suite/TASK/sb3_s<k>_<steps>k.zip), for `python -m bench.saturation`.

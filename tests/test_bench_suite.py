@@ -7,6 +7,7 @@ from __future__ import annotations
 import threading
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from algorithm.run_dir import RunDir
@@ -96,3 +97,16 @@ def test_the_report_takes_runs_from_other_folders_with_their_curves(
     said = capsys.readouterr().out
     assert "| 5 | 20000 | 300.0 |" in said and "asac: mean 200.0" in said and "over 4 seeds" in said
     assert "mean of all evaluations past 10000 steps 151.5 (75.0 / 75.5 / 227.5 / 228.0)" in said
+
+
+def test_the_goal_chance_is_a_coin_per_task_for_alike_systems_and_grows_with_an_advantage() -> None:
+    from bench.suite import goal_chances
+
+    tight = [100.0, 101.0, 99.0, 100.5, 99.5, 100.2]
+    spread = [300.0, 2600.0, 500.0, 350.0, 450.0, 2900.0]  # one seed far above the others on each side
+    alike, every = goal_chances({"a": tight, "b": spread, "c": tight, "d": spread}, 0.0, 3)
+    assert all(0.45 < chance < 0.6 for chance in alike.values()), alike  # a half, plus the share of ties
+    assert every == pytest.approx(np.prod(list(alike.values()))) and 0.04 < every < 0.13  # about 1 / 16
+    better, _ = goal_chances({"tight": tight, "spread": spread}, 0.2, 3)
+    assert better["tight"] > 0.999  # 20% of 100 is far beyond the seeds' spread of 2
+    assert alike["b"] < better["spread"] < 0.9  # helps, but the spread between seeds keeps it a gamble
