@@ -35,7 +35,7 @@ from pathlib import Path
 import numpy as np
 
 from algorithm.checkpoint import checkpoint_path, list_checkpoints, load_checkpoint
-from algorithm.config import Config, config_from_file
+from algorithm.config import Config, ConfigError, config_from_file
 from algorithm.evaluation import evaluate
 from algorithm.policy import Policy
 from algorithm.run_dir import RunDir
@@ -145,7 +145,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--critic-greedy", action="store_true", help="add a column: acting by the critic's min-Q")
     args = parser.parse_args(argv)
     paths = RunDir(args.run)
-    config = config_from_file(paths.config)
+    try:
+        config = config_from_file(paths.config)
+    except ConfigError as e:
+        raise SystemExit(f"{args.run}: not a run folder ({e})") from None
     steps = list_checkpoints(paths.model)
     if not steps:
         raise SystemExit(f"{args.run}: no checkpoints under {paths.model}")

@@ -84,6 +84,12 @@ def test_a_missing_checkpoint_is_named(run: Path) -> None:
     assert "--critic 1500: no such checkpoint" in done.stderr and "[1000, 2000]" in done.stderr
 
 
+def test_a_folder_that_is_not_a_run_is_named(tmp_path: Path) -> None:
+    done = eval_modes(str(tmp_path), "--critic-greedy")
+    assert done.returncode != 0 and "Traceback" not in done.stderr
+    assert f"{tmp_path}: not a run folder" in done.stderr and "config.yaml" in done.stderr
+
+
 def test_bench_tasks_scores_the_runs_last_checkpoint_over_its_final_episodes(run: Path) -> None:
     """bench.tasks' final column: the last checkpoint (2000, not the untrained 1000) on its own episodes."""
     from bench.tasks import final_return
