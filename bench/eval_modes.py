@@ -68,6 +68,15 @@ def mode_endings(env: VectorEnv, policy: Policy, episodes: int, seed: int) -> di
     return counts
 
 
+def critic_min_q(policy: Policy, obs: list[np.ndarray]) -> np.ndarray:
+    """``min_i Q_i(s, a)`` of a discrete policy's critic, the value its targets use: ``[N, actions]``."""
+    import torch
+
+    with torch.no_grad():
+        state = policy.models.representation(policy.obs_tensors(obs))
+        return policy.models.q(state, None).min(dim=0).values.numpy()
+
+
 class CriticGreedy:
     """Acts, for ``evaluate``, with the action of the highest ``min_i Q_i(s, a)`` of ``policy``'s critic."""
 
@@ -81,19 +90,12 @@ class CriticGreedy:
         self.actions = action.discrete_branches[0]
 
     def act(self, obs: list[np.ndarray], deterministic: bool = True) -> tuple[np.ndarray, np.ndarray]:
-        import torch
-
-        with torch.no_grad():
-            state = self.policy.models.representation(self.policy.obs_tensors(obs))
-            q_min = self.policy.models.q(state, None).min(dim=0).values.numpy()  # [N, actions]
-        greedy = np.eye(self.actions, dtype=np.float32)[np.argmax(q_min, axis=-1)]
+        greedy = np.eye(self.actions, dtype=np.float32)[np.argmax(critic_min_q(self.policy, obs), axis=-1)]
         return greedy, np.zeros(len(greedy), dtype=np.float32)
 
 
 def critic_along_failures(env: VectorEnv, policy: Policy, config: Config, episodes: int, seed: int) -> list[str]:
     """The ``--critic`` report's lines for ``episodes`` mode-acting episodes on the single env ``env``."""
-    import torch
-
     if policy.models.discrete_policy is None:
         raise SystemExit("--critic: the run's policy is not discrete")
     gamma = float(config.sac_config.gamma)
@@ -105,9 +107,7 @@ def critic_along_failures(env: VectorEnv, policy: Policy, config: Config, episod
     obs = env.reset(seed=seed)
     done = 0
     while done < episodes:
-        with torch.no_grad():
-            state = policy.models.representation(policy.obs_tensors(obs))
-            q_min = policy.models.q(state, None)[:, 0].min(dim=0).values.numpy()  # [actions]
+        q_min = critic_min_q(policy, obs)[0]  # [actions]
         actions, _ = policy.act(obs, deterministic=True)
         chosen = int(np.argmax(np.asarray(actions).reshape(-1)))  # one-hot over the branch's actions
         follows.append(chosen == int(np.argmax(q_min)))

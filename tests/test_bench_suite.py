@@ -74,6 +74,11 @@ def test_the_report_counts_only_the_seeds_asked_for(tmp_path: Path, capsys: pyte
     report(tmp_path, "walker2d")
     every = capsys.readouterr().out
     assert "asac: mean 400.0" in every and "over 4 seeds" in every and "ASAC / SB3 means: 2.00x" in every
+    assert "How often a system meets 'mean of 3 seeds >= SB3's mean of 3 seeds'" in every
+    from bench.suite import goal_chances  # the table's row is of the four seeds' pooled runs, both systems'
+
+    chance = goal_chances({"Walker2d-v5": [100.0, 200.0, 300.0, 1000.0] + [200.0] * 4}, 0.0, 3)[1]
+    assert f"| +0% | {chance:.0%} | {chance:.0%} |" in every
 
 
 def test_the_report_takes_runs_from_other_folders_with_their_curves(
