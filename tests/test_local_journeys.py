@@ -36,7 +36,6 @@ from tests.role_runs import (
 
 ROOT = Path(__file__).resolve().parents[1]
 SUMMARY_HEAD = re.compile(r"^== local run (.+) ==$", re.M)
-STAMP = re.compile(r"(\d{4}-\d\d-\d\d \d\d:\d\d:\d\d),\d{3} ")
 # A hang guard, not a timing: a local run of 1,000-1,600 env steps takes 40-120 s on the 2-core machine.
 HANG_S = 300
 
@@ -68,13 +67,6 @@ def first(pattern: str, output: str) -> int:
     return match.start()
 
 
-def stop_took_s(output: str) -> float:
-    """Seconds from the launcher's "finished" line to the last timestamped line: the orderly stop."""
-    stamps = [time.mktime(time.strptime(s, "%Y-%m-%d %H:%M:%S")) for s in STAMP.findall(output)]
-    finished = STAMP.findall(output[first(r"^[\d-]+ [\d:,]+ local INFO .*finished$", output) :])[0]
-    return max(stamps) - time.mktime(time.strptime(finished, "%Y-%m-%d %H:%M:%S"))
-
-
 def check_nothing_collected_was_lost(output: str) -> None:
     """At a Ctrl-C the learner stops first and draws no more, so the rate limiter holds the actors'
     last inserts back; they are stored anyway: every env step the actors say they collected is in the
@@ -97,7 +89,7 @@ def check_actor_labels(output: str) -> None:
 @pytest.mark.slow
 @pytest.mark.grpc
 def test_a_local_run_finishes_in_order_and_its_summary_plays_it(tmp_path: Path) -> None:
-    """``local --actors 2`` to its budget: exit 0, the stop in well under the old 30 s grace; the learner's
+    """``local --actors 2`` to its budget: exit 0, every child gone before its grace ran out; the learner's
     checkpoint before the replay is told to stop; no traceback, no kill; nothing collected thrown
     away (each actor leaves after its last inserts, the run's count is the sum of theirs, at most a
     chunk per actor past max_step); every role logs under its prefix and is gone at the
@@ -109,7 +101,7 @@ def test_a_local_run_finishes_in_order_and_its_summary_plays_it(tmp_path: Path) 
                           timeout=HANG_S)  # fmt: skip
     out = done.stdout
     assert done.returncode == 0, out[-4000:]
-    assert stop_took_s(out) < 20, out[-4000:]  # the old stop waited 30 s for a child before SIGTERM
+    assert "still running after" not in out, out[-4000:]  # the old stop waited out the grace for a child
     assert first(r"^\[learner\] .*checkpoint ", out) < first(r"^\[replay\] .*SIGINT: stopping", out)
     for bad in ("Traceback", "SIGTERM", "SIGKILL"):
         assert bad not in out, f"{bad!r} in:\n{out[-4000:]}"
