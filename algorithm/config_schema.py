@@ -217,6 +217,14 @@ class SacConfig(Section):
         "KL penalty toward the previous policy that widens action gaps (they use 0.9); discrete actions "
         "only, not with use_n_step_is; 0 = off.",
     )
+    munchausen_scale_start: float | None = Field(
+        None,
+        ge=0.0,
+        lt=1.0,
+        description="Move munchausen_scale's weight linearly from this value to munchausen_scale on the step "
+        "size's schedule (over learning_rate_anneal_updates updates; needs learning_rate_final), constant after; "
+        "null = munchausen_scale throughout.",
+    )
     munchausen_log_floor: float = Field(
         -1.0,
         le=0.0,
@@ -491,6 +499,17 @@ class Config(Section):
             and sac.learning_rate_anneal_updates == self._run_updates()
         )
         return {"sac_config.learning_rate_anneal_updates"} if spans_the_run else set()
+
+    @model_validator(mode="after")
+    def _check_munchausen_schedule(self) -> Config:
+        sac = self.sac_config
+        if sac.munchausen_scale_start is not None and (sac.learning_rate_final is None or sac.munchausen_scale == 0):
+            raise ValueError(
+                "sac_config.munchausen_scale_start moves the Munchausen weight to munchausen_scale on the step "
+                "size's schedule: it needs sac_config.learning_rate_final set and munchausen_scale > 0 (they are "
+                f"{sac.learning_rate_final} and {sac.munchausen_scale})"
+            )
+        return self
 
     @model_validator(mode="after")
     def _check_insert_td_priorities(self) -> Config:

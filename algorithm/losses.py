@@ -179,7 +179,7 @@ def expected_log_prob(pi: PolicySample, branches: Tensor) -> Tensor:
     return (pi.probs * pi.log_probs) @ branches
 
 
-def munchausen_bonus(taken_log_prob: Tensor, alpha_discrete: Tensor, scale: float, floor: float) -> Tensor:
+def munchausen_bonus(taken_log_prob: Tensor, alpha_discrete: Tensor, scale: float | Tensor, floor: float) -> Tensor:
     """Munchausen RL's reward term (Vieillard et al. 2020, arXiv:2007.14430, eq. 2), one per step:
     ``scale * clip(alpha_b log pi_b(a_b|s), floor, 0)`` averaged over the discrete branches ``b``, as
     :func:`soft_value` averages their values. ``taken_log_prob [..., K]`` is each branch's current

@@ -43,7 +43,7 @@ from algorithm.nn.noisy import reset_noise
 from algorithm.nn.prediction import gated_gradients, observation_targets
 from algorithm.policy import Policy
 from algorithm.sac_losses import Losses, SacLosses
-from algorithm.schedules import discrete_target_entropy_ratio, learning_rate_at
+from algorithm.schedules import discrete_target_entropy_ratio, learning_rate_at, munchausen_scale_at
 from algorithm.spaces import EnvSpec
 from algorithm.types import Batch
 from algorithm.update_graph import graph_for
@@ -97,6 +97,7 @@ class SAC(SacLosses, Policy):
         # annealed from discrete_target_entropy_start when that is set (_anneal_target_entropy).
         self._max_discrete_entropy = [math.log(n) for n in act.discrete_branches]
         self.discrete_target_entropy = self._discrete_target_entropy(0)
+        self.munchausen_weight = torch.tensor(munchausen_scale_at(sac, 0), device=self.device)  # moved in place
         self._observation_targets = observation_targets(spec.sensors, nn.critic_only, sac.use_extra_data)
         self.target_representation = copy.deepcopy(self.models.representation).requires_grad_(False)
         self.target_q = copy.deepcopy(self.models.q).requires_grad_(False)
@@ -215,6 +216,8 @@ class SAC(SacLosses, Policy):
                 metrics["learner/learning_rate"] = float(self.critic_optimizer.param_groups[0]["lr"])
             if self._max_discrete_entropy:
                 metrics["learner/discrete_target_entropy"] = float(self.discrete_target_entropy.mean())
+            if sac.munchausen_scale_start is not None:
+                metrics["learner/munchausen_weight"] = float(self.munchausen_weight)
         refreshed = None
         if sac.refresh_rnn_states and losses.fed_states is not None and not skipped:
             refreshed = self._window_rows(batch, losses.fed_states)
@@ -274,10 +277,12 @@ class SAC(SacLosses, Policy):
         return torch.tensor([ratio * log_n for log_n in self._max_discrete_entropy], device=self.device)
 
     def _anneal_target_entropy(self) -> None:
-        """Move the discrete target entropy to this update's value, in place (a tensor the compiled
-        loss reads, so torch.compile sees no new constant)."""
+        """Move the discrete target entropy and the Munchausen weight to this update's values, in place
+        (tensors the compiled loss reads, so torch.compile sees no new constant)."""
         if self.sac.discrete_target_entropy_start is not None and self._max_discrete_entropy:
             self.discrete_target_entropy.copy_(self._discrete_target_entropy(self.updates))
+        if self.sac.munchausen_scale_start is not None:
+            self.munchausen_weight.fill_(munchausen_scale_at(self.sac, self.updates))
 
     def _anneal_learning_rate(self) -> None:
         if self.sac.learning_rate_final is None:

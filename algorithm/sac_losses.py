@@ -141,6 +141,7 @@ class SacLosses:
     log_alpha_discrete: torch.nn.Parameter
     target_entropy: float
     discrete_target_entropy: Tensor
+    munchausen_weight: Tensor  # munchausen_scale, or this update's value of its schedule
     alpha_optimizer: torch.optim.Optimizer | None
     _branches: Tensor | None
     _mask_index: int | None
@@ -372,7 +373,7 @@ class SacLosses:
             assert pi.log_probs is not None
             chosen = window.actions.flatten(0, 1)[:, : self.spec.action.discrete_size] > 0.5
             taken = torch.where(chosen, pi.log_probs, 0.0) @ self._branches
-            bonus = munchausen_bonus(taken, alpha_d, self.sac.munchausen_scale, self.sac.munchausen_log_floor)
+            bonus = munchausen_bonus(taken, alpha_d, self.munchausen_weight, self.sac.munchausen_log_floor)
         metrics["learner/munchausen_bonus"] = bonus.view(b, steps)[:, 0]
         return bonus.view(b, steps)
 

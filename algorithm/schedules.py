@@ -25,6 +25,17 @@ def discrete_target_entropy_ratio(sac: SacConfig, updates: int) -> float:
     return linear_anneal(start, final, updates, sac.discrete_target_entropy_anneal_updates)
 
 
+def munchausen_scale_at(sac: SacConfig, updates: int) -> float:
+    """The Munchausen term's weight after ``updates`` updates: ``munchausen_scale``, or with
+    ``munchausen_scale_start`` set, moving linearly from it to ``munchausen_scale`` on the step size's
+    schedule (``learning_rate_anneal_updates``). Starting at 0 keeps the early learning of plain targets,
+    which the term slows, and gives the later updates its wider action gaps (BENCHMARKS.md 8, round 24)."""
+    start, final = sac.munchausen_scale_start, sac.munchausen_scale
+    if start is None:
+        return final
+    return linear_anneal(start, final, updates, _anneal_updates(sac))
+
+
 def learning_rate_at(sac: SacConfig, updates: int) -> float:
     """The step size of the update after ``updates`` applied ones: ``learning_rate``, or with
     ``learning_rate_final`` set, moving linearly from it to that value over
@@ -33,6 +44,10 @@ def learning_rate_at(sac: SacConfig, updates: int) -> float:
     start, final = sac.learning_rate, sac.learning_rate_final
     if final is None:
         return start
+    return linear_anneal(start, final, updates, _anneal_updates(sac))
+
+
+def _anneal_updates(sac: SacConfig) -> int:
     if sac.learning_rate_anneal_updates is None:  # a whole Config fills it in from the run's length
         raise ValueError("sac_config.learning_rate_anneal_updates is null outside a whole config: give it a number")
-    return linear_anneal(start, final, updates, sac.learning_rate_anneal_updates)
+    return sac.learning_rate_anneal_updates

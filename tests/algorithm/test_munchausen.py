@@ -3,14 +3,17 @@
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import math
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pytest
 import torch
 
+from algorithm.config import load_config
 from algorithm.losses import munchausen_bonus
 from algorithm.types import Batch
 from tests.algorithm.test_discrete import make_batch, make_sac, masked_spec
@@ -118,3 +121,58 @@ def test_a_task_the_bonus_cannot_take_is_refused_naming_the_key(case: str) -> No
 def test_a_scale_outside_zero_to_one_is_refused_naming_the_key(value: float) -> None:
     with pytest.raises(ValueError, match="munchausen_scale"):
         make_sac(SPEC, munchausen_scale=value)
+
+
+def clipped_term_now(sac: Any, batch: Batch) -> float:
+    """``clip(alpha log pi(a|s), -1, 0)`` of the stored actions at step 0 under ``sac``'s current weights,
+    averaged over the batch: the bonus at weight 1."""
+    masks = torch.as_tensor(batch.obs[0][:, 0]) > 0.5
+    with torch.no_grad():
+        state = sac.models.representation([torch.as_tensor(o[:, 0]) for o in batch.obs])
+        log_probs = sac.models.discrete_policy(sac.models.representation.policy_state(state), masks)
+    taken = (log_probs * torch.as_tensor(batch.actions[:, 0])).sum(dim=-1)
+    return float((math.exp(sac.log_alpha_discrete.item()) * taken).clamp(-1.0, 0.0).mean())
+
+
+SCHEDULE = dict(use_priority=False, munchausen_scale=0.9, munchausen_scale_start=0.0, learning_rate_final=1e-4,
+                learning_rate_anneal_updates=4)  # fmt: skip
+
+
+def test_a_scheduled_weight_rises_from_its_start_on_the_step_sizes_schedule() -> None:
+    """munchausen_scale_start: update k's targets carry k/4 of the 0.9 weight (0 at first: plain targets),
+    the full weight from update 4 on; each update reports the weight it used."""
+    sac = make_sac(SPEC, **SCHEDULE)
+    batch = make_batch(SPEC, b=32, seed=4)
+    weights, bonuses, terms = [], [], []
+    for _ in range(6):
+        terms.append(clipped_term_now(sac, batch))
+        metrics = sac.update(batch, with_metrics=True).metrics
+        weights.append(metrics["learner/munchausen_weight"])
+        bonuses.append(metrics["learner/munchausen_bonus"])
+    assert weights == pytest.approx([0.0, 0.225, 0.45, 0.675, 0.9, 0.9])
+    assert bonuses == pytest.approx([w * t for w, t in zip(weights, terms, strict=True)], rel=1e-4, abs=1e-7)
+    assert min(terms) < -0.05  # the check can tell a weighted bonus from none
+
+
+def test_a_resumed_learner_goes_on_with_the_weight_where_it_was() -> None:
+    sac = make_sac(SPEC, **SCHEDULE)
+    for i in range(3):
+        sac.update(make_batch(SPEC, b=32, seed=i))
+    resumed = make_sac(SPEC, **SCHEDULE)
+    resumed.load_state_dict(copy.deepcopy(sac.state_dict()))
+    batch = make_batch(SPEC, b=32, seed=9)
+    a, b = sac.update(batch, with_metrics=True), resumed.update(batch, with_metrics=True)
+    assert a.metrics["learner/munchausen_weight"] == b.metrics["learner/munchausen_weight"] == pytest.approx(0.675)
+    np.testing.assert_array_equal(a.td_abs, b.td_abs)
+
+
+@pytest.mark.parametrize("missing", ["learning_rate_final", "munchausen_scale"])
+def test_a_schedule_without_the_step_size_schedule_or_a_weight_is_refused_naming_both(missing: str) -> None:
+    cartpole = Path(__file__).resolve().parents[2] / "envs" / "gym" / "cartpole"
+    overrides = [f"sac.munchausen_scale={0 if missing == 'munchausen_scale' else 0.9}", "sac.munchausen_scale_start=0"]
+    if missing == "learning_rate_final":
+        overrides.append("sac.learning_rate_final=null")
+    with pytest.raises(ValueError, match=r"munchausen_scale_start .*learning_rate_final set and munchausen_scale > 0"):
+        load_config(cartpole, None, overrides)
+    valid = load_config(cartpole, None, ["sac.munchausen_scale=0.9", "sac.munchausen_scale_start=0"]).config
+    assert valid.sac_config.munchausen_scale_start == 0.0  # the task anneals its step size: the schedule loads
