@@ -281,3 +281,27 @@ def test_an_annealed_learning_rate_goes_on_where_it_was_after_ctrl_c(tmp_path: P
         assert rate == pytest.approx(expected, rel=1e-3), (done, rate, expected)
     assert any(done > stopped_updates for _, _, done in updates), (stopped_updates, updates)  # after the resume
     assert rates[-1][2] < start / 2, rates
+
+
+def test_a_scheduled_munchausen_weight_goes_on_where_it_was_after_ctrl_c(tmp_path: Path) -> None:
+    """``sac.munchausen_scale_start``: the weight rides the step size's schedule (CartPole anneals over the
+    run: 2 updates per env step after 1,000 stored, 4,000 updates in 3,000 steps), so after Ctrl-C and the
+    same command it goes on up the same line from the checkpoint's update count, read back from the run's
+    TensorBoard files (a weight that restarted at 0 would fall off the line)."""
+    total = 2 * (MAX_STEP - 1000)
+    args = ["gym/cartpole", "--no_progress", "-n", "ramp", "--override", "sac.seed=0", "--override",
+            f"base.max_step={MAX_STEP}", "--override", "sac.munchausen_scale=0.9", "--override",
+            "sac.munchausen_scale_start=0", "--override", "sac.write_summary_per_step=250"]  # fmt: skip
+    code, log = interrupt_at(tmp_path, args, r"eval at 2000 env steps", signal.SIGINT)
+    assert code == 130, log
+    run = tmp_path / "models/gym/cartpole/ramp"
+    stopped_updates = counters(run)["updates"]
+    resumed = run_main(tmp_path, *args)
+    assert resumed.returncode == 0, resumed.stderr
+    weights = scalars(run / "log", "learner/munchausen_weight")
+    updates = scalars(run / "log", "learner/updates")
+    assert len(weights) == len(updates) and len(weights) >= 10, weights
+    for (_, _, weight), (_, _, done) in zip(weights, updates, strict=True):  # wall-time order, both files
+        assert weight == pytest.approx(0.9 * min(1.0, (done - 1) / total), abs=1e-6), (done, weight)
+    assert any(done > stopped_updates for _, _, done in updates), (stopped_updates, updates)  # after the resume
+    assert weights[-1][2] > 0.8, weights
