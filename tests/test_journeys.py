@@ -259,6 +259,21 @@ def test_the_terminal_closing_under_a_run_saves_it_and_the_same_command_resumes(
     )
 
 
+def scheduled_values_across_ctrl_c(cwd: Path, args: list[str], run: Path, tag: str) -> list[tuple[float, float]]:
+    """Run ``main.py args``, Ctrl-C at 2,000 env steps, the same command to the end; ``(value, updates)`` of
+    every ``tag`` summary in wall-time order (both runs' TensorBoard files), checked to span the resume."""
+    code, log = interrupt_at(cwd, args, r"eval at 2000 env steps", signal.SIGINT)
+    assert code == 130, log
+    stopped_updates = counters(run)["updates"]
+    resumed = run_main(cwd, *args)
+    assert resumed.returncode == 0, resumed.stderr
+    values = scalars(run / "log", tag)
+    updates = scalars(run / "log", "learner/updates")
+    assert len(values) == len(updates) and len(values) >= 10, values
+    assert any(done > stopped_updates for _, _, done in updates), (stopped_updates, updates)  # after the resume
+    return [(value, done) for (_, _, value), (_, _, done) in zip(values, updates, strict=True)]
+
+
 def test_an_annealed_learning_rate_goes_on_where_it_was_after_ctrl_c(tmp_path: Path) -> None:
     """``sac.learning_rate_final``: the step size follows the applied-update count the checkpoint keeps,
     so the run that resumes after Ctrl-C goes on down the same line (one that restarted the schedule
@@ -266,21 +281,13 @@ def test_an_annealed_learning_rate_goes_on_where_it_was_after_ctrl_c(tmp_path: P
     total = 7000  # ~ the updates of 3,000 Pendulum steps at 4 per step after 1,000 stored: the line's end
     args = [*COMMON, "-n", "annealed", "--override", "sac.learning_rate_final=0.00003", "--override",
             f"sac.learning_rate_anneal_updates={total}", "--override", "sac.write_summary_per_step=250"]  # fmt: skip
-    code, log = interrupt_at(tmp_path, args, r"eval at 2000 env steps", signal.SIGINT)
-    assert code == 130, log
-    run = tmp_path / "models/gym/pendulum/annealed"
-    stopped_updates = counters(run)["updates"]
-    resumed = run_main(tmp_path, *args)
-    assert resumed.returncode == 0, resumed.stderr
+    rates = scheduled_values_across_ctrl_c(tmp_path, args, tmp_path / "models/gym/pendulum/annealed",
+                                           "learner/learning_rate")  # fmt: skip
     start = 1e-3  # gym/pendulum's learning_rate
-    rates = scalars(run / "log", "learner/learning_rate")
-    updates = scalars(run / "log", "learner/updates")
-    assert len(rates) == len(updates) and len(rates) >= 10, rates
-    for (_, _, rate), (_, _, done) in zip(rates, updates, strict=True):  # wall-time order, both files
+    for rate, done in rates:
         expected = start + (3e-5 - start) * min(1.0, (done - 1) / total)  # the update that made it the done-th
         assert rate == pytest.approx(expected, rel=1e-3), (done, rate, expected)
-    assert any(done > stopped_updates for _, _, done in updates), (stopped_updates, updates)  # after the resume
-    assert rates[-1][2] < start / 2, rates
+    assert rates[-1][0] < start / 2, rates
 
 
 def test_a_scheduled_munchausen_weight_goes_on_where_it_was_after_ctrl_c(tmp_path: Path) -> None:
@@ -292,16 +299,8 @@ def test_a_scheduled_munchausen_weight_goes_on_where_it_was_after_ctrl_c(tmp_pat
     args = ["gym/cartpole", "--no_progress", "-n", "ramp", "--override", "sac.seed=0", "--override",
             f"base.max_step={MAX_STEP}", "--override", "sac.munchausen_scale=0.9", "--override",
             "sac.munchausen_scale_start=0", "--override", "sac.write_summary_per_step=250"]  # fmt: skip
-    code, log = interrupt_at(tmp_path, args, r"eval at 2000 env steps", signal.SIGINT)
-    assert code == 130, log
-    run = tmp_path / "models/gym/cartpole/ramp"
-    stopped_updates = counters(run)["updates"]
-    resumed = run_main(tmp_path, *args)
-    assert resumed.returncode == 0, resumed.stderr
-    weights = scalars(run / "log", "learner/munchausen_weight")
-    updates = scalars(run / "log", "learner/updates")
-    assert len(weights) == len(updates) and len(weights) >= 10, weights
-    for (_, _, weight), (_, _, done) in zip(weights, updates, strict=True):  # wall-time order, both files
+    weights = scheduled_values_across_ctrl_c(tmp_path, args, tmp_path / "models/gym/cartpole/ramp",
+                                             "learner/munchausen_weight")  # fmt: skip
+    for weight, done in weights:
         assert weight == pytest.approx(0.9 * min(1.0, (done - 1) / total), abs=1e-6), (done, weight)
-    assert any(done > stopped_updates for _, _, done in updates), (stopped_updates, updates)  # after the resume
-    assert weights[-1][2] > 0.8, weights
+    assert weights[-1][0] > 0.8, weights
