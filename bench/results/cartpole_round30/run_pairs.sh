@@ -1,5 +1,5 @@
 #!/bin/bash
-# round 30: default and ramp side by side per seed, seeds 25..32 in order; /work/round30_stop stops before the next pair
+# round 30: default and ramp side by side per seed, seeds 25..32 in order; the file $STOP (default /tmp/round30_stop) stops it before the next pair
 cd "$(dirname "$0")/../../.."
 OUT=bench/results/cartpole_round30; STOP=${STOP:-/tmp/round30_stop}
 RAMP="sac.munchausen_scale=0.9 sac.munchausen_scale_start=0"
