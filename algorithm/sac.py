@@ -94,7 +94,7 @@ class SAC(SacLosses, Policy):
         act = spec.action
         self.target_entropy = -float(act.continuous_dim)
         # Discrete: a fraction of each branch's maximum entropy log|A_b| (Christodoulou 2019 used 0.98),
-        # annealed from discrete_target_entropy_start when that is set (_anneal_target_entropy).
+        # annealed from discrete_target_entropy_start when that is set (_move_loss_schedules).
         self._max_discrete_entropy = [math.log(n) for n in act.discrete_branches]
         self.discrete_target_entropy = self._discrete_target_entropy(0)
         self.munchausen_weight = torch.tensor(munchausen_scale_at(sac, 0), device=self.device)  # moved in place
@@ -176,7 +176,7 @@ class SAC(SacLosses, Policy):
             reset_noise(self.models, self._learn_rng)
             reset_noise(self.target_q, self._learn_rng)
         noise = self._noise(batch, self._learn_rng)
-        self._anneal_target_entropy()
+        self._move_loss_schedules()
         inputs = self._pass_inputs(batch, weights, noise, self._subset(), self._subset())
         if sac.update_order == "critic_first":
             losses, critic_norm, policy_norm, skipped = self._critic_first_step(self._on_device(inputs))
@@ -276,7 +276,7 @@ class SAC(SacLosses, Policy):
         ratio = discrete_target_entropy_ratio(self.sac, updates)
         return torch.tensor([ratio * log_n for log_n in self._max_discrete_entropy], device=self.device)
 
-    def _anneal_target_entropy(self) -> None:
+    def _move_loss_schedules(self) -> None:
         """Move the discrete target entropy and the Munchausen weight to this update's values, in place
         (tensors the compiled loss reads, so torch.compile sees no new constant)."""
         if self.sac.discrete_target_entropy_start is not None and self._max_discrete_entropy:
