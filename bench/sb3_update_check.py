@@ -261,11 +261,8 @@ def relu_disagreements(sac: SAC, sb3: Any, data: Transitions, rows: np.ndarray) 
 def paired_learners(task: str, order: str, seed: int, log_density: str = "exact") -> tuple[SAC, Any, int]:
     """SB3 SAC built for ``task`` as the suite builds it, an ASAC learner (:func:`asac_learner`) holding
     its initial weights, and the batch size."""
-    from stable_baselines3.common.logger import configure
-
     torch.manual_seed(seed)
     sb3 = sb3_model(MUJOCO_TASKS[task], seed, learning_starts=0, buffer_size=1000)
-    sb3.set_logger(configure(None, []))  # SB3's train() records to the logger its learn() would make
     sac, batch = asac_learner(task, order, log_density)
     with torch.no_grad():
         theirs = sb3_parameters(sb3)

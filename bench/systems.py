@@ -59,9 +59,10 @@ def our_trainer(config: Config, run_dir: Path, with_eval: bool = False) -> Embed
 def sb3_model(env_id: str, seed: int, learning_starts: int, buffer_size: int = 1_000_000):  # noqa: ANN201
     import gymnasium as gym
     from stable_baselines3 import SAC as SB3SAC
+    from stable_baselines3.common.logger import Logger
 
     env = gym.make(env_id)
-    return SB3SAC(
+    model = SB3SAC(
         "MlpPolicy",
         env,
         learning_rate=3e-4,
@@ -78,6 +79,10 @@ def sb3_model(env_id: str, seed: int, learning_starts: int, buffer_size: int = 1
         device="cpu",
         verbose=0,
     )
+    # A logger with no outputs and no folder: the one learn() makes at verbose 0 writes nothing but leaves an
+    # empty SB3-<date> folder in the temporary directory on every call.
+    model.set_logger(Logger(folder=None, output_formats=[]))
+    return model
 
 
 class SB3Policy:

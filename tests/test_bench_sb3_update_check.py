@@ -7,6 +7,8 @@ tests/algorithm/test_tanh_log_det_epsilon.py)."""
 from __future__ import annotations
 
 import math
+import tempfile
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -78,3 +80,21 @@ def test_the_critics_rows_on_either_side_of_a_relu_are_found_only_where_they_are
     found = check.relu_disagreements(sac, sb3, data, rows)
     assert found and all(line.startswith(("Q head 1 layer 0 unit 7 row ", "Q head 1 layer 1 ")) for line in found)
     assert any(line.startswith("Q head 1 layer 0 unit 7 row ") for line in found), found
+
+
+def test_the_peer_trains_without_leaving_folders_in_the_temporary_directory(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The SB3 model the suite builds (bench.systems.sb3_model) records to a logger of its own: SB3's
+    learn() at verbose 0 otherwise makes an empty SB3-<date> folder in the temporary directory on every
+    call, which the test suite and the MuJoCo suite left there by the hundred."""
+    pytest.importorskip("stable_baselines3")
+    from bench.systems import sb3_model
+
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
+    monkeypatch.delenv("SB3_LOGDIR", raising=False)
+    model = sb3_model("Pendulum-v1", seed=0, learning_starts=4, buffer_size=100)
+    model.learn(total_timesteps=8)
+    model.learn(total_timesteps=4, reset_num_timesteps=False)
+    assert model.num_timesteps == 12
+    assert [p.name for p in tmp_path.iterdir() if p.name.startswith("SB3-")] == []  # torch may cache there
