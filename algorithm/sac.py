@@ -1,5 +1,6 @@
 """Soft Actor-Critic, the learner's side: :class:`SAC` extends the acting :class:`~algorithm.policy.Policy`
-with the target networks, the optimizers, the update step and the checkpoint state.
+with the target networks, the optimizers and the update step; the checkpoint state is
+:mod:`algorithm.sac_checkpoint`'s.
 
 What an update computes is in :mod:`algorithm.sac_losses` (plain SAC first, each feature in its own
 method); the losses are pure functions in :mod:`algorithm.losses`, targets over windows in
@@ -25,7 +26,7 @@ from __future__ import annotations
 import copy
 import dataclasses
 import math
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -42,6 +43,7 @@ from algorithm.nn.models import SacModels
 from algorithm.nn.noisy import reset_noise
 from algorithm.nn.prediction import gated_gradients, observation_targets
 from algorithm.policy import Policy
+from algorithm.sac_checkpoint import SacCheckpoint
 from algorithm.sac_losses import Losses, SacLosses
 from algorithm.schedules import discrete_target_entropy_ratio, learning_rate_at, munchausen_scale_at
 from algorithm.spaces import EnvSpec
@@ -62,7 +64,7 @@ class UpdateResult:
     refreshed_rnn_states: tuple[np.ndarray, np.ndarray] | None = None
 
 
-class SAC(SacLosses, Policy):
+class SAC(SacCheckpoint, SacLosses, Policy):
     """One learner: the :class:`~algorithm.policy.Policy` (models, acting) plus target copies,
     optimizers, ``log_alpha``, PER ``beta`` and counters.
 
@@ -404,9 +406,6 @@ class SAC(SacLosses, Policy):
             p.grad = g if p.grad is None else p.grad + g
         metrics.update({f"learner/prediction_{k}_cosine": v for k, v in cosines.items()})
 
-    def _optimizers(self) -> list[torch.optim.Optimizer]:
-        return list(self._named_optimizers().values())
-
     def _skip(self, checks: Tensor) -> None:
         for opt in self._optimizers():
             opt.zero_grad(set_to_none=True)
@@ -423,84 +422,6 @@ class SAC(SacLosses, Policy):
                 f"(sac_config.max_nonfinite_steps={self.sac.max_nonfinite_steps}); last step: {values}. "
                 "Check rewards and observations for NaN/inf, or lower the learning rate."
             )
-
-    # -- checkpoints ----------------------------------------------------------------------------
-
-    def state_dict(self) -> dict[str, Any]:
-        """Everything needed to resume bit-identically: models, targets, optimizers, log_alpha,
-        beta, counters and both RNG states."""
-        return {
-            "models": self.models.state_dict(),
-            "target_representation": self.target_representation.state_dict(),
-            "target_q": self.target_q.state_dict(),
-            "log_alpha": self.log_alpha.detach().clone(),
-            "log_alpha_discrete": self.log_alpha_discrete.detach().clone(),
-            "optimizers": {name: opt.state_dict() for name, opt in self._named_optimizers().items()},
-            "beta": self.beta,
-            "updates": self.updates,
-            "nonfinite_skipped": self.nonfinite_skipped,
-            "consecutive_nonfinite": self._consecutive_nonfinite,
-            "rng": {**self._acting_rng_state(), "learn": self._learn_rng.get_state()},
-        }
-
-    def load_state_dict(self, state: Mapping[str, Any]) -> None:
-        """Restore what :meth:`state_dict` returned (from an identically configured SAC)."""
-        missing = set(self.state_dict()) - set(state)
-        if missing:
-            raise KeyError(f"SAC state dict lacks {sorted(missing)}")
-        optimizers = self._named_optimizers()
-        if set(state["optimizers"]) != set(optimizers):
-            raise ValueError(
-                f"SAC state dict has optimizers {sorted(state['optimizers'])}, this SAC has "
-                f"{sorted(optimizers)} (use_auto_alpha differs?)"
-            )
-        self.models.load_state_dict(state["models"])
-        self.target_representation.load_state_dict(state["target_representation"])
-        self.target_q.load_state_dict(state["target_q"])
-        with torch.no_grad():
-            self.log_alpha.copy_(state["log_alpha"])
-            self.log_alpha_discrete.copy_(state["log_alpha_discrete"])
-        for name, opt in optimizers.items():
-            opt.load_state_dict(state["optimizers"][name])
-        self.beta = float(state["beta"])
-        self.updates = int(state["updates"])
-        self.nonfinite_skipped = int(state["nonfinite_skipped"])
-        self._consecutive_nonfinite = int(state["consecutive_nonfinite"])
-        self._load_acting_rng_state(state["rng"])
-        self._learn_rng.set_state(state["rng"]["learn"])
-
-    def load_model_weights(self, weights: Mapping[str, Tensor | np.ndarray]) -> None:
-        """Replace the online models' weights with ``weights`` (every name of ``models.state_dict()``,
-        same shapes: an evolver's CEM sample), hard-copy them into the target networks and reset the
-        moments of the optimizers that train them. ``log_alpha``, counters and RNGs stay.
-
-        The targets are copied, not blended in at rate ``tau``: a Polyak average of the old targets
-        and the new weights would bootstrap from a network that is neither. The optimizers start
-        afresh because Adam's moments are running averages of the replaced weights' gradients: kept,
-        they would push the first steps from the new point along the old point's momentum, scaled by
-        its second moments. The alpha optimizer keeps its state (``log_alpha`` is not replaced).
-        """
-        state = {name: value if isinstance(value, Tensor) else torch.tensor(value) for name, value in weights.items()}
-        own = self.models.state_dict()
-        wrong = sorted(set(own) ^ set(state)) or [k for k in own if own[k].shape != state[k].shape]
-        if wrong:  # checked first: load_state_dict would copy the matching tensors before it raised
-            raise ValueError(f"load_model_weights: tensors {wrong} are missing, unexpected or of another shape")
-        self.models.load_state_dict(state)
-        self.target_representation.load_state_dict(self.models.representation.state_dict())
-        self.target_q.load_state_dict(self.models.q.state_dict())
-        for name, opt in self._named_optimizers().items():
-            if name != "alpha":
-                opt.state.clear()
-
-    def _named_optimizers(self) -> dict[str, torch.optim.Optimizer]:
-        named: dict[str, torch.optim.Optimizer] = {"critic": self.critic_optimizer}
-        if self.policy_optimizer is not None:
-            named["policy"] = self.policy_optimizer
-        if self.alpha_optimizer is not None:
-            named["alpha"] = self.alpha_optimizer
-        if self.auxiliary_optimizer is not None:
-            named["auxiliary"] = self.auxiliary_optimizer
-        return named
 
 
 def _grad_norm(params: list[Tensor]) -> Tensor:
