@@ -46,7 +46,7 @@ def snapshot_kept(path: Path) -> str:
     return "there is no earlier snapshot: what the replay holds now is in memory only"
 
 
-class _Loadable(Protocol):  # a PrioritizedTable (table.py imports this module)
+class _Loadable(Protocol):  # a PrioritizedTable (snapshot.py, its mixin, imports this module)
     def load(self, path: Path) -> None: ...
 
 
