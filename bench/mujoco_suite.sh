@@ -13,12 +13,8 @@ repo=$(cd "$(dirname "$0")/.." && pwd)
 ref=HEAD
 if [ $# -gt 0 ] && [ "${1#-}" = "$1" ]; then ref=$1; shift; fi
 commit=$(git -C "$repo" rev-parse --short "$ref")
-snap=/tmp/asac_bench_$commit
-if [ ! -d "$snap" ]; then
-    rm -rf "$snap.tmp" && mkdir -p "$snap.tmp"
-    git -C "$repo" archive "$commit" | tar -x -C "$snap.tmp"
-    mv "$snap.tmp" "$snap"
-fi
+source "$repo/bench/snapshot.sh"
+snap=$(snapshot "$repo" "$commit")
 log=${LOG:-/tmp/mujoco_suite.log}
 cd "$snap"
 ASAC_BENCH_CODE=$commit nohup "$repo/.venv/bin/python" -m bench.vs_sb3 suite --out "$repo/bench/results/mujoco" "$@" \

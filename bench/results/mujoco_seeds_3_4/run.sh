@@ -6,12 +6,8 @@
 set -euo pipefail
 repo=$(cd "$(dirname "$0")/../../.." && pwd)
 commit=$(git -C "$repo" rev-parse --short "${1:-HEAD}")
-snap=/tmp/asac_bench_$commit
-if [ ! -d "$snap" ]; then
-    rm -rf "$snap.tmp" && mkdir -p "$snap.tmp"
-    git -C "$repo" archive "$commit" | tar -x -C "$snap.tmp"
-    mv "$snap.tmp" "$snap"
-fi
+source "$repo/bench/snapshot.sh"
+snap=$(snapshot "$repo" "$commit")
 cd "$snap"
 for task in half_cheetah ant; do
     for which in ours sb3; do
