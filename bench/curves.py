@@ -1,10 +1,12 @@
 """Learning curves of the MuJoCo comparison (``python -m bench.vs_sb3 mujoco``/``suite``), one PNG per task.
 
-    python -m bench.curves [--tasks hopper walker2d ant half_cheetah] [--out bench/results/mujoco]
+    python -m bench.curves [--tasks hopper walker2d ant half_cheetah] [--out bench/results/mujoco] [--seeds 0 1 2]
 
 Reads the runs' evaluation records OUT/<task>_<asac|sb3>_seed<k>.csv (env steps, mean deterministic
 return of 10 episodes) of the runs OUT/summary.csv lists as finished, and draws per system the mean
-over seeds and the min-max band into OUT/<task>.png. A task without finished runs is skipped.
+over seeds and the min-max band into OUT/<task>.png. With --seeds, only those seeds' runs, into
+OUT/<task>_seeds<a>_<b>_....png (a goal's seeds and extra seeds share a folder). A task without
+finished runs is skipped.
 Needs matplotlib (not a dependency of asac).
 """
 
@@ -12,6 +14,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
@@ -27,9 +30,14 @@ def read_curve(path: Path) -> dict[int, float]:
         return {int(r["env_steps"]): float(r["return_mean"]) for r in csv.DictReader(f)}
 
 
-def curves(out: Path, task: str) -> dict[str, dict[int, dict[int, float]]]:
-    """{system: {seed: {env steps: mean return}}} of the finished runs (the latest row per seed)."""
-    runs = {(r["system"], int(r["seed"])): r for r in read_summary(out) if r["task"] == task}
+def curves(out: Path, task: str, seeds: Sequence[int] | None = None) -> dict[str, dict[int, dict[int, float]]]:
+    """{system: {seed: {env steps: mean return}}} of the finished runs (the latest row per seed), of
+    ``seeds`` only when given."""
+    runs = {
+        (r["system"], int(r["seed"])): r
+        for r in read_summary(out)
+        if r["task"] == task and (seeds is None or int(r["seed"]) in seeds)
+    }
     found: dict[str, dict[int, dict[int, float]]] = {}
     for system, seed in sorted(runs):
         path = curve_path(out, task, system, seed)
@@ -38,13 +46,17 @@ def curves(out: Path, task: str) -> dict[str, dict[int, dict[int, float]]]:
     return found
 
 
-def plot(out: Path, task: str) -> Path | None:
+def figure_path(out: Path, task: str, seeds: Sequence[int] | None = None) -> Path:
+    return out / (f"{task}.png" if seeds is None else f"{task}_seeds{'_'.join(str(s) for s in seeds)}.png")
+
+
+def plot(out: Path, task: str, seeds: Sequence[int] | None = None) -> Path | None:
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    data = curves(out, task)
+    data = curves(out, task, seeds)
     if not data:
         return None
     fig, ax = plt.subplots(figsize=(6.0, 3.8), dpi=100)
@@ -68,7 +80,7 @@ def plot(out: Path, task: str) -> Path | None:
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8, loc="upper left")
     fig.tight_layout()
-    path = out / f"{task}.png"
+    path = figure_path(out, task, seeds)
     fig.savefig(path)
     plt.close(fig)
     return path
@@ -78,9 +90,10 @@ def main() -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--tasks", nargs="+", choices=list(MUJOCO_TASKS), default=list(SUITE_TASKS))
     p.add_argument("--out", default=str(RESULTS / "mujoco"))
+    p.add_argument("--seeds", type=int, nargs="+", help="only these seeds' runs (default: every finished run)")
     args = p.parse_args()
     for task in args.tasks:
-        path = plot(Path(args.out), task)
+        path = plot(Path(args.out), task, args.seeds)
         print(f"{task}: {path or 'no finished runs'}" + (f" ({path.stat().st_size // 1024} KB)" if path else ""))
 
 

@@ -81,6 +81,25 @@ def test_the_report_counts_only_the_seeds_asked_for(tmp_path: Path, capsys: pyte
     assert f"| +0% | {chance:.0%} | {chance:.0%} |" in every
 
 
+def test_the_figure_draws_only_the_seeds_asked_for_into_a_file_of_its_own(tmp_path: Path) -> None:
+    # The goal's figure (seeds 0-2) and the five-seed one share a folder; neither may fold the other's runs in.
+    from bench.curves import curves, figure_path
+
+    summary = ["task,system,seed,steps,return,wall_s,eval_s,overrides,code,finished"]
+    for system in ("asac", "sb3"):
+        for seed in range(5):
+            summary.append(f"ant,{system},{seed},20000,{seed},10,1,,abc,today")
+            (tmp_path / f"ant_{system}_seed{seed}.csv").write_text(
+                "env_steps,return_mean,return_std,wall_seconds\n" + f"10000,0.0,0.0,1\n20000,{seed}.0,0.0,1\n"
+            )
+    (tmp_path / "summary.csv").write_text("\n".join(summary) + "\n")
+    assert sorted(curves(tmp_path, "ant", [0, 1, 2])["asac"]) == [0, 1, 2]
+    assert sorted(curves(tmp_path, "ant")["sb3"]) == [0, 1, 2, 3, 4]
+    assert curves(tmp_path, "ant", [0, 4])["sb3"][4] == {10000: 0.0, 20000: 4.0}
+    assert figure_path(tmp_path, "ant") == tmp_path / "ant.png"
+    assert figure_path(tmp_path, "ant", [0, 1, 2, 3, 4]) == tmp_path / "ant_seeds0_1_2_3_4.png"
+
+
 def test_the_report_takes_runs_from_other_folders_with_their_curves(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
