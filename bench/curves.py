@@ -56,21 +56,22 @@ def plot(out: Path, task: str, seeds: Sequence[int] | None = None) -> Path | Non
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    path = figure_path(out, task, seeds)
     data = curves(out, task, seeds)
     if not data:
         return None
     fig, ax = plt.subplots(figsize=(6.0, 3.8), dpi=100)
     steps_max = 0
-    for system, seeds in data.items():
-        common = sorted(set.intersection(*(set(c) for c in seeds.values())))  # steps every seed evaluated
+    for system, runs in data.items():
+        common = sorted(set.intersection(*(set(c) for c in runs.values())))  # steps every seed evaluated
         if not common:
             continue
-        values = np.array([[c[s] for s in common] for c in seeds.values()])
+        values = np.array([[c[s] for s in common] for c in runs.values()])
         x = np.array(common) / 1000
         label, color = STYLE.get(system, (system, None))
-        names = ",".join(str(s) for s in seeds)
+        names = ",".join(str(s) for s in runs)
         ax.plot(x, values.mean(axis=0), color=color, label=f"{label} (mean of seeds {names})")
-        if len(seeds) > 1:
+        if len(runs) > 1:
             ax.fill_between(x, values.min(axis=0), values.max(axis=0), color=color, alpha=0.2, linewidth=0)
         steps_max = max(steps_max, common[-1])
     ax.set_title(f"{MUJOCO_TASKS[task]}: deterministic return (10 episodes), band = min-max over seeds", fontsize=9)
@@ -80,7 +81,6 @@ def plot(out: Path, task: str, seeds: Sequence[int] | None = None) -> Path | Non
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8, loc="upper left")
     fig.tight_layout()
-    path = figure_path(out, task, seeds)
     fig.savefig(path)
     plt.close(fig)
     return path
