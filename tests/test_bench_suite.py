@@ -18,6 +18,18 @@ TINY = ["nn.hidden_units=[16,16]", "replay.batch_size=16", "actor.random_steps=1
         "sac.compute_dtype=float32"]  # fmt: skip
 
 
+def write_runs(out: Path, task: str, runs: list[tuple[str, int, float, list[tuple[int, float]]]]) -> None:
+    """Finished runs as the suite leaves them in ``out``: a summary.csv row (return at 20k) and an evaluation
+    curve per (system, seed, return, [(env steps, mean return), ...])."""
+    summary = ["task,system,seed,steps,return,wall_s,eval_s,overrides,code,finished"]
+    for system, seed, ret, curve in runs:
+        summary.append(f"{task},{system},{seed},20000,{ret},10,1,,abc,today")
+        (out / f"{task}_{system}_seed{seed}.csv").write_text(
+            "env_steps,return_mean,return_std,wall_seconds\n" + "".join(f"{s},{r},0.0,1\n" for s, r in curve)
+        )
+    (out / "summary.csv").write_text("\n".join(summary) + "\n")
+
+
 def test_a_stopped_run_is_saved_and_the_same_call_resumes_it_to_its_budget(tmp_path: Path) -> None:
     folder = run_folder(tmp_path, "hopper", 0, 600, " ".join(TINY))
     stop = threading.Event()
@@ -58,15 +70,10 @@ def test_the_curve_mean_averages_the_evaluations_past_the_random_warm_up_only(tm
 def test_the_report_counts_only_the_seeds_asked_for(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     # Extra seeds share the folder with the seeds a goal is judged on; the report of seeds 0-2 must not
     # fold them in.
-    summary = ["task,system,seed,steps,return,wall_s,eval_s,overrides,code,finished"]
-    for system, returns in (("asac", [100.0, 200.0, 300.0, 1000.0]), ("sb3", [200.0, 200.0, 200.0, 200.0])):
-        for seed, ret in enumerate(returns):
-            summary.append(f"walker2d,{system},{seed},20000,{ret},10,1,,abc,today")
-            rows = [(5000, 0.0), (15000, ret), (20000, ret)]
-            (tmp_path / f"walker2d_{system}_seed{seed}.csv").write_text(
-                "env_steps,return_mean,return_std,wall_seconds\n" + "".join(f"{s},{r},0.0,1\n" for s, r in rows)
-            )
-    (tmp_path / "summary.csv").write_text("\n".join(summary) + "\n")
+    returns = {"asac": [100.0, 200.0, 300.0, 1000.0], "sb3": [200.0, 200.0, 200.0, 200.0]}
+    runs = [(system, seed, ret, [(5000, 0.0), (15000, ret), (20000, ret)]) for system in returns
+            for seed, ret in enumerate(returns[system])]  # fmt: skip
+    write_runs(tmp_path, "walker2d", runs)
     report(tmp_path, "walker2d", [0, 1, 2])
     three = capsys.readouterr().out
     assert "asac: mean 200.0" in three and "over 3 seeds" in three and "ASAC / SB3 means: 1.00x" in three
@@ -85,19 +92,25 @@ def test_the_figure_draws_only_the_seeds_asked_for_into_a_file_of_its_own(tmp_pa
     # The goal's figure (seeds 0-2) and the five-seed one share a folder; neither may fold the other's runs in.
     from bench.curves import curves, figure_path
 
-    summary = ["task,system,seed,steps,return,wall_s,eval_s,overrides,code,finished"]
-    for system in ("asac", "sb3"):
-        for seed in range(5):
-            summary.append(f"ant,{system},{seed},20000,{seed},10,1,,abc,today")
-            (tmp_path / f"ant_{system}_seed{seed}.csv").write_text(
-                "env_steps,return_mean,return_std,wall_seconds\n" + f"10000,0.0,0.0,1\n20000,{seed}.0,0.0,1\n"
-            )
-    (tmp_path / "summary.csv").write_text("\n".join(summary) + "\n")
+    write_runs(tmp_path, "ant", [(system, seed, seed, [(10000, 0.0), (20000, seed)]) for system in ("asac", "sb3")
+                                 for seed in range(5)])  # fmt: skip
     assert sorted(curves(tmp_path, "ant", [0, 1, 2])["asac"]) == [0, 1, 2]
     assert sorted(curves(tmp_path, "ant")["sb3"]) == [0, 1, 2, 3, 4]
     assert curves(tmp_path, "ant", [0, 4])["sb3"][4] == {10000: 0.0, 20000: 4.0}
     assert figure_path(tmp_path, "ant") == tmp_path / "ant.png"
     assert figure_path(tmp_path, "ant", [0, 1, 2, 3, 4]) == tmp_path / "ant_seeds0_1_2_3_4.png"
+
+
+def test_the_figure_of_the_seeds_asked_for_is_drawn_under_its_own_name(tmp_path: Path) -> None:
+    pytest.importorskip("matplotlib", reason="bench.curves draws with matplotlib, not a dependency of asac")
+    from bench.curves import plot
+
+    write_runs(tmp_path, "ant", [(system, seed, seed, [(10000, 0.0), (20000, seed)]) for system in ("asac", "sb3")
+                                 for seed in range(5)])  # fmt: skip
+    drawn = plot(tmp_path, "ant", [0, 1, 2])
+    assert drawn == tmp_path / "ant_seeds0_1_2.png" and drawn.read_bytes()[:4] == b"\x89PNG"
+    assert not (tmp_path / "ant.png").exists()  # the every-seed figure is not redrawn
+    assert plot(tmp_path, "ant", [7]) is None  # no finished runs of that seed: nothing drawn
 
 
 def test_the_report_takes_runs_from_other_folders_with_their_curves(
@@ -108,15 +121,10 @@ def test_the_report_takes_runs_from_other_folders_with_their_curves(
     for folder, seeds, asac in (("first", [1, 0], 100.0), ("extra", [6, 5], 300.0)):
         out = tmp_path / folder
         out.mkdir()
-        summary = ["task,system,seed,steps,return,wall_s,eval_s,overrides,code,finished"]
-        for system, ret in (("asac", asac), ("sb3", 200.0)):
-            for seed in seeds:
-                summary.append(f"walker2d,{system},{seed},20000,{ret},10,1,,abc,today")
-                last = ret + seed  # tells the seeds apart in the per-seed lists, which follow the table's order
-                (out / f"walker2d_{system}_seed{seed}.csv").write_text(
-                    "env_steps,return_mean,return_std,wall_seconds\n" + f"15000,{ret / 2},0.0,1\n20000,{last},0.0,1\n"
-                )
-        (out / "summary.csv").write_text("\n".join(summary) + "\n")
+        # the last evaluation (return + seed) tells the seeds apart in the per-seed lists (in the table's order)
+        runs = [(system, seed, ret, [(15000, ret / 2), (20000, ret + seed)])
+                for system, ret in (("asac", asac), ("sb3", 200.0)) for seed in seeds]  # fmt: skip
+        write_runs(out, "walker2d", runs)
     report(tmp_path / "first", "walker2d", [0, 1, 5, 6], also=[tmp_path / "extra"])
     said = capsys.readouterr().out
     assert "| 5 | 20000 | 300.0 |" in said and "asac: mean 200.0" in said and "over 4 seeds" in said
