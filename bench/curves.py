@@ -92,6 +92,10 @@ def main() -> None:
     p.add_argument("--out", default=str(RESULTS / "mujoco"))
     p.add_argument("--seeds", type=int, nargs="+", help="only these seeds' runs (default: every finished run)")
     args = p.parse_args()
+    try:
+        import matplotlib  # noqa: F401
+    except ImportError:
+        p.exit(2, "bench.curves: error: drawing needs matplotlib, not a dependency of asac: pip install matplotlib\n")
     for task in args.tasks:
         path = plot(Path(args.out), task, args.seeds)
         print(f"{task}: {path or 'no finished runs'}" + (f" ({path.stat().st_size // 1024} KB)" if path else ""))

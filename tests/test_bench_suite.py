@@ -4,6 +4,8 @@ and trainer, tiny networks, a few hundred steps)."""
 
 from __future__ import annotations
 
+import subprocess
+import sys
 import threading
 from pathlib import Path
 
@@ -111,6 +113,18 @@ def test_the_figure_of_the_seeds_asked_for_is_drawn_under_its_own_name(tmp_path:
     assert drawn == tmp_path / "ant_seeds0_1_2.png" and drawn.read_bytes()[:4] == b"\x89PNG"
     assert not (tmp_path / "ant.png").exists()  # the every-seed figure is not redrawn
     assert plot(tmp_path, "ant", [7]) is None  # no finished runs of that seed: nothing drawn
+
+
+def test_the_figures_without_matplotlib_end_in_one_line_naming_it() -> None:
+    # matplotlib is not a dependency: a fresh install that asks for figures gets an error saying what to install.
+    blocked = (
+        "import sys, runpy; sys.modules['matplotlib'] = None; sys.argv = ['bench.curves', '--tasks', 'ant'];"
+        " runpy.run_module('bench.curves', run_name='__main__')"
+    )
+    done = subprocess.run([sys.executable, "-c", blocked], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 2, done.stderr
+    assert done.stderr.startswith("bench.curves: error: drawing needs matplotlib") and done.stderr.count("\n") == 1
+    assert "pip install matplotlib" in done.stderr
 
 
 def test_the_report_takes_runs_from_other_folders_with_their_curves(
