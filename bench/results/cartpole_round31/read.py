@@ -70,3 +70,6 @@ arms = {arm: rows(arm) for arm in SOURCES}
 both = sorted(set(arms["default"]) & set(arms["ramp"]))
 tally("round 31", [s for s in both if 33 <= s <= 40], arms)
 tally("every fresh seed", both, arms)
+# Seeds 25-40 only: neither reported (0-4) nor run by a round that chose a config; the ramp's adoption as the
+# default (bench/results/cartpole_default_ramp/DECISION.md) rests on these.
+tally("seeds 25-40", [s for s in both if 25 <= s <= 40], arms)
