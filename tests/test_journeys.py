@@ -291,14 +291,14 @@ def test_an_annealed_learning_rate_goes_on_where_it_was_after_ctrl_c(tmp_path: P
 
 
 def test_a_scheduled_munchausen_weight_goes_on_where_it_was_after_ctrl_c(tmp_path: Path) -> None:
-    """``sac.munchausen_scale_start``: the weight rides the step size's schedule (CartPole anneals over the
-    run: 2 updates per env step after 1,000 stored, 4,000 updates in 3,000 steps), so after Ctrl-C and the
-    same command it goes on up the same line from the checkpoint's update count, read back from the run's
-    TensorBoard files (a weight that restarted at 0 would fall off the line)."""
+    """``sac.munchausen_scale_start``: the weight rides the step size's schedule (``gym/cartpole``'s default
+    since 2026-12-06, rising from 0 to 0.9 while the step size anneals over the run: 2 updates per env step
+    after 1,000 stored, 4,000 updates in 3,000 steps), so after Ctrl-C and the same command it goes on up the
+    same line from the checkpoint's update count, read back from the run's TensorBoard files (a weight that
+    restarted at 0 would fall off the line)."""
     total = 2 * (MAX_STEP - 1000)
     args = ["gym/cartpole", "--no_progress", "-n", "ramp", "--override", "sac.seed=0", "--override",
-            f"base.max_step={MAX_STEP}", "--override", "sac.munchausen_scale=0.9", "--override",
-            "sac.munchausen_scale_start=0", "--override", "sac.write_summary_per_step=250"]  # fmt: skip
+            f"base.max_step={MAX_STEP}", "--override", "sac.write_summary_per_step=250"]  # fmt: skip
     weights = scheduled_values_across_ctrl_c(tmp_path, args, tmp_path / "models/gym/cartpole/ramp",
                                              "learner/munchausen_weight")  # fmt: skip
     for weight, done in weights:
