@@ -235,6 +235,9 @@ def load_config(
         task_file = read_yaml(path) if path.exists() else {}
         if not isinstance(task_file, dict):
             raise ConfigError(f"{path}: top level must map section names (default, ...) to configs")
+        for name in task_file:
+            if not isinstance(name, str):  # YAML reads 1, 0E0 or true as numbers and booleans
+                raise ConfigError(f"{path}: section name {name!r} is read as {type(name).__name__}, not text; quote it")
         layers = [("default", task_file.get("default"))]
         if config_name is not None:
             if config_name not in task_file or config_name == "default":
