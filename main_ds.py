@@ -26,16 +26,18 @@ import socket
 import sys
 import time
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 from algorithm.config import ConfigError, apply_overrides, config_from_file, config_to_yaml, load_config
-from algorithm.config_schema import MAX_EXPLORATION_NOISE, Config
+from algorithm.config_port import CONFIG_LOGGER
+from algorithm.config_schema import MAX_EXPLORATION_NOISE, Config, NetConfig
 from algorithm.errors import CheckpointError, RoleError
 from algorithm.files import WriteFailures, atomic_write
 from algorithm.folder_lock import FolderInUse, hold_folder
 from algorithm.logging import LogFileHandler
+from algorithm.random_params import draw_for_run
 from algorithm.run_dir import RunDir
-from algorithm.signals import StopRequest, stop_on_signals, stop_with_launcher
+from algorithm.signals import LAUNCHER_PID_ENV, StopRequest, stop_on_signals, stop_with_launcher
 from cli import (
     ArgumentParser,
     UsageError,
@@ -148,18 +150,26 @@ def resolve(args: argparse.Namespace) -> tuple[Config, Path]:
     task = resolve_task(args.env)
     check_device(args.device)
     overrides = cli_overrides(args)
-    config = load_config(task, args.config, overrides).config
+    resolved = load_config(task, args.config, overrides)
+    config, role = resolved.config, ROLES[args.role]
     template = args.name or config.base_config.name
-    name = template.replace("{time}", time.strftime("%Y%m%d%H%M%S"))
+    name = run_name(template, role)
     run_dir = run_directory(args.model_root, args.env, name)
     check_writable(run_dir, args.model_root)
-    saved = RunDir(run_dir).config
+    saved, drawn = RunDir(run_dir).config, dict[str, Any]()
     if saved.exists():
         config = apply_overrides(config_from_file(saved), overrides)
-    elif config.sac_config.seed is None:
-        config.sac_config.seed = random.SystemRandom().randrange(2**31)
+    else:
+        if config.sac_config.seed is None:
+            config.sac_config.seed = random.SystemRandom().randrange(2**31)
+        if role == "local" and local_learners(args, config) is None:
+            # no evolver to draw them: drawn once from the seed as main.py does, and recorded in the
+            # run's config.yaml, which every role of the run then reads
+            config, drawn = draw_for_run(config, config.sac_config.seed)
     config.base_config.name = name
     net = config.net_config
+    if role == "local":
+        local_addresses(net, resolved.sources)
     for peer in ("evolver", "learner", "replay"):
         if (host := getattr(args, f"{peer}_host")) is not None:
             setattr(net, f"{peer}_host", host)
@@ -179,16 +189,47 @@ def resolve(args: argparse.Namespace) -> tuple[Config, Path]:
     credentials(config, ROLES[args.role])  # a missing secret or a bad certificate stops here, before anything starts
     if ROLES[args.role] != "evolver":  # the one role without envs
         check_env(config)
-    if "{time}" in template and args.role != "local":
-        # Each role would name the run by its own start time: their files in as many folders, and the
-        # same commands again a new run instead of a resumed one. Checked last: what is wrong with the
-        # config, the model root or the env is said first.
-        raise UsageError(
-            f"{args.role}: name the run with -n NAME, the same on every role of it (the name here, "
-            f"{template!r}, is each process's start time), so that their files go to one run folder and "
-            "the same commands resume it"
-        )
+    if drawn:  # said once all is checked: bad input is one line
+        log.info("random_params drew %s (recorded in config.yaml)", ", ".join(f"{k}={v!r}" for k, v in drawn.items()))
+    if "{time}" in template and role != "local":
+        log.info("run %r: roles started one by one without -n share this name ('{time}' is %r for them), so "
+                 "their files go to one run folder and the same commands resume it; -n NAME names it",
+                 config.base_config.name, HAND_STARTED_TIME)  # fmt: skip
     return config, run_dir
+
+
+HAND_STARTED_TIME = "ds"
+"""What ``{time}`` in a run's name becomes for roles started one by one: each would otherwise name the
+run by its own start time (their files in as many folders, and the same commands a new run each time)."""
+
+
+def run_name(template: str, role: str) -> str:
+    """The run's name from ``-n`` (or base_config.name): ``{time}`` is the start time under ``local`` (one
+    launcher names the run for all its roles), :data:`HAND_STARTED_TIME` for a role started by hand."""
+    return template.replace("{time}", time.strftime("%Y%m%d%H%M%S") if role == "local" else HAND_STARTED_TIME)
+
+
+def local_learners(args: argparse.Namespace, config: Config) -> int | None:
+    """How many learners a ``local`` run starts under an evolver; None: one learner, no evolver."""
+    return args.learners or (2 if config.base_config.evolver_enabled else None)
+
+
+def local_addresses(net: NetConfig, sources: dict[str, str]) -> None:
+    """``local`` places every role on loopback at free ports and tells each where the others are; an
+    address the task file (or an override) gives is for roles started one by one, so it is dropped here,
+    with one WARNING naming it, rather than followed by roles waiting for a host that never answers."""
+    for peer in ("evolver", "learner", "replay"):
+        key = f"{peer}_host"
+        if (host := getattr(net, key)) is not None:
+            where = sources.get(f"net_config.{key}", "the run's config.yaml")
+            evolver = (
+                " (an evolver runs with --learners N, or base_config.evolver_enabled: true)"
+                if peer == "evolver"
+                else ""
+            )
+            log.warning("net_config.%s: %s (%s) is for roles started one by one; local runs every role on this "
+                        "host at addresses it picks, so it is not used%s", key, host, where, evolver)  # fmt: skip
+            setattr(net, key, None)
 
 
 def credentials(config: Config, role: str) -> security.Credentials:
@@ -215,14 +256,19 @@ def check_models(context: RoleContext, role: str) -> None:
         raise ConfigError(f"cannot build the models of this config: {type(e).__name__}: {e}") from None
 
 
-def setup_logging(run_dir: Path, role: str, in_file: bool) -> None:
+def setup_logging(run_dir: Path | None, role: str, in_file: bool) -> None:
+    """Log lines tagged with time, role and level on stderr (and in ``log_<role>.txt`` with ``in_file``).
+    Set before the config is read, so its warnings carry their tag too; a role ``local`` started has
+    its config's warnings said once, by the launcher (they would repeat in every child)."""
     handlers: list[logging.Handler] = [logging.StreamHandler(sys.stderr)]
-    if in_file:
+    if in_file and run_dir is not None:
         run_dir.mkdir(parents=True, exist_ok=True)
         handlers.append(LogFileHandler(run_dir / f"log_{role}.txt"))
     logging.basicConfig(
         level=logging.INFO, format=f"%(asctime)s {role} %(levelname)s %(message)s", handlers=handlers, force=True
     )
+    if os.environ.get(LAUNCHER_PID_ENV):
+        logging.getLogger(CONFIG_LOGGER).setLevel(logging.ERROR)
 
 
 def child_args(args: argparse.Namespace, config: Config) -> list[str]:
@@ -245,6 +291,7 @@ def run(args: argparse.Namespace) -> int:
     role = ROLES[args.role]
     if args.run:
         return play(args)
+    setup_logging(None, role, False)
     if args.repeat != 1:
         raise UsageError("--repeat is for main.py; start one distributed run per name")
     for flag, given in (("--actors", args.actors != 1), ("--learners", args.learners is not None),
@@ -255,8 +302,10 @@ def run(args: argparse.Namespace) -> int:
         raise UsageError("--index is for the actor role (local gives each actor its own)")
     if args.ckpt is not None and role not in ("learner", "local"):
         raise UsageError("--ckpt is for the learner (it resumes from that checkpoint)")
-    if role == "local" and args.evolver_host is not None:
-        raise UsageError("local starts its own evolver; --evolver_host is for roles started one by one")
+    for peer in ("evolver", "learner", "replay"):
+        if role == "local" and getattr(args, f"{peer}_host") is not None:
+            raise UsageError(f"local runs every role on this host at addresses it picks; --{peer}_host is for "
+                             "roles started one by one")  # fmt: skip
     config, run_dir = resolve(args)
     # torch and the roles' code, imported once the flags, the task, the config and the credentials
     # are known to be good (cli.py); each role process imports its own role's composition only
@@ -322,7 +371,7 @@ def local(args: argparse.Namespace, config: Config, run_dir: Path, creds: securi
     from ds.launch.local import run_local
     from ds.launch.local_summary import PlayableRun, resume_argv, summary
 
-    learners = args.learners or (2 if config.base_config.evolver_enabled else None)
+    learners = local_learners(args, config)
     here = Path(__file__).resolve()
     name = config.base_config.name
     playable = PlayableRun(args.env, name, run_dir, args.model_root, here.with_name("main.py"),

@@ -30,7 +30,8 @@ import logging
 from collections.abc import Callable
 from typing import Any
 
-log = logging.getLogger("asac.config")
+CONFIG_LOGGER = "asac.config"  # what a task file's keys became; main_ds.py quiets it in local's children
+log = logging.getLogger(CONFIG_LOGGER)
 
 # old path -> (new path, what it is there; "" when the name says it)
 MOVED: dict[str, tuple[str, str]] = {

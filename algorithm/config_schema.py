@@ -403,6 +403,12 @@ class NetConfig(Section):
         "asks for); a peer that has not answered by then (stopped, stalled) is waited for and retried.",
     )
     replay_host: str | None = Field(None, description="Replay address learners and actors connect to.")
+    peer_warn_s: float = Field(
+        60.0,
+        gt=0.0,
+        description="A role waiting this long for a peer (a replay, learner or evolver that does not answer, a "
+        "replay the evolver has not paired) logs one WARNING naming it and how to fix it; it goes on waiting.",
+    )
     replay_port: int = Field(61002, ge=0, le=65535)
     params_port: int = Field(
         61003, ge=0, le=65535, description="Learner's ZeroMQ parameter broadcast; 0 = any free port (announced)."

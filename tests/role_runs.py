@@ -137,12 +137,13 @@ class RoleRun:
 
     _all: list[RoleRun] = []
 
-    def __init__(self, cwd: Path, name: str, common: list[str], task: str = "gym/pendulum") -> None:
+    def __init__(self, cwd: Path, name: str | None, common: list[str], task: str = "gym/pendulum") -> None:
+        """``name`` None: the roles are started without ``-n`` (their run is then ``models/TASK/ds``)."""
         self.cwd, self.name, self.common, self.task = cwd, name, common, task
         self.replay_port, self.learner_port = free_port(), free_port()
         self.procs: dict[str, subprocess.Popen[bytes]] = {}
         self.ended: set[str] = set()  # roles the test ended with a signal: their exit is no failure
-        self.run = cwd / "models" / task / name
+        self.run = cwd / "models" / task / (name or "ds")
         RoleRun._all.append(self)
 
     @classmethod
@@ -161,7 +162,8 @@ class RoleRun:
         ``label`` (its log is appended to: a restarted role's lines follow the killed one's)."""
         ports = ["--replay_host", LOCAL_HOST, "--replay_port", str(self.replay_port), "--learner_host", LOCAL_HOST,
                  "--learner_port", str(self.learner_port), "--override", "net.params_port=0"]  # fmt: skip
-        command = [sys.executable, str(ROOT / "main_ds.py"), self.task, role, "-n", self.name, *ports]
+        named = ["-n", self.name] if self.name else []
+        command = [sys.executable, str(ROOT / "main_ds.py"), self.task, role, *named, *ports]
         with self.log(label).open("ab") as out:
             proc = subprocess.Popen([*command, *self.common, *extra], cwd=self.cwd, env=ENV, stdout=out,
                                     stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, process_group=0)  # fmt: skip

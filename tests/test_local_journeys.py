@@ -21,6 +21,7 @@ from pathlib import Path
 
 import pytest
 import torch
+import yaml
 
 from algorithm.evaluation import read_evaluations
 from tests.role_runs import (
@@ -191,17 +192,58 @@ def test_ctrl_c_mid_run_stops_the_learner_before_the_replay_and_says_interrupted
     assert play_command(lines)[-4:] == ["gym/pendulum", "-n", "ctrl_c", "--run"], lines
 
 
+UNREACHABLE = "10.255.255.1"  # a private address nothing on the test machine answers
+
+
+@pytest.mark.slow
+@pytest.mark.grpc
+def test_a_local_run_is_placed_by_the_launcher_draws_random_params_and_says_the_config_notes_once(
+    tmp_path: Path,
+) -> None:
+    """A task file's (here: an override's) evolver address is for roles started one by one: ``local``
+    without ``--learners`` starts no evolver and says once that it does not follow it (the roles would
+    otherwise wait for it forever); ``random_params`` is drawn once, as main.py draws it, and recorded
+    in the run's config.yaml; what a key of the original's layout became is said once, as a WARNING,
+    by the launcher alone (not once per role process)."""
+    draws = "random_params.sac_config={n_step: {in: [2, 3]}, tau: {truncated: [0.001, 0.01]}}"
+    done = subprocess.run(command("gym/pendulum", "local", "--actors", "1", "-n", "placed", *TINY,
+                                  "--override", "base.max_step=400", "--override", f"net.evolver_host={UNREACHABLE}",
+                                  "--override", draws, "--override", "base.noise_max=0.2"),
+                          cwd=tmp_path, env=ENV, text=True, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                          timeout=HANG_S)  # fmt: skip
+    out = done.stdout
+    assert done.returncode == 0, out[-4000:]
+    assert len(re.findall(rf"local WARNING net_config\.evolver_host: {UNREACHABLE} ", out)) == 1, out[-4000:]
+    assert "waiting for evolver" not in out, out[-4000:]
+    moved = re.findall(r"^(\S+ \S+ \w+ WARNING )?.*base_config\.noise_max is actor_config\.noise_max now", out, re.M)
+    assert len(moved) == 1 and moved[0], out[-4000:]  # once, tagged
+    saved = yaml.safe_load((tmp_path / "models/gym/pendulum/placed/config.yaml").read_text())
+    drawn = re.search(r"local INFO random_params drew (.*) \(recorded in config.yaml\)", out)
+    assert drawn and saved["sac_config"]["n_step"] in (2, 3) and 0.001 <= saved["sac_config"]["tau"] <= 0.01, out
+    assert f"sac_config.n_step={saved['sac_config']['n_step']}" in drawn.group(1)
+    assert saved["actor_config"]["noise_max"] == 0.2
+    learner_said = re.search(r"^\[learner\] .*learner of run", out, re.M)
+    assert learner_said, out[-4000:]
+
+
 @pytest.mark.slow
 @pytest.mark.grpc
 def test_a_population_labels_each_learner_and_replay_with_the_evolver_id(tmp_path: Path) -> None:
     """``local --learners 2``: ``[learner-k]`` is the evolver's learner k, writing ``learner_k/``;
     ``[replay-k]`` serves learner k; the summary plays each learner's folder."""
+    # Addresses a task file may give (for roles started one by one) are not followed: a learner sent to
+    # this replay_host, or an actor to this learner_host, would wait for them forever.
+    elsewhere = ["--override", f"net.replay_host={UNREACHABLE}", "--override", f"net.learner_host={UNREACHABLE}"]
     done = subprocess.run(command("gym/pendulum", "local", "--learners", "2", "--actors", "2", "-n", "pop", *TINY,
-                                  "--override", "base.max_step=600"),
+                                  "--override", "base.max_step=600", *elsewhere),
                           cwd=tmp_path, env=ENV, text=True, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
                           timeout=150)  # fmt: skip
     out = done.stdout
     assert done.returncode == 0, out[-4000:]
+    for key in ("replay_host", "learner_host"):
+        assert len(re.findall(rf"^\S+ \S+ local WARNING net_config\.{key}: {UNREACHABLE} ", out, re.M)) == 1, out[
+            -4000:
+        ]
     said = re.findall(r"^\[learner-(\d+)\] .*learner (\d+) of 'pop' in \S+/learner_(\d+)", out, re.M)
     assert sorted(label for label, _, _ in said) == ["0", "1"], out[-4000:]
     assert all(label == learner == folder for label, learner, folder in said), said

@@ -178,6 +178,33 @@ def test_roles_started_by_hand_stop_at_the_budget_and_the_replay_says_the_run_is
     assert (run.run / "replay" / "replay.npz").is_file()  # saved at the stop, as save_replay_on_stop says
 
 
+def test_roles_started_by_hand_without_a_name_share_one_run_and_the_same_commands_resume_it(tmp_path: Path) -> None:
+    """The original's README starts each role with no run name (``main_ds.py TASK learner --replay_host=...
+    --logger_in_file``): the roles agree on one run folder (``ds``), and after Ctrl-C the same commands
+    resume it (the replay restores its steps, the learner its checkpoint)."""
+    run = RoleRun(tmp_path, None, flags(*TINY_OVERRIDES, "base.max_step=100000", "net.lease_s=3"))
+    for label in ("replay", "learner", "actor"):
+        run.start(label, label, "--logger_in_file")
+    try:
+        run.wait_for_line("learner", r"eval at \d+ env steps", 180)  # it has trained (eval_per_step=300)
+    finally:
+        first = run.stop_all()
+    assert first["learner"] == 130 and first["replay"] == 130, run.logs()
+    assert sorted(p.name for p in (tmp_path / "models" / "gym" / "pendulum").iterdir()) == ["ds"]
+    for role in ("replay", "learner", "actor"):
+        assert (run.run / f"log_{role}.txt").is_file(), role  # --logger_in_file: each role's log in the one folder
+    saved = run.wait_for_line("replay", r"replay saved to \S+: (\d+) env steps", 5)
+    stopped_at = len(run.text("learner"))
+    for label in ("replay", "learner", "actor"):
+        run.start(label, label, "--logger_in_file")
+    try:
+        restored = run.wait_for_line("replay", r"replay restored from \S+: (\d+) steps", 120, len(saved.string))
+        resumed = run.wait_for_line("learner", r"resumed from \S+ at (\d+) env steps", 120, stopped_at)
+    finally:
+        run.stop_all()
+    assert int(restored.group(1)) == int(saved.group(1)) >= 300 and int(resumed.group(1)) >= 300, run.logs()
+
+
 # ---------------------------------------------------------------------- security
 
 

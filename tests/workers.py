@@ -47,6 +47,7 @@ SERIAL: dict[str, tuple[str, ...]] = {
         "tests/test_cross_host.py",
         "tests/test_token_by_default.py",
         "tests/test_main_ds.py::test_replay_learner_and_two_actors_learn_pendulum",
+        "tests/test_main_ds.py::test_roles_started_by_hand_without_a_name_share_one_run_and_the_same_commands_resume_it",
         "tests/test_main_ds.py::test_local_run_with_a_token_and_mutual_tls_trains",
         # ~15 processes side by side (the processes fixture), and the tests sharing its trained fixture
         "tests/test_bad_input.py::test_a_damaged_run_is_refused_naming_the_file_and_left_as_it_was",

@@ -259,10 +259,21 @@ class DistributedActor:
 
     # -- peers ------------------------------------------------------------------------------
     def _wait_for_peers(self) -> bool:
+        warn = self.config.net_config.peer_warn_s
         return wait_until_serving(
-            self.replay.channel, replay_service.SERVICE_NAME, "replay", self.replay.address, self.stop
+            self.replay.channel,
+            replay_service.SERVICE_NAME,
+            "replay",
+            self.replay.address,
+            self.stop,
+            warn_after_s=warn,
         ) and wait_until_serving(
-            self.learner.channel, learner_service.SERVICE_NAME, "learner", self.learner.address, self.stop
+            self.learner.channel,
+            learner_service.SERVICE_NAME,
+            "learner",
+            self.learner.address,
+            self.stop,
+            warn_after_s=warn,
         )
 
     def _register(self) -> Registration:

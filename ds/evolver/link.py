@@ -32,6 +32,7 @@ from ds.evolver.population import Joined, register, unreachable
 from ds.evolver.service import EvolverClient, Sample
 from ds.evolver.state import Instruction, LearnerRetired, UnknownLearner
 from ds.net.params import ParamsError, ParamsSpec, encode_params
+from ds.net.rpc import PEER_WARN_AFTER_S
 
 log = logging.getLogger("asac.population")
 
@@ -239,16 +240,22 @@ class Membership:
     connect_replay: Callable[[str], ReplayTable]
 
 
-def wait_for_replay(link: EvolverLink, stop: threading.Event) -> str | None:
+def wait_for_replay(link: EvolverLink, stop: threading.Event, warn_after_s: float = PEER_WARN_AFTER_S) -> str | None:
     """The replay address the evolver names for this learner, once it does (logging while it waits);
     None if the learner was stopped, retired or forgotten first."""
-    waiting, started = Throttle(), time.monotonic()
+    waiting, started, warned = Throttle(), time.monotonic(), False
     while not link.replay_address:
         if link.retired or link.lost or stop.wait(0.5):
             return None
-        if time.monotonic() - started > 5.0 and waiting():
+        waited = time.monotonic() - started
+        if waited > 5.0 and waiting():
             log.info("learner %d waits for the evolver to pair a replay with it (start one with --evolver_host)",
                      link.learner_id)  # fmt: skip
+        if not warned and waited >= warn_after_s:
+            log.warning("learner %d: no replay free for it has registered with the evolver for %.0f s; still "
+                        "waiting. Start one more replay (main_ds.py TASK replay -n NAME --evolver_host=HOST_E): "
+                        "each learner of a population needs its own", link.learner_id, waited)  # fmt: skip
+            warned = True
     return link.replay_address
 
 

@@ -231,9 +231,12 @@ def plan(
     def child(role: str, *flags: str) -> list[str]:
         return [*command, role, *child_args, *flags, *extra.get(role, [])]
 
+    # An address from the task file or an --override is for roles started one by one: each child is told
+    # where its peers are, and a peer it asks the evolver for is unset (None) rather than the file's.
     if learners is None:
         ports = ["--replay_host", LOCAL_HOST, "--replay_port", str(free_port()), "--learner_host", LOCAL_HOST,
-                 "--learner_port", str(free_port()), "--override", "net.params_port=0", *NO_HEALTH_PORT]  # fmt: skip
+                 "--learner_port", str(free_port()), "--override", "net.params_port=0", *NO_HEALTH_PORT,
+                 *unset("evolver")]  # fmt: skip
         return [("replay", child("replay", *ports)), ("learner", child("learner", *ports))] + [
             (f"actor-{i}", child("actor", *ports, "--index", str(i))) for i in range(actors)
         ]
@@ -245,8 +248,14 @@ def plan(
     for k in range(learners):
         learner = ["--learner_host", LOCAL_HOST, "--learner_port", str(free_port()), "--override", "net.params_port=0",
                    *NO_HEALTH_PORT]  # fmt: skip
-        children.append((f"learner-{k}", child("learner", *evolver, *learner)))
-    return children + [(f"actor-{i}", child("actor", *evolver, "--index", str(i))) for i in range(actors)]
+        children.append((f"learner-{k}", child("learner", *evolver, *learner, *unset("replay"))))
+    actor = [*evolver, *unset("replay", "learner")]
+    return children + [(f"actor-{i}", child("actor", *actor, "--index", str(i))) for i in range(actors)]
+
+
+def unset(*peers: str) -> list[str]:
+    """Overrides that clear the addresses of ``peers``, so that a child asks for them (or has none)."""
+    return [arg for peer in peers for arg in ("--override", f"net.{peer}_host=null")]
 
 
 @dataclass

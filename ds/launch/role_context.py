@@ -172,7 +172,8 @@ class RoleContext:
         """A client of the evolver once it serves; None if stopped while waiting for it."""
         client = EvolverClient(self.address("evolver"), token=self.token, credentials=self.credentials)
         service = evolver_service.SERVICE_NAME
-        if wait_until_serving(client.channel, service, "evolver", client.address, self.stop):
+        warn = self.config.net_config.peer_warn_s
+        if wait_until_serving(client.channel, service, "evolver", client.address, self.stop, warn_after_s=warn):
             return client
         client.close()
         return None

@@ -130,11 +130,12 @@ def _train(
         link.start()
         member = Membership(link, WeightsSnapshot(role.token), connect)
     try:
-        replay_address = wait_for_replay(link, role.stop) if link is not None else None
+        replay_address = wait_for_replay(link, role.stop, net.peer_warn_s) if link is not None else None
         if link is not None and joined is not None and replay_address is None:
             return exit_code(link, joined)
         replay = connect(replay_address)
-        if not wait_until_serving(replay.channel, replay_service.SERVICE_NAME, "replay", replay.address, role.stop):
+        if not wait_until_serving(replay.channel, replay_service.SERVICE_NAME, "replay", replay.address, role.stop,
+                                  warn_after_s=net.peer_warn_s):  # fmt: skip
             return 130
         store, registry = ParamsStore(), ActorRegistry(lease_s=net.lease_s)
         acting = None if cfg.actor_config.update_policy_mode else PublishedPolicy(role.policy(spec))

@@ -236,6 +236,20 @@ def _unreachable(e: grpc.RpcError) -> str:
     return f"not reachable: {details}" if tls else "not reachable"
 
 
+PEER_WARN_AFTER_S = 60.0
+"""How long a role waits for a peer before it warns, once, that the peer may never come: longer than
+any start here takes (a role's imports and a replay restoring a snapshot take seconds)."""
+
+
+def silent_peer(what: str, address: str, waited_s: float, reason: str) -> str:
+    """What a role that has waited ``waited_s`` for its ``what`` (replay, learner, evolver) says to do."""
+    return (
+        f"no {what} has answered at {address} for {waited_s:.0f} s ({reason}); still waiting. Start the {what} "
+        f"(main_ds.py TASK {what}, with this role's -n), or give this role its address with "
+        f"--{what}_host/--{what}_port (net_config.{what}_host/{what}_port in the task's config)"
+    )
+
+
 def wait_until_serving(
     channel: grpc.Channel,
     service: str,
@@ -244,11 +258,14 @@ def wait_until_serving(
     stop: threading.Event,
     log_every_s: float = 10.0,
     max_backoff_s: float = 2.0,
+    warn_after_s: float = PEER_WARN_AFTER_S,
 ) -> bool:
     """Block until ``service`` on ``channel`` reports SERVING (True) or ``stop`` is set (False),
-    logging what it waits for right away and then every ``log_every_s`` seconds."""
+    logging what it waits for right away and then every ``log_every_s`` seconds. A peer silent for
+    ``warn_after_s`` gets one WARNING saying what to check: a role waits as long as it takes (peers
+    start in any order, and a rescheduled pod comes back), but never without saying why."""
     stub = health_pb2_grpc.HealthStub(channel)
-    backoff, last_log, started = 0.05, -float("inf"), time.monotonic()
+    backoff, last_log, started, warned = 0.05, -float("inf"), time.monotonic(), False
     while not stop.is_set():
         try:
             reply = stub.Check(health_pb2.HealthCheckRequest(service=service), timeout=2.0)
@@ -262,6 +279,9 @@ def wait_until_serving(
         if time.monotonic() - last_log >= log_every_s:
             log.info("waiting for %s at %s (%s)", what, address, reason)
             last_log = time.monotonic()
+        if not warned and time.monotonic() - started >= warn_after_s:
+            log.warning("%s", silent_peer(what, address, time.monotonic() - started, reason))
+            warned = True
         stop.wait(backoff)
         backoff = min(2 * backoff, max_backoff_s)
     return False

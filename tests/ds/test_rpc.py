@@ -3,10 +3,23 @@ shut down with the call in flight) is retried; a refusal surfaces at once."""
 
 from __future__ import annotations
 
+import logging
+import threading
+
 import grpc
 import pytest
 
-from ds.net.rpc import MAX_STATUS_DETAILS, RetryPolicy, call_with_retry, peer_gone, peer_unresponsive, status_details
+from ds.launch.local import free_port
+from ds.net.rpc import (
+    LOCAL_HOST,
+    MAX_STATUS_DETAILS,
+    RetryPolicy,
+    call_with_retry,
+    peer_gone,
+    peer_unresponsive,
+    status_details,
+    wait_until_serving,
+)
 
 NO_WAIT = RetryPolicy(attempts=3, initial_backoff_s=0.0, max_backoff_s=0.0)
 
@@ -73,3 +86,19 @@ def test_status_details_keep_both_ends_within_what_a_status_carries() -> None:
     shortened = status_details(long)
     assert len(shortened) <= MAX_STATUS_DETAILS and shortened.startswith("/run/replay/bad.npz: not readable (")
     assert shortened.endswith(") the end") and f"...[{len(long) - MAX_STATUS_DETAILS + 40} characters]..." in shortened
+
+
+def test_a_role_waiting_for_a_peer_says_once_after_a_bounded_time_what_it_waits_for_and_how_to_fix_it(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    """Nothing answers at the address: the wait goes on (peers start in any order), but after
+    ``warn_after_s`` one WARNING names the peer, the address and what to do."""
+    address = f"{LOCAL_HOST}:{free_port()}"
+    stop = threading.Event()
+    threading.Timer(1.5, stop.set).start()
+    with grpc.insecure_channel(address) as channel, caplog.at_level(logging.INFO, logger="asac"):
+        assert not wait_until_serving(channel, "asac.ReplayService", "replay", address, stop, warn_after_s=0.3)
+    warnings = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
+    assert len(warnings) == 1, warnings
+    assert f"no replay has answered at {address} for" in warnings[0]
+    assert "--replay_host/--replay_port" in warnings[0] and "net_config.replay_host" in warnings[0]
