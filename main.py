@@ -76,6 +76,7 @@ def build_parser(prog: str = "main.py") -> argparse.ArgumentParser:
 
 
 def train(args: argparse.Namespace) -> int:
+    setup_logging(None, False)  # the config's own warnings (a key of the original's layout) carry their tag
     task = task_dir(args.env)
     check_device(args.device)
     resolved = load_config(task, args.config, cli_overrides(args))

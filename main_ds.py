@@ -28,7 +28,15 @@ import time
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from algorithm.config import ConfigError, apply_overrides, config_from_file, config_to_yaml, load_config
+from algorithm.config import (
+    DISTRIBUTED_TASK_FILE,
+    ConfigError,
+    apply_overrides,
+    config_from_file,
+    config_to_yaml,
+    load_config,
+    task_config_path,
+)
 from algorithm.config_port import CONFIG_LOGGER
 from algorithm.config_schema import MAX_EXPLORATION_NOISE, Config, NetConfig
 from algorithm.errors import CheckpointError, RoleError
@@ -150,7 +158,7 @@ def resolve(args: argparse.Namespace) -> tuple[Config, Path]:
     task = resolve_task(args.env)
     check_device(args.device)
     overrides = cli_overrides(args)
-    resolved = load_config(task, args.config, overrides)
+    resolved = load_config(task, args.config, overrides, distributed=True)
     config, role = resolved.config, ROLES[args.role]
     template = args.name or config.base_config.name
     name = run_name(template, role)
@@ -189,6 +197,8 @@ def resolve(args: argparse.Namespace) -> tuple[Config, Path]:
     credentials(config, ROLES[args.role])  # a missing secret or a bad certificate stops here, before anything starts
     if ROLES[args.role] != "evolver":  # the one role without envs
         check_env(config)
+    if (read := task_config_path(task, distributed=True)).name == DISTRIBUTED_TASK_FILE:
+        logging.getLogger(CONFIG_LOGGER).info("task file %s (the distributed roles' file of this folder)", read)
     if drawn:  # said once all is checked: bad input is one line
         log.info("random_params drew %s (recorded in config.yaml)", ", ".join(f"{k}={v!r}" for k, v in drawn.items()))
     if "{time}" in template and role != "local":

@@ -214,8 +214,16 @@ def _got(e: Any) -> str:
     return f"; got {e['input']!r}"
 
 
-def task_config_path(task_dir: Path) -> Path:
-    return task_dir / "config.yaml"
+DISTRIBUTED_TASK_FILE = "config_ds.yaml"
+"""A task folder's file for the distributed roles, read by ``main_ds.py`` in place of ``config.yaml``
+when the folder has one (the original's layout: its distributed roles read only this file)."""
+
+
+def task_config_path(task_dir: Path, distributed: bool = False) -> Path:
+    """The task file a launcher reads: ``config.yaml``, or with ``distributed`` the folder's
+    :data:`DISTRIBUTED_TASK_FILE` when there is one."""
+    ds_file = task_dir / DISTRIBUTED_TASK_FILE
+    return ds_file if distributed and ds_file.is_file() else task_dir / "config.yaml"
 
 
 def load_config(
@@ -223,15 +231,17 @@ def load_config(
     config_name: str | None = None,
     overrides: list[str] | tuple[str, ...] = (),
     default_path: Path = DEFAULT_CONFIG_PATH,
+    distributed: bool = False,
 ) -> ResolvedConfig:
-    """Resolve the four layers into a validated :class:`Config` (raises :class:`ConfigError`)."""
+    """Resolve the four layers into a validated :class:`Config` (raises :class:`ConfigError`);
+    ``distributed``: the task file is :func:`task_config_path`'s for the distributed roles."""
     merged: dict[str, Any] = {}
     sources: dict[str, str] = {}
     port = Port()
     _merge(merged, read_yaml(default_path) or {}, str(default_path), sources)
 
     if task_dir is not None:
-        path = task_config_path(Path(task_dir))
+        path = task_config_path(Path(task_dir), distributed)
         task_file = read_yaml(path) if path.exists() else {}
         if not isinstance(task_file, dict):
             raise ConfigError(f"{path}: top level must map section names (default, ...) to configs")
