@@ -30,7 +30,7 @@ import gymnasium
 import numpy as np
 
 from algorithm.config import ConfigError, apply_overrides, config_from_file
-from algorithm.config_schema import Config
+from algorithm.config_schema import BaseConfig, Config
 from algorithm.folder_lock import FolderInUse
 from algorithm.logging import LogFileHandler
 from algorithm.run_dir import RunDir
@@ -83,6 +83,8 @@ DEVICE = re.compile(r"(cpu|cuda|mps)(:(0|[1-9]\d*))?")
 def torch_device(text: str) -> str:
     """``cpu``, ``cuda``, ``cuda:N`` or ``mps``; whether this machine has it is :func:`check_device`'s
     question (a command line may be written for another machine, as the k8s manifests are)."""
+    if text == "gpu":  # the original's name for it
+        raise argparse.ArgumentTypeError("'gpu' is the original's name: write --device cuda (or cuda:N)")
     if not DEVICE.fullmatch(text):
         raise argparse.ArgumentTypeError(f"{text!r} is not a torch device ASAC runs on (cpu, cuda, cuda:1, mps)")
     return text
@@ -101,6 +103,42 @@ def check_device(text: str) -> None:
             raise UsageError(f"--device {text}: this machine has {count} CUDA devices")
     elif device.type == "mps" and not torch.backends.mps.is_available():
         raise UsageError(f"--device {text}: MPS is not available on this machine")
+
+
+UNITY_ONLY = "a Unity setting; ASAC runs gymnasium envs only (Unity is out of scope): delete it"
+ORIGINAL_FLAGS: dict[tuple[str, ...], str] = {
+    ("-p", "--port", "--build_port", "--unity_port"): UNITY_ONLY,
+    ("--editor", "--additional_args", "--u_editor", "--u_port", "--u_quality_level", "--u_timescale"): UNITY_ONLY,
+    ("--envs",): "parallel envs are --agents N here (base_config.n_agents)",
+    ("--max_iter",): "write --override base.max_iter=N (episodes of env 0; -1 no limit)",
+    ("--env_args",): "write --override 'base.env_kwargs={key: value}' (keyword arguments of gymnasium.make)",
+    ("-o",): "write --override section.key=value (repeatable; e.g. --override sac.n_step=3)",
+    ("--logger_file",): "write --logger_in_file (the log goes to the run folder)",
+    ("--sac",): "model files are --nn NAME here (envs/<task>/NAME.py, in ASAC's form: README, model files)",
+    ("--standalone",): "main_ds.py roles run without an evolver unless you start one (evolver role, local --learners "
+    "N): delete it",
+    ("--disable_sample", "--use_env_nn", "--copy_model", "--run_a"): "not an ASAC flag: delete it (python main.py -h "
+    "lists ASAC's)",
+}
+"""Flags of the original's command lines: each is answered with what to write here, not argparse's
+"unrecognized arguments"."""
+
+
+class _OriginalFlag(argparse.Action):
+    """A flag of the original: using it is an error that says what to write instead."""
+
+    def __call__(self, parser: argparse.ArgumentParser, namespace: argparse.Namespace, values: object,
+                 option_string: str | None = None) -> None:  # fmt: skip
+        parser.error(f"{option_string} is a flag of the original ASAC; {self.help_text}")
+
+    help_text = ""
+
+
+def add_original_flags(p: argparse.ArgumentParser) -> None:
+    """Register :data:`ORIGINAL_FLAGS`, hidden from ``-h``."""
+    for names, instead in ORIGINAL_FLAGS.items():
+        action = type("OriginalFlag", (_OriginalFlag,), {"help_text": instead})
+        p.add_argument(*names, nargs="?", action=action, help=argparse.SUPPRESS)
 
 
 def add_common_args(p: argparse.ArgumentParser) -> None:
@@ -131,6 +169,7 @@ def add_common_args(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument("--episodes", type=positive, help="with --run: episodes to play (default eval_config.eval_episodes)")
     p.add_argument("--no_progress", action="store_true", help="no progress line")
+    add_original_flags(p)
 
 
 def task_dir(task: str) -> Path:
@@ -202,17 +241,27 @@ def cli_overrides(args: argparse.Namespace) -> list[str]:
     return overrides + list(args.override)
 
 
+DEFAULT_MODEL_FILE = BaseConfig.model_fields["nn"].default  # its absence means the default models
+
+
 def copy_model_file(task: Path, config: Config, run_dir: Path, explicit: bool) -> None:
     """Copy the task's model file (``base_config.nn``, ``--nn``) into a new run directory; a run that
-    already has one keeps it (resume). An explicit ``--nn`` naming a missing file is an error."""
+    already has one keeps it (resume). A file named by ``--nn`` or by the config (anything but the
+    default name) that is missing is an error, not the default models in its place."""
     source = task / f"{config.base_config.nn}.py"
     target = RunDir(run_dir).model_file
     if not source.is_file():
         if explicit:
             raise UsageError(f"--nn {config.base_config.nn}: no model file {source}")
+        if config.base_config.nn != DEFAULT_MODEL_FILE:
+            raise UsageError(
+                f"base_config.nn: {config.base_config.nn} names a model file, but {source} does not exist; add "
+                f"it, or delete the key (or set it to {DEFAULT_MODEL_FILE}) to train the default models"
+            )
         return
     if target.exists():
         return
+    refuse_original_model_file(source)
     from algorithm.nn.user import model_builder
 
     try:
@@ -221,6 +270,28 @@ def copy_model_file(task: Path, config: Config, run_dir: Path, explicit: bool) -
         raise UsageError(str(e)) from None
     run_dir.mkdir(parents=True, exist_ok=True)
     shutil.copyfile(source, target)
+
+
+ORIGINAL_MODEL_FILE = re.compile(
+    r"^\s*(?:import\s+algorithm\.nn_models|from\s+algorithm(?:\.nn_models)?\s+import)", re.M
+)
+
+
+def refuse_original_model_file(source: Path) -> None:
+    """A model file written for the original (it imports ``algorithm.nn_models``) is a :class:`UsageError`
+    saying how to port it, rather than an ImportError from inside it."""
+    try:
+        text = source.read_text(errors="replace")
+    except OSError:
+        return  # model_builder names the file and what is wrong with it
+    if ORIGINAL_MODEL_FILE.search(text) and "nn_models" in text:
+        raise UsageError(
+            f"{source} is a model file of the original ASAC (it imports algorithm.nn_models), which this ASAC "
+            "cannot load: port it to define build_representation(spec, nn_config) or build_models(spec, sac_config, "
+            "nn_config) (README, Algorithm features: model files; example envs/gym/pendulum/nn_layernorm.py), or "
+            "move it out of the task folder to train the default MLPs, sized by nn_config.hidden_units (the "
+            "original's c_dense_n: 256 with c_dense_depth: 3 is hidden_units: [256, 256, 256])"
+        )
 
 
 def run_model_builder(paths: RunDir) -> ModelBuilder:

@@ -152,9 +152,10 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
-def resolve(args: argparse.Namespace) -> tuple[Config, Path]:
-    """The run's config (a resumed run's saved one wins; overrides and net flags still apply) and
-    its directory, with the seed resolved, as main.py does; everything checked, nothing written."""
+def resolve(args: argparse.Namespace) -> tuple[Config, Path, list[str]]:
+    """The run's config (a resumed run's saved one wins; overrides and net flags still apply), its
+    directory, with the seed resolved, as main.py does, and what to tell the user once everything is
+    checked (bad input is one line); everything checked, nothing written."""
     task = resolve_task(args.env)
     check_device(args.device)
     overrides = cli_overrides(args)
@@ -197,15 +198,23 @@ def resolve(args: argparse.Namespace) -> tuple[Config, Path]:
     credentials(config, ROLES[args.role])  # a missing secret or a bad certificate stops here, before anything starts
     if ROLES[args.role] != "evolver":  # the one role without envs
         check_env(config)
-    if (read := task_config_path(task, distributed=True)).name == DISTRIBUTED_TASK_FILE:
-        logging.getLogger(CONFIG_LOGGER).info("task file %s (the distributed roles' file of this folder)", read)
-    if drawn:  # said once all is checked: bad input is one line
-        log.info("random_params drew %s (recorded in config.yaml)", ", ".join(f"{k}={v!r}" for k, v in drawn.items()))
+    notes = []
+    if (read := task_config_path(task, distributed=True)).name == DISTRIBUTED_TASK_FILE and not launched_by_local():
+        notes.append(f"task file {read} (the distributed roles' file of this folder)")
+    if drawn:
+        notes.append(
+            f"random_params drew {', '.join(f'{k}={v!r}' for k, v in drawn.items())} (recorded in config.yaml)"
+        )
     if "{time}" in template and role != "local":
-        log.info("run %r: roles started one by one without -n share this name ('{time}' is %r for them), so "
-                 "their files go to one run folder and the same commands resume it; -n NAME names it",
-                 config.base_config.name, HAND_STARTED_TIME)  # fmt: skip
-    return config, run_dir
+        notes.append(f"run {config.base_config.name!r}: roles started one by one without -n share this name "
+                     f"('{{time}}' is {HAND_STARTED_TIME!r} for them), so their files go to one run folder and the "
+                     "same commands resume it; -n NAME names it")  # fmt: skip
+    return config, run_dir, notes
+
+
+def launched_by_local() -> bool:
+    """Whether this process is a role a ``local`` launcher started (which has said what concerns the run)."""
+    return bool(os.environ.get(LAUNCHER_PID_ENV))
 
 
 HAND_STARTED_TIME = "ds"
@@ -277,7 +286,7 @@ def setup_logging(run_dir: Path | None, role: str, in_file: bool) -> None:
     logging.basicConfig(
         level=logging.INFO, format=f"%(asctime)s {role} %(levelname)s %(message)s", handlers=handlers, force=True
     )
-    if os.environ.get(LAUNCHER_PID_ENV):
+    if launched_by_local():
         logging.getLogger(CONFIG_LOGGER).setLevel(logging.ERROR)
 
 
@@ -316,7 +325,7 @@ def run(args: argparse.Namespace) -> int:
         if role == "local" and getattr(args, f"{peer}_host") is not None:
             raise UsageError(f"local runs every role on this host at addresses it picks; --{peer}_host is for "
                              "roles started one by one")  # fmt: skip
-    config, run_dir = resolve(args)
+    config, run_dir, notes = resolve(args)
     # torch and the roles' code, imported once the flags, the task, the config and the credentials
     # are known to be good (cli.py); each role process imports its own role's composition only
     from ds.launch.role_context import RoleContext
@@ -340,6 +349,8 @@ def run(args: argparse.Namespace) -> int:
         )
         if role not in ("evolver", "replay"):  # the roles without models (a replay needs only a state width)
             check_models(context, role)
+        for note in notes:
+            log.info("%s", note)
         if role in ("local", "evolver") or (role == "learner" and not context.uses_evolver):
             run_dir.mkdir(parents=True, exist_ok=True)  # a population's learners write learner_<id>/config.yaml
             path, text = RunDir(run_dir).config, config_to_yaml(config).encode()  # a full disk keeps the old file

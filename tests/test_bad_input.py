@@ -28,6 +28,7 @@ import yaml
 from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 
+import cli
 import main
 import main_ds
 from algorithm.checkpoint import load_checkpoint, save_checkpoint
@@ -191,6 +192,16 @@ SHARED_CASES = [
     (["--agents", "0"], "argument --agents: '0' is not a positive integer"),
     (["--ckpt", "-3"], "argument --ckpt: '-3' is not a checkpoint step"),
     (["--device", "banana"], "argument --device: 'banana' is not a torch device"),
+    # the original's command lines: each flag answered with what to write here
+    (["--device", "gpu"], "'gpu' is the original's name: write --device cuda"),
+    (["-p", "5006"], "-p is a flag of the original ASAC; a Unity setting"),
+    (["--port", "5006"], "--port is a flag of the original ASAC; a Unity setting"),
+    (["--editor"], "--editor is a flag of the original ASAC; a Unity setting"),
+    (["--additional_args", "x"], "--additional_args is a flag of the original ASAC; a Unity setting"),
+    (["-o", "sac.n_step=3"], "-o is a flag of the original ASAC; write --override section.key=value"),
+    (["--envs", "4"], "--envs is a flag of the original ASAC; parallel envs are --agents N here"),
+    (["--max_iter", "100"], "--max_iter is a flag of the original ASAC; write --override base.max_iter=N"),
+    (["--sac", "sac_hard"], "--sac is a flag of the original ASAC; model files are --nn NAME here"),
     (["--device", "cuda:99"], "--device cuda:99: this machine has"),
     (["-n", "../escape"], "run name '../escape' must be a relative path inside models/gym/pendulum/"),
     (["-n", " "], "run name ' '"),
@@ -240,6 +251,50 @@ def test_main_ds_refuses_bad_input_in_one_line(
 
 
 # ---------------------------------------------------------------------- a run to damage
+
+
+ORIGINAL_NN_FILE = """import torch
+from torch import nn
+
+import algorithm.nn_models as m
+
+ModelRep = m.ModelSimpleRep
+
+
+class ModelQ(m.ModelQ):
+    def _build_model(self):
+        return super()._build_model(c_dense_n=256, c_dense_depth=3)
+"""
+
+
+@pytest.mark.parametrize("entry", [main.main, main_ds.main], ids=["main", "main_ds"])
+@pytest.mark.parametrize(
+    "files, named",
+    [
+        ({"nn.py": ORIGINAL_NN_FILE}, "nn.py is a model file of the original ASAC (it imports algorithm.nn_models)"),
+        ({}, "base_config.nn: nn_hard names a model file, but"),  # the section names a file that is not there
+    ],
+    ids=["original_model_file", "missing_model_file"],
+)
+def test_a_task_folder_of_the_original_with_its_model_files_is_answered_in_one_line(
+    in_tmp: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch,
+    entry: Callable[[list[str]], int],
+    files: dict[str, str], named: str,
+) -> None:  # fmt: skip
+    """The original's model files cannot be loaded: one line says how to port them (not an ImportError from
+    inside the file); a section naming a model file that is missing is refused, not the default models."""
+    envs = in_tmp / "envs"
+    task = envs / "bullet" / "walker"
+    task.mkdir(parents=True)
+    config = {"default": {"base_config": {"env_type": "GYM", "build_path": "Pendulum-v1"}},
+              "hard": {"base_config": {"nn": "nn_hard"}}}  # fmt: skip
+    (task / "config.yaml").write_text(yaml.safe_dump(config))
+    for name, text in files.items():
+        (task / name).write_text(text)
+    monkeypatch.setattr(cli, "ENVS_DIR", envs)  # where tasks are looked up: this folder, not the checkout's
+    role = ["replay"] if entry is main_ds.main else []
+    section = [] if files else ["-c", "hard"]
+    assert_refused(*call(entry, ["bullet/walker", *role, *section, "--no_progress"], capsys), named, in_tmp)
 
 
 @pytest.fixture(scope="module")
