@@ -254,10 +254,12 @@ def load_config(
                 names = sorted(k for k in task_file if k != "default")
                 raise ConfigError(f"{path}: no config section {config_name!r}; available: {names or 'none'}")
             layers.append((config_name, task_file[config_name]))
-        original = looks_like_original(task_file)  # the original's keys anywhere in the file
+        # the original's keys anywhere in the file, or the original's distributed file beside it
+        original = looks_like_original(task_file, (Path(task_dir) / DISTRIBUTED_TASK_FILE).is_file())
+        port.read_as_original(original, str(path), distributed)
         for name, layer in layers:
             source = f"{path} [{name}]"
-            _merge(merged, port.layer(layer or {}, source, str(path), original), source, sources)
+            _merge(merged, port.layer(layer or {}, source, str(path), original is not None), source, sources)
     elif config_name is not None:
         raise ConfigError(f"-c {config_name}: no task folder to look it up in")
 
@@ -276,18 +278,15 @@ def _validate(
 ) -> ResolvedConfig:
     port = port or Port()
     for text in overrides:
-        parts, value = parse_override(text)
-        ported = port.override(parts, f"override {text!r}")
-        if ported is None:
-            continue
-        parts = ported
-        if parts[0] == "reset_config" and merged.get("reset_config") is None:
-            merged["reset_config"] = {}  # the env's reset options: a free mapping, null until one is set
-        section = merged.setdefault(parts[0], {})
-        if not isinstance(section, dict):
-            raise ConfigError(f"override {text!r}: {parts[0]} is not a section")
-        section[parts[1]] = value
-        sources[".".join(parts)] = f"override {text!r}"
+        for parts, value in port.override(*parse_override(text), f"override {text!r}"):
+            if parts[0] == "reset_config" and merged.get("reset_config") is None:
+                merged["reset_config"] = {}  # the env's reset options: a free mapping, null until one is set
+            section = merged.setdefault(parts[0], {})
+            if not isinstance(section, dict):
+                raise ConfigError(f"override {text!r}: {parts[0]} is not a section")
+            section[parts[1]] = value
+            sources[".".join(parts)] = f"override {text!r}"
+    port.finish(merged, sources)  # ids, clip_epsilon <= 0 and the original's defaults, on the merged values
     try:
         config = Config.model_validate(merged)
     except ValidationError as e:  # the port's errors first: they say what a key of the original became

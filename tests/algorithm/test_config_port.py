@@ -1,6 +1,8 @@
 """Configs written for the original system load the ASAC way (algorithm/config_port.py): moved keys
 land on their new paths with one warning each, keys that cannot be carried over stop the load naming
-key, file and what to write instead, and max_step's changed meaning is said for the original's files."""
+key, file and what to write instead, and a file read as the original's gets its defaults where it is
+silent and a warning for each key counting something else here. The original's gym and bullet task files
+of each era (as /work/original_facts.md lists them) are written out and loaded section by section."""
 
 from __future__ import annotations
 
@@ -12,7 +14,7 @@ import pytest
 import yaml
 
 from algorithm.config import ConfigError, load_config
-from algorithm.config_port import DROPPED, MOVED, REFUSED, REFUSED_VALUES, RESTATED
+from algorithm.config_port import CONVERTED, DROPPED, MOVED, REFUSED, REFUSED_VALUES, RESTATED, UNSET
 from algorithm.config_schema import Config
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -232,9 +234,12 @@ def test_every_key_of_the_original_layouts_is_ASACs_or_in_the_port_table(layout:
     for new, _ in MOVED.values():  # every new home exists
         section, key = new.split(".")
         assert section == "random_params" or key in schema_keys(section)
-    for path in (*RESTATED, *REFUSED_VALUES):  # same key, other meaning or values: ASAC has the key
+    for path in (*RESTATED, *REFUSED_VALUES, *UNSET):  # same key, other meaning or values: ASAC has the key
         section, key = path.split(".")
         assert key in schema_keys(section)
+    for path in CONVERTED:  # a key of the original only (nn_config's rep and policy: of its E5 layout)
+        section, key = path.split(".")
+        assert key not in schema_keys(section)
 
 
 def test_the_original_distributed_defaults_fail_naming_key_file_and_what_to_do(
@@ -247,8 +252,7 @@ def test_the_original_distributed_defaults_fail_naming_key_file_and_what_to_do(
     where = f"({task / 'config.yaml'} [default])"
     assert f"base_config.env_type {where}: Unity environments are out of scope" in message
     assert f"base_config.build_path {where}: a mapping of Unity executables" in message
-    assert f"base_config.update_policy_variables_per_step {where}: " in message
-    assert "set sac_config.update_policy_variables_per_step (learner updates between publications)" in message
+    assert "update_policy_variables_per_step" not in message  # dropped with a note, not refused
     assert "unknown key" not in message  # every key of the original is known
     assert "\n" not in message
 
@@ -256,8 +260,7 @@ def test_the_original_distributed_defaults_fail_naming_key_file_and_what_to_do(
 def test_the_original_distributed_defaults_made_gym_load_with_one_note_per_moved_key(
     tmp_path: Path, caplog: pytest.LogCaptureFixture
 ) -> None:
-    text = as_task(ORIGINAL_DS, env_type="GYM", build_path="Pendulum-v1", update_policy_variables_per_step=None)
-    task = write_task(tmp_path, text)
+    task = write_task(tmp_path, as_task(ORIGINAL_DS, env_type="GYM", build_path="Pendulum-v1"))
     with caplog.at_level(logging.WARNING):
         resolved = load_config(task)
     c, source = resolved.config, f"{task / 'config.yaml'} [default]"
@@ -266,6 +269,7 @@ def test_the_original_distributed_defaults_made_gym_load_with_one_note_per_moved
     assert c.sac_config.update_policy_variables_per_step == 200
     assert c.random_params == {"sac_config": {"n_step": {"in": [1, 2, 3]}}}
     assert c.sac_config.clip_epsilon == 0.2 and c.net_config.evolver_host == "127.0.0.1"
+    assert c.sac_config.use_n_step_is is True  # the original's default, which the layout does not set
     assert resolved.sources["actor_config.noise_max"] == source
     assert resolved.sources["random_params.sac_config.n_step"] == source
     notes = port_notes(caplog)
@@ -283,8 +287,17 @@ def test_the_original_distributed_defaults_made_gym_load_with_one_note_per_moved
     )
     assert any(n.startswith(f"{source}: base_config.no_graphics has no counterpart") for n in notes)
     assert any(n.startswith(f"{source}: base_config.port has no counterpart") for n in notes)
+    assert any(
+        n.startswith(f"{source}: base_config.update_policy_variables_per_step has no counterpart") for n in notes
+    )
     assert any("save_model_per_step counts env steps in ASAC" in n for n in notes)  # an original file: said
-    assert len(notes) == len(set(notes)) == 9  # 5 moved, 2 dropped, 2 restated (this layout has no max_step)
+    assert any(n.startswith(f"{source}: base_config.reset_on_iteration (true) cuts and resets") for n in notes)
+    assert (
+        f"{task / 'config.yaml'} is read as the original's (it sets base_config.env_type): its defaults "
+        "apply where it is silent: use_n_step_is true" in notes
+    )
+    # 5 moved, 3 dropped, 3 restated (this layout has no max_step), the file read as the original's
+    assert len(notes) == len(set(notes)) == 12
 
 
 def test_a_half_cheetah_config_of_the_original_loads_with_its_values_on_the_new_keys(
@@ -317,17 +330,18 @@ def test_a_half_cheetah_config_of_the_original_loads_with_its_values_on_the_new_
     assert max_step.startswith(f"{task / 'config.yaml'} [default]: ")
 
 
-def test_update_policy_variables_per_step_of_the_original_is_refused_with_what_to_write(tmp_path: Path) -> None:
+def test_update_policy_variables_per_step_of_the_original_is_dropped_saying_what_asac_does(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
     text = HALF_CHEETAH.replace("    update_sac_bak_per_step: 100\n", "    update_policy_variables_per_step: 50\n")
     task = write_task(tmp_path, text)
-    with pytest.raises(ConfigError) as err:
-        load_config(task)
-    message = str(err.value)
-    assert message.startswith(
-        f"invalid config: base_config.update_policy_variables_per_step ({task / 'config.yaml'} [default]): "
-    )
-    assert "delete the key" in message and "sac_config.update_policy_variables_per_step" in message
-    assert "unknown key" not in message
+    with caplog.at_level(logging.WARNING):
+        c = load_config(task).config
+    assert c.sac_config.update_policy_variables_per_step == 1  # ASAC's default: the key is not read
+    (note,) = [n for n in port_notes(caplog) if "update_policy_variables_per_step" in n]
+    assert note.startswith(f"{task / 'config.yaml'} [default]: base_config.update_policy_variables_per_step has no")
+    assert "ASAC actors act with every publication as it arrives" in note
+    assert "sac_config.update_policy_variables_per_step sets the learner updates" in note
 
 
 def test_a_key_set_at_its_old_and_new_path_in_one_section_is_refused(tmp_path: Path) -> None:
@@ -349,8 +363,11 @@ def test_overrides_in_the_original_spelling_land_on_the_new_keys(caplog: pytest.
     notes = port_notes(caplog)
     assert "override 'base.noise_max=0.4': base_config.noise_max is actor_config.noise_max now; read as that" in notes
     assert any(n.startswith("override 'base_config.no_graphics=true': base_config.no_graphics has no") for n in notes)
-    with pytest.raises(ConfigError, match=r"base_config.update_policy_variables_per_step \(override "):
-        load_config(None, None, ["base.update_policy_variables_per_step=5"])
+    with pytest.raises(ConfigError, match=r"base_config.sac \(override 'base.sac=sac_hard'\): an E1 model file"):
+        load_config(None, None, ["base.sac=sac_hard"])
+    c = load_config(None, None, ["sac.seq_encoder=RNN", "sac.curiosity=INVERSE", "sac.batch_size=64"]).config
+    assert (c.sac_config.use_rnn, c.sac_config.use_curiosity, c.sac_config.curiosity_inverse) == (True, True, True)
+    assert c.replay_config.batch_size == 64
 
 
 def test_the_same_config_in_asacs_spelling_is_equal_and_asac_configs_say_nothing(
@@ -360,7 +377,9 @@ def test_the_same_config_in_asacs_spelling_is_equal_and_asac_configs_say_nothing
 default:
   base_config: {scene: HalfCheetah, build_path: HalfCheetah-v5, n_agents: 10, max_step: 500000}
   actor_config: {noise_increasing_rate: 0.02, noise_max: 0.2}
-  sac_config: {update_policy_variables_per_step: 100, save_model_per_step: 10000, n_step: 5, use_rnn: true}
+  sac_config: {update_policy_variables_per_step: 100, save_model_per_step: 10000, n_step: 5, use_rnn: true,
+               use_n_step_is: true, clip_epsilon: 0.2}
+  replay_config: {samples_per_insert: 25.6}
   random_params:
     sac_config: {n_step: {in: [3, 4, 5]}}
 """
@@ -378,7 +397,8 @@ default:
     (tmp_path / "b").mkdir()
     with caplog.at_level(logging.WARNING):
         ported = load_config(write_task(tmp_path / "a", original)).config
-        assert len(port_notes(caplog)) == 6  # 4 moved keys, max_step, save_model_per_step
+        # 4 moved keys, max_step, save_model_per_step, the original's defaults and reset_on_iteration's
+        assert len(port_notes(caplog)) == 8
         caplog.clear()
         assert load_config(write_task(tmp_path / "b", native)).config == ported
         assert port_notes(caplog) == []  # max_step and save_model_per_step in an ASAC file: nothing said
