@@ -7,6 +7,10 @@ keeps exact running mean/var over every inserted observation (:class:`algorithm.
 RunningMeanStd`) and the learner copies them in with :meth:`ObservationNormalizer.load_stats`
 (docs/architecture.md section 4: in distributed mode the replay hands them to the learner). They live in
 buffers, so checkpoints and the acting weights actors receive carry them.
+
+Every buffer is finite, from the start: actors refuse weights with a non-finite value (ds/net/params.py).
+Until statistics arrive the clip bound is float32's largest value, not +inf (the identity all the same
+on finite inputs); a checkpoint written with the former +inf loads with that bound instead.
 """
 
 from __future__ import annotations
@@ -21,6 +25,7 @@ from torch import Tensor, nn
 from algorithm.spaces import ACTION_MASK_SENSOR, SensorSpec
 
 CLIP = 5.0  # as SB3's VecNormalize and Gymnasium's NormalizeObservation
+NO_CLIP = torch.finfo(torch.float32).max  # the bound before statistics arrive: finite, clips no finite input
 
 
 class ObservationNormalizer(nn.Module):
@@ -39,8 +44,9 @@ class ObservationNormalizer(nn.Module):
                 self.register_buffer(f"mean_{s.name}", torch.zeros(s.shape))
                 self.register_buffer(f"std_{s.name}", torch.ones(s.shape))
         self.register_buffer("count", torch.zeros((), dtype=torch.long))
-        # +inf until statistics arrive, so the module starts as the exact identity (no clipping either)
-        self.register_buffer("clip", torch.tensor(float("inf")))
+        # NO_CLIP until statistics arrive, so the module starts as the exact identity (no clipping either);
+        # not +inf, which actors refuse in published weights
+        self.register_buffer("clip", torch.tensor(NO_CLIP))
 
     def forward(self, obs: list[Tensor]) -> list[Tensor]:
         out = []
@@ -49,6 +55,15 @@ class ObservationNormalizer(nn.Module):
                 o = ((o - getattr(self, f"mean_{name}")) / getattr(self, f"std_{name}")).clamp(-self.clip, self.clip)
             out.append(o)
         return out
+
+    def _load_from_state_dict(self, state_dict: dict[str, Any], prefix: str, *args: Any) -> None:
+        """A checkpoint from before NO_CLIP holds +inf as the bound of a normalizer without statistics:
+        loaded as NO_CLIP (the same transform), so that the weights published next are finite."""
+        key = prefix + "clip"
+        clip = state_dict.get(key)
+        if isinstance(clip, torch.Tensor) and bool(torch.isposinf(clip).all()):
+            state_dict[key] = torch.full_like(clip, NO_CLIP)
+        super()._load_from_state_dict(state_dict, prefix, *args)
 
     def load_stats(self, stats: Mapping[str, Mapping[str, Any]]) -> None:
         """Copy in ``{sensor: {"count", "mean", "var"}}`` (what the replay table reports); a sensor

@@ -57,3 +57,37 @@ def test_trainer_learns_on_exact_statistics_of_all_inserted_observations(tmp_pat
     np.testing.assert_allclose(norm.std_obs.numpy(), np.sqrt(rows.var(0) + 1e-8), rtol=1e-4)
     assert {"normalizer.mean_obs", "normalizer.std_obs"} <= set(trainer.sac.acting_state_dict())
     assert "normalizer.mean_obs" in trainer.sac.state_dict()["models"]
+
+
+def test_a_fresh_normalizer_is_the_identity_and_its_weights_pass_the_actors_check() -> None:
+    """Issue 61: the bound started at +inf, and every actor of a distributed run refused the learner's
+    first weights ("normalizer.clip: 1 non-finite values"). Every buffer is finite from the start, and
+    the module still passes every finite input through unchanged."""
+    from ds.net.params import decode_params, encode_params, params_spec
+
+    norm = ObservationNormalizer([SensorSpec("vec", (3,)), SensorSpec("grid", (2, 2))])
+    state = norm.state_dict()
+    assert all(torch.isfinite(v).all() for v in state.values() if v.is_floating_point()), state
+    version, params = decode_params(encode_params(7, state), params_spec(state))  # raised ParamsError
+    assert version == 7 and params.keys() == state.keys()
+    huge = torch.finfo(torch.float32).max
+    obs = [torch.tensor([[-huge, huge, 1e30]]), torch.tensor([[[-3.5, 0.0], [2.0, huge]]])]
+    assert all(torch.equal(a, b) for a, b in zip(norm(obs), obs, strict=True))
+
+
+def test_a_checkpoint_with_the_old_infinite_bound_loads_as_the_identity_and_publishes_finite_weights() -> None:
+    sensors = [SensorSpec("vec", (3,))]
+    old = ObservationNormalizer(sensors).state_dict()
+    old["clip"] = torch.tensor(float("inf"))  # as written before the bound was finite
+    norm = ObservationNormalizer(sensors)
+    norm.load_stats({"vec": {"count": 4, "mean": np.ones(3), "var": np.ones(3)}})  # then a checkpoint loads
+    norm.load_state_dict(old)
+    assert torch.equal(norm.clip, ObservationNormalizer(sensors).clip) and int(norm.count) == 0
+    assert torch.equal(norm.mean_vec, torch.zeros(3))
+    obs = [torch.tensor([[-1e30, 7.0, 1e30]])]
+    assert torch.equal(norm(obs)[0], obs[0])
+    assert torch.isfinite(norm.state_dict()["clip"])
+    # a checkpoint with statistics keeps its bound of 5
+    with_stats = ObservationNormalizer(sensors)
+    with_stats.load_state_dict(norm.state_dict() | {"clip": torch.tensor(5.0), "count": torch.tensor(4)})
+    assert float(with_stats.clip) == 5.0
