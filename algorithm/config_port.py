@@ -20,11 +20,13 @@ before :mod:`algorithm.config` merges and validates it:
 
 A task file is read as the original's when any of its sections (``default`` or a variant) sets
 ``base_config.env_type`` (ASAC's only kind, GYM, is its default, so its own files never set it; every
-original gym or bullet file does), or a key of the tables above (keys only the original's layouts have),
+original gym or bullet file does), or a key of ``MOVED``, ``CONVERTED``, ``DROPPED``, ``REFUSED``,
+``SECTIONS`` or ``VARIANT_KEYS`` (keys only the original's layouts have), or a value of ``REFUSED_VALUES``,
 or when the task folder holds a ``config_ds.yaml`` (the original's distributed file). For such a file,
-where no layer of it (nor an override) sets them, the original's defaults apply: ``use_n_step_is: true``,
-``clip_epsilon: 0.2`` and one update per vector step (``samples_per_insert: batch_size / n_agents``),
-said in one WARNING; its ``clip_epsilon`` <= 0 (the original's "off") reads as null.
+where no layer of it nor an override sets them, the original's defaults apply: ``use_n_step_is: true``,
+``clip_epsilon: 0.2`` and one update per vector step (``samples_per_insert: batch_size / n_agents``, of
+the values the run gets, overrides included), said in one WARNING; its ``clip_epsilon`` <= 0 (the
+original's "off") reads as null. Overrides are ASAC's own: they are ported, never restated.
 
 Keys of the original's layouts not named here (``scene``, ``n_agents``, ``replay_config.*``,
 ``net_config.*``, most of ``sac_config``, ...) are the same key with the same meaning in ASAC.
