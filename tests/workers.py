@@ -49,6 +49,7 @@ SERIAL: dict[str, tuple[str, ...]] = {
         "tests/test_main_ds.py::test_replay_learner_and_two_actors_learn_pendulum",
         "tests/test_main_ds.py::test_roles_started_by_hand_without_a_name_share_one_run_and_the_same_commands_resume_it",
         "tests/test_main_ds.py::test_local_run_with_a_token_and_mutual_tls_trains",
+        "tests/test_original_task_files.py",
         # the feature matrix's distributed half: a local run (replay, learner, actor) per README row
         "tests/test_features.py::test_feature_trains_and_plays_through_main_ds_local",
         # ~15 processes side by side (the processes fixture), and the tests sharing its trained fixture
