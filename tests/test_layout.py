@@ -84,7 +84,8 @@ def test_a_mistyped_command_is_answered_before_torch_is_imported() -> None:
         ["main_ds.py", "gym/pendulum", "replay", "--override", "sac.gama=0.5"],
         ["main_ds.py", "gym/pendulum", "actor", "--noise", "-1"],
         ["main_ds.py", "gym/pendulum", "learner", "--actors", "2"],
-        ["main_ds.py", "gym/pendulum", "actor"],  # a role started by hand needs -n NAME
+        ["main_ds.py", "gym/pendulum", "local", "--replay_host", "10.0.0.9"],  # local places its roles itself
+        ["main.py", "gym/pendulum", "-p", "5006"],  # a flag of the original's command line
     )
     for argv in commands:
         code = PROBE.format(argv=argv, path=str(ROOT / argv[0]))
