@@ -163,6 +163,15 @@ class SacConfig(Section):
     update_policy_variables_per_step: int = Field(
         1, ge=1, description="Actors get the learner's weights every N updates (1: always current)."
     )
+    publish_budget: float = Field(
+        0.02,
+        ge=0.0,
+        lt=1.0,
+        description="Distributed learner: the most of its time publishing the acting weights may take (copying, "
+        "signing, sending); after a publish that took t seconds the next waits until t / publish_budget seconds "
+        "have passed (and update_policy_variables_per_step updates). 0: publish at every such update. main.py's "
+        "actors act with the weights of every update_policy_variables_per_step-th update, whatever this is.",
+    )
     init_log_alpha: float = -2.3
     use_auto_alpha: bool = True
     learning_rate: float = Field(3e-4, gt=0.0)

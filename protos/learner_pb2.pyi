@@ -34,14 +34,16 @@ class RegisterActorReply(_message.Message):
     def __init__(self, actor_id: _Optional[str] = ..., index: _Optional[int] = ..., learner_id: _Optional[str] = ..., params_port: _Optional[int] = ..., lease_s: _Optional[float] = ..., params_key: _Optional[bytes] = ..., live_actors: _Optional[int] = ...) -> None: ...
 
 class HeartbeatRequest(_message.Message):
-    __slots__ = ("actor_id", "env_steps", "leaving")
+    __slots__ = ("actor_id", "env_steps", "leaving", "acting_version")
     ACTOR_ID_FIELD_NUMBER: _ClassVar[int]
     ENV_STEPS_FIELD_NUMBER: _ClassVar[int]
     LEAVING_FIELD_NUMBER: _ClassVar[int]
+    ACTING_VERSION_FIELD_NUMBER: _ClassVar[int]
     actor_id: str
     env_steps: int
     leaving: bool
-    def __init__(self, actor_id: _Optional[str] = ..., env_steps: _Optional[int] = ..., leaving: _Optional[bool] = ...) -> None: ...
+    acting_version: int
+    def __init__(self, actor_id: _Optional[str] = ..., env_steps: _Optional[int] = ..., leaving: _Optional[bool] = ..., acting_version: _Optional[int] = ...) -> None: ...
 
 class HeartbeatReply(_message.Message):
     __slots__ = ("learner_id", "params_version", "run_done", "live_actors")

@@ -355,7 +355,7 @@ class DistributedActor:
             if reg is None or self._rejoin.is_set():
                 continue
             try:
-                beat = self.learner.heartbeat(reg.actor_id, self.env_steps)
+                beat = self.learner.heartbeat(reg.actor_id, self.env_steps, self.params_version)
                 self._learner_gone_since = None
                 known = beat.learner_id == reg.learner_id
                 if known:

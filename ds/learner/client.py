@@ -97,11 +97,13 @@ class LearnerClient(RpcClient):
             return False
         return True
 
-    def heartbeat(self, actor_id: str, env_steps: int) -> Beat:
-        """Renew the lease; returns the learner's id, its latest params version and whether the run's
-        budget is spent; :class:`LeaseExpired` when the learner no longer knows ``actor_id``."""
+    def heartbeat(self, actor_id: str, env_steps: int, acting_version: int = -1) -> Beat:
+        """Renew the lease (saying which parameter version this actor acts with); returns the learner's
+        id, its latest params version and whether the run's budget is spent; :class:`LeaseExpired` when
+        the learner no longer knows ``actor_id``."""
         try:
-            request = learner_pb2.HeartbeatRequest(actor_id=actor_id, env_steps=env_steps)
+            request = learner_pb2.HeartbeatRequest(actor_id=actor_id, env_steps=env_steps,
+                                                   acting_version=acting_version)  # fmt: skip
             reply = self._call(self._stub.Heartbeat, request)
         except grpc.RpcError as e:
             if e.code() == grpc.StatusCode.NOT_FOUND:

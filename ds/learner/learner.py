@@ -139,6 +139,8 @@ class Learner:
         self.config = config
         self.sac, self.replay, self.publisher, self.store = sac, replay, publisher, store
         self.acting, self.registry = acting, registry
+        if registry is not None:
+            registry.updates = lambda: self.updates  # its heartbeats' staleness is counted against this
         self.member = member
         self.replay_address = "" if member is None else member.link.replay_address
         self.prefetch_depth = prefetch_depth
@@ -148,6 +150,8 @@ class Learner:
         self.prefetcher = BatchPrefetcher(replay, config.replay_config.batch_size, prefetch_depth)
         self.priorities = PriorityUpdater(replay)
         self.rnn_refreshes_skipped = 0
+        self.publish_deferred = 0  # updates whose publish waited for the budget (the next one carries them)
+        self._next_publish = 0.0  # perf_counter time before which a publish waits (publish_budget)
         self.replay_surplus = 0.0  # windows the replay's rate limiter still lets this learner draw
         self.replay_next_key = 0  # the replay's next key at the last poll: how old sampled data is
         self.sink = _RemoteTrainingSink(self)
@@ -206,6 +210,8 @@ class Learner:
                 with core.timers.phase("wait"):
                     batch = self.prefetcher.get(timeout=0.5)
                 if batch is None:
+                    self._next_publish = 0.0  # waiting for data: the latest weights go out now
+                    self.publish()
                     if now - last_publish >= self.republish_every_s:
                         self.publisher.republish()  # reaches subscribers that joined while we wait
                         last_publish = now
@@ -272,18 +278,29 @@ class Learner:
 
     def publish(self, force: bool = False) -> None:
         """Serialise the acting weights once; send them to subscribers, GetParams and GetAction.
-        The version is the update count; ``force`` publishes without a new update (new weights loaded)."""
+        The version is the update count; ``force`` publishes without a new update (new weights loaded),
+        and at once. Otherwise publishing keeps to its budget (``sac_config.publish_budget``): a publish
+        that took t seconds is followed by the next only once t / budget seconds have passed, so it
+        costs the learner at most that share of its time; the latest weights go out at the next update
+        after that (or while the learner waits for data)."""
         version, last = self.updates, self.publisher.version
         if last is not None and version <= last:
             if not force:
                 return
             version = last + 1
+        elif not force and time.perf_counter() < self._next_publish:
+            self.publish_deferred += 1
+            return
+        started = time.perf_counter()
         state = self.sac.acting_state_dict()
         self.publisher.publish(version, state)
         assert self.publisher.frames is not None
         self.store.put(version, self.publisher.frames)
         if self.acting is not None:
             self.acting.load(version, state)
+        ended = time.perf_counter()
+        budget = self.config.sac_config.publish_budget
+        self._next_publish = ended + (ended - started) / budget if budget > 0 else ended
 
     def _follow_evolver(self, member: Membership) -> None:
         """Between updates: load a CEM sample that arrived, and follow the replay to a new address."""
@@ -335,8 +352,12 @@ class Learner:
             **self.priorities.metrics(),
             **{f"learner/{k}": float(v) for k, v in self.publisher.metrics().items()},
             "learner/rnn_refreshes_skipped": float(self.rnn_refreshes_skipped),
+            "learner/publish_deferred": float(self.publish_deferred),
         }
         if self.registry is not None:
+            if staleness := self.registry.take_staleness():
+                metrics["learner/actor_staleness_median"] = float(np.median(staleness))
+                metrics["learner/actor_staleness_p95"] = float(np.percentile(staleness, 95))
             metrics["learner/actors"] = float(len(self.registry.alive()))
             metrics["learner/actors_registered"] = float(self.registry.registered)
             metrics["learner/actors_expired"] = float(self.registry.expired)

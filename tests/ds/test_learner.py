@@ -199,8 +199,10 @@ SMALL = [
 ]
 
 
-def make_learner(tmp_path: Path, client: ReplayClient, stop: threading.Event, **kwargs: object) -> Learner:
-    config = load_config(ROOT / "envs/gym/pendulum", None, SMALL).config
+def make_learner(
+    tmp_path: Path, client: ReplayClient, stop: threading.Event, overrides: tuple[str, ...] = (), **kwargs: object
+) -> Learner:
+    config = load_config(ROOT / "envs/gym/pendulum", None, [*SMALL, *overrides]).config
     spec = make_vector_env("Pendulum-v1", 1, seed=0).spec
     sac = SAC(spec, config.sac_config, config.nn_config, config.replay_config)
     publisher = ParamsPublisher("tcp://127.0.0.1:*")
@@ -225,7 +227,7 @@ def pendulum_table(steps: int) -> PrioritizedTable:
 def test_learner_trains_publishes_checkpoints_and_resumes(over_grpc: ServeOverGrpc, tmp_path: Path) -> None:
     client = over_grpc(pendulum_table(300))
     stop = threading.Event()
-    learner = make_learner(tmp_path, client, stop)
+    learner = make_learner(tmp_path, client, stop, ("sac.publish_budget=0",))  # no budget: every update
     result: list = []
     thread = threading.Thread(target=lambda: result.append(learner.run()))
     thread.start()
@@ -235,6 +237,7 @@ def test_learner_trains_publishes_checkpoints_and_resumes(over_grpc: ServeOverGr
     summary = result[0]
     assert summary.interrupted and summary.updates >= 30 and summary.env_steps == 300
     assert learner.store.version == learner.publisher.version == summary.updates  # published every update
+    assert learner.publish_deferred == 0
     assert sorted((tmp_path / "model").glob("*.pt")) == [tmp_path / "model/300.pt"]
     assert any((tmp_path / "log/learner").iterdir())
     learner.publisher.close()
@@ -245,6 +248,36 @@ def test_learner_trains_publishes_checkpoints_and_resumes(over_grpc: ServeOverGr
     for name, value in learner.sac.state_dict()["models"].items():
         assert (torch_state[name] == value).all(), name
     again.publisher.close()
+
+
+def test_publishing_keeps_to_its_budget_and_the_latest_weights_go_out_after_it(tmp_path: Path) -> None:
+    """``publish_budget``: after a publish that took t seconds, none before t / budget seconds have passed
+    (counted as deferred), the next update's after; ``force`` (new weights loaded) publishes at once.
+    The cost here is made large (a slow copy of the acting weights) so that the wait is long."""
+    learner = make_learner(tmp_path, pendulum_table(0), threading.Event(), ("sac.publish_budget=0.25",))  # type: ignore[arg-type]
+    acting_state = learner.sac.acting_state_dict
+
+    def slow_copy() -> dict:
+        time.sleep(0.05)
+        return acting_state()
+
+    learner.sac.acting_state_dict = slow_copy  # type: ignore[method-assign]
+    started = time.perf_counter()
+    learner.core.counters.updates = 1
+    learner.publish()
+    assert learner.publisher.version == 1
+    assert learner._next_publish >= started + 0.05 / 0.25  # its own cost / the budget: >= 0.2 s on
+    learner.core.counters.updates = 2
+    learner.publish()  # within the wait: deferred
+    assert learner.publisher.version == 1 and learner.publish_deferred == 1
+    learner.publish(force=True)  # a CEM sample loaded: at once
+    assert learner.publisher.version == 2
+    while time.perf_counter() < learner._next_publish:
+        time.sleep(0.01)
+    learner.core.counters.updates = 3
+    learner.publish()  # the wait is over: the latest weights go out
+    assert learner.publisher.version == learner.store.version == 3
+    learner.publisher.close()
 
 
 def test_learner_takes_the_replays_normalizer_stats_and_publishes_them(

@@ -108,6 +108,20 @@ def test_registry_gives_the_lowest_free_index_and_expires_leases() -> None:
     assert registry.register("wants a taken index", preferred_index=0).index == 3
 
 
+def test_heartbeats_say_how_stale_each_actors_weights_are(learner_side: LearnerSide) -> None:
+    """An actor's heartbeat carries the version it acts with; the learner notes its own updates minus
+    that, once per heartbeat, until it takes the samples for its summary (median, p95)."""
+    updates = [10]
+    learner_side.registry.updates = lambda: updates[0]
+    a, b = learner_side.client.register("a"), learner_side.client.register("b")
+    learner_side.client.heartbeat(a.actor_id, 5, acting_version=7)
+    learner_side.client.heartbeat(b.actor_id, 5)  # no weights yet (-1): nothing to note
+    updates[0] = 40
+    learner_side.client.heartbeat(b.actor_id, 9, acting_version=40)
+    assert learner_side.registry.take_staleness() == [3, 0]
+    assert learner_side.registry.take_staleness() == []
+
+
 def test_heartbeat_of_an_unknown_actor_says_register_again(learner_side: LearnerSide) -> None:
     reg = learner_side.client.register("me")
     learner_id, version, run_done, live = learner_side.client.heartbeat(reg.actor_id, 10)

@@ -439,9 +439,17 @@ def test_publisher_counts_and_refuses_versions_that_do_not_grow(ctx: zmq.Context
         with pytest.raises(ValueError, match="version 3 after 3"):
             pub.publish(3, small_params(3))
         assert pub.republish()
-        assert pub.metrics() == {
+        metrics = pub.metrics()
+        assert {k: metrics.pop(k) for k in ("params/publish_ms", "params/mac_ms")} == {
+            "params/publish_ms": pytest.approx(1e3 * pub.publish_seconds),
+            "params/mac_ms": 0.0,  # no token, no stream: nothing signed
+        }
+        assert metrics == {
             "params/version": 3,
             "params/published": 1,
             "params/republished": 1,
             "params/bytes_sent": 2 * size,
         }
+    with ParamsPublisher("tcp://127.0.0.1:*", token=b"k" * 32, context=ctx) as signed:
+        signed.publish(1, small_params(3))
+        assert 0 < signed.mac_seconds <= signed.publish_seconds  # the MAC's cost is measured per publish
