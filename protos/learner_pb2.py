@@ -25,7 +25,7 @@ _sym_db = _symbol_database.Default()
 from protos import replay_pb2 as protos_dot_replay__pb2
 
 
-DESCRIPTOR = _descriptor_pool.Default().AddSerializedFile(b'\n\x14protos/learner.proto\x12\x04\x61sac\x1a\x13protos/replay.proto\"V\n\x14RegisterActorRequest\x12\x0c\n\x04name\x18\x01 \x01(\t\x12\x1c\n\x0fpreferred_index\x18\x02 \x01(\x05H\x00\x88\x01\x01\x42\x12\n\x10_preferred_index\"\x98\x01\n\x12RegisterActorReply\x12\x10\n\x08\x61\x63tor_id\x18\x01 \x01(\t\x12\r\n\x05index\x18\x02 \x01(\x05\x12\x12\n\nlearner_id\x18\x03 \x01(\t\x12\x13\n\x0bparams_port\x18\x04 \x01(\x05\x12\x0f\n\x07lease_s\x18\x05 \x01(\x01\x12\x12\n\nparams_key\x18\x06 \x01(\x0c\x12\x13\n\x0blive_actors\x18\x07 \x01(\x05\"`\n\x10HeartbeatRequest\x12\x10\n\x08\x61\x63tor_id\x18\x01 \x01(\t\x12\x11\n\tenv_steps\x18\x02 \x01(\x03\x12\x0f\n\x07leaving\x18\x03 \x01(\x08\x12\x16\n\x0e\x61\x63ting_version\x18\x04 \x01(\x03\"c\n\x0eHeartbeatReply\x12\x12\n\nlearner_id\x18\x01 \x01(\t\x12\x16\n\x0eparams_version\x18\x02 \x01(\x03\x12\x10\n\x08run_done\x18\x03 \x01(\x08\x12\x13\n\x0blive_actors\x18\x04 \x01(\x05\"\x12\n\x10GetParamsRequest\"1\n\x0eGetParamsReply\x12\x0f\n\x07version\x18\x01 \x01(\x03\x12\x0e\n\x06\x66rames\x18\x02 \x03(\x0c\"\x13\n\x11GetWeightsRequest\"\xc1\x01\n\x10GetActionRequest\x12\x19\n\x03obs\x18\x01 \x03(\x0b\x32\x0c.asac.Tensor\x12\'\n\x0cprev_actions\x18\x02 \x01(\x0b\x32\x0c.asac.TensorH\x00\x88\x01\x01\x12$\n\trnn_state\x18\x03 \x01(\x0b\x32\x0c.asac.TensorH\x01\x88\x01\x01\x12\r\n\x05noise\x18\x04 \x01(\x01\x12\x15\n\rdeterministic\x18\x05 \x01(\x08\x42\x0f\n\r_prev_actionsB\x0c\n\n_rnn_state\"\xa1\x01\n\x0eGetActionReply\x12\x1d\n\x07\x61\x63tions\x18\x01 \x01(\x0b\x32\x0c.asac.Tensor\x12$\n\x0e\x62\x65haviour_logp\x18\x02 \x01(\x0b\x32\x0c.asac.Tensor\x12$\n\trnn_state\x18\x03 \x01(\x0b\x32\x0c.asac.TensorH\x00\x88\x01\x01\x12\x16\n\x0eparams_version\x18\x04 \x01(\x03\x42\x0c\n\n_rnn_state2\xc5\x02\n\x0eLearnerService\x12\x45\n\rRegisterActor\x12\x1a.asac.RegisterActorRequest\x1a\x18.asac.RegisterActorReply\x12\x39\n\tHeartbeat\x12\x16.asac.HeartbeatRequest\x1a\x14.asac.HeartbeatReply\x12\x39\n\tGetParams\x12\x16.asac.GetParamsRequest\x1a\x14.asac.GetParamsReply\x12;\n\nGetWeights\x12\x17.asac.GetWeightsRequest\x1a\x14.asac.GetParamsReply\x12\x39\n\tGetAction\x12\x16.asac.GetActionRequest\x1a\x14.asac.GetActionReplyb\x06proto3')
+DESCRIPTOR = _descriptor_pool.Default().AddSerializedFile(b'\n\x14protos/learner.proto\x12\x04\x61sac\x1a\x13protos/replay.proto\"V\n\x14RegisterActorRequest\x12\x0c\n\x04name\x18\x01 \x01(\t\x12\x1c\n\x0fpreferred_index\x18\x02 \x01(\x05H\x00\x88\x01\x01\x42\x12\n\x10_preferred_index\"\x98\x01\n\x12RegisterActorReply\x12\x10\n\x08\x61\x63tor_id\x18\x01 \x01(\t\x12\r\n\x05index\x18\x02 \x01(\x05\x12\x12\n\nlearner_id\x18\x03 \x01(\t\x12\x13\n\x0bparams_port\x18\x04 \x01(\x05\x12\x0f\n\x07lease_s\x18\x05 \x01(\x01\x12\x12\n\nparams_key\x18\x06 \x01(\x0c\x12\x13\n\x0blive_actors\x18\x07 \x01(\x05\"H\n\x10HeartbeatRequest\x12\x10\n\x08\x61\x63tor_id\x18\x01 \x01(\t\x12\x11\n\tenv_steps\x18\x02 \x01(\x03\x12\x0f\n\x07leaving\x18\x03 \x01(\x08\"t\n\x0eHeartbeatReply\x12\x12\n\nlearner_id\x18\x01 \x01(\t\x12\x16\n\x0eparams_version\x18\x02 \x01(\x03\x12\x10\n\x08run_done\x18\x03 \x01(\x08\x12\x13\n\x0blive_actors\x18\x04 \x01(\x05\x12\x0f\n\x07updates\x18\x05 \x01(\x03\"\x12\n\x10GetParamsRequest\"1\n\x0eGetParamsReply\x12\x0f\n\x07version\x18\x01 \x01(\x03\x12\x0e\n\x06\x66rames\x18\x02 \x03(\x0c\"\x13\n\x11GetWeightsRequest\"\xc1\x01\n\x10GetActionRequest\x12\x19\n\x03obs\x18\x01 \x03(\x0b\x32\x0c.asac.Tensor\x12\'\n\x0cprev_actions\x18\x02 \x01(\x0b\x32\x0c.asac.TensorH\x00\x88\x01\x01\x12$\n\trnn_state\x18\x03 \x01(\x0b\x32\x0c.asac.TensorH\x01\x88\x01\x01\x12\r\n\x05noise\x18\x04 \x01(\x01\x12\x15\n\rdeterministic\x18\x05 \x01(\x08\x42\x0f\n\r_prev_actionsB\x0c\n\n_rnn_state\"\xa1\x01\n\x0eGetActionReply\x12\x1d\n\x07\x61\x63tions\x18\x01 \x01(\x0b\x32\x0c.asac.Tensor\x12$\n\x0e\x62\x65haviour_logp\x18\x02 \x01(\x0b\x32\x0c.asac.Tensor\x12$\n\trnn_state\x18\x03 \x01(\x0b\x32\x0c.asac.TensorH\x00\x88\x01\x01\x12\x16\n\x0eparams_version\x18\x04 \x01(\x03\x42\x0c\n\n_rnn_state2\xc5\x02\n\x0eLearnerService\x12\x45\n\rRegisterActor\x12\x1a.asac.RegisterActorRequest\x1a\x18.asac.RegisterActorReply\x12\x39\n\tHeartbeat\x12\x16.asac.HeartbeatRequest\x1a\x14.asac.HeartbeatReply\x12\x39\n\tGetParams\x12\x16.asac.GetParamsRequest\x1a\x14.asac.GetParamsReply\x12;\n\nGetWeights\x12\x17.asac.GetWeightsRequest\x1a\x14.asac.GetParamsReply\x12\x39\n\tGetAction\x12\x16.asac.GetActionRequest\x1a\x14.asac.GetActionReplyb\x06proto3')
 
 _globals = globals()
 _builder.BuildMessageAndEnumDescriptors(DESCRIPTOR, _globals)
@@ -37,19 +37,19 @@ if not _descriptor._USE_C_DESCRIPTORS:
   _globals['_REGISTERACTORREPLY']._serialized_start=140
   _globals['_REGISTERACTORREPLY']._serialized_end=292
   _globals['_HEARTBEATREQUEST']._serialized_start=294
-  _globals['_HEARTBEATREQUEST']._serialized_end=390
-  _globals['_HEARTBEATREPLY']._serialized_start=392
-  _globals['_HEARTBEATREPLY']._serialized_end=491
-  _globals['_GETPARAMSREQUEST']._serialized_start=493
-  _globals['_GETPARAMSREQUEST']._serialized_end=511
-  _globals['_GETPARAMSREPLY']._serialized_start=513
-  _globals['_GETPARAMSREPLY']._serialized_end=562
-  _globals['_GETWEIGHTSREQUEST']._serialized_start=564
-  _globals['_GETWEIGHTSREQUEST']._serialized_end=583
-  _globals['_GETACTIONREQUEST']._serialized_start=586
-  _globals['_GETACTIONREQUEST']._serialized_end=779
-  _globals['_GETACTIONREPLY']._serialized_start=782
-  _globals['_GETACTIONREPLY']._serialized_end=943
-  _globals['_LEARNERSERVICE']._serialized_start=946
-  _globals['_LEARNERSERVICE']._serialized_end=1271
+  _globals['_HEARTBEATREQUEST']._serialized_end=366
+  _globals['_HEARTBEATREPLY']._serialized_start=368
+  _globals['_HEARTBEATREPLY']._serialized_end=484
+  _globals['_GETPARAMSREQUEST']._serialized_start=486
+  _globals['_GETPARAMSREQUEST']._serialized_end=504
+  _globals['_GETPARAMSREPLY']._serialized_start=506
+  _globals['_GETPARAMSREPLY']._serialized_end=555
+  _globals['_GETWEIGHTSREQUEST']._serialized_start=557
+  _globals['_GETWEIGHTSREQUEST']._serialized_end=576
+  _globals['_GETACTIONREQUEST']._serialized_start=579
+  _globals['_GETACTIONREQUEST']._serialized_end=772
+  _globals['_GETACTIONREPLY']._serialized_start=775
+  _globals['_GETACTIONREPLY']._serialized_end=936
+  _globals['_LEARNERSERVICE']._serialized_start=939
+  _globals['_LEARNERSERVICE']._serialized_end=1264
 # @@protoc_insertion_point(module_scope)

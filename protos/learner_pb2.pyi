@@ -34,28 +34,28 @@ class RegisterActorReply(_message.Message):
     def __init__(self, actor_id: _Optional[str] = ..., index: _Optional[int] = ..., learner_id: _Optional[str] = ..., params_port: _Optional[int] = ..., lease_s: _Optional[float] = ..., params_key: _Optional[bytes] = ..., live_actors: _Optional[int] = ...) -> None: ...
 
 class HeartbeatRequest(_message.Message):
-    __slots__ = ("actor_id", "env_steps", "leaving", "acting_version")
+    __slots__ = ("actor_id", "env_steps", "leaving")
     ACTOR_ID_FIELD_NUMBER: _ClassVar[int]
     ENV_STEPS_FIELD_NUMBER: _ClassVar[int]
     LEAVING_FIELD_NUMBER: _ClassVar[int]
-    ACTING_VERSION_FIELD_NUMBER: _ClassVar[int]
     actor_id: str
     env_steps: int
     leaving: bool
-    acting_version: int
-    def __init__(self, actor_id: _Optional[str] = ..., env_steps: _Optional[int] = ..., leaving: _Optional[bool] = ..., acting_version: _Optional[int] = ...) -> None: ...
+    def __init__(self, actor_id: _Optional[str] = ..., env_steps: _Optional[int] = ..., leaving: _Optional[bool] = ...) -> None: ...
 
 class HeartbeatReply(_message.Message):
-    __slots__ = ("learner_id", "params_version", "run_done", "live_actors")
+    __slots__ = ("learner_id", "params_version", "run_done", "live_actors", "updates")
     LEARNER_ID_FIELD_NUMBER: _ClassVar[int]
     PARAMS_VERSION_FIELD_NUMBER: _ClassVar[int]
     RUN_DONE_FIELD_NUMBER: _ClassVar[int]
     LIVE_ACTORS_FIELD_NUMBER: _ClassVar[int]
+    UPDATES_FIELD_NUMBER: _ClassVar[int]
     learner_id: str
     params_version: int
     run_done: bool
     live_actors: int
-    def __init__(self, learner_id: _Optional[str] = ..., params_version: _Optional[int] = ..., run_done: _Optional[bool] = ..., live_actors: _Optional[int] = ...) -> None: ...
+    updates: int
+    def __init__(self, learner_id: _Optional[str] = ..., params_version: _Optional[int] = ..., run_done: _Optional[bool] = ..., live_actors: _Optional[int] = ..., updates: _Optional[int] = ...) -> None: ...
 
 class GetParamsRequest(_message.Message):
     __slots__ = ()

@@ -56,6 +56,7 @@ from algorithm.logging import MetricsWriter, RateMeter, Throttle
 from algorithm.policy import Policy
 from algorithm.replay import ReplayUnavailable
 from ds.actor.sink import LAST_INSERTS_WAIT_S, ReplaySink
+from ds.actor.staleness import Staleness
 from ds.learner import service as learner_service
 from ds.learner.client import LearnerClient, LeaseExpired, Registration, RemotePolicy
 from ds.net.params import ParamsError, ParamsSubscriber, decode_params, params_spec
@@ -130,6 +131,7 @@ class DistributedActor:
         self.registration: Registration | None = None
         self.subscriber: ParamsSubscriber | None = None
         self.params_version = -1
+        self.staleness = Staleness()  # updates behind the learner at each step (heartbeats tell its count)
         self.params_applied = 0
         self.params_rejected = 0
         self.loop: ActorLoop | None = None
@@ -212,6 +214,7 @@ class DistributedActor:
                 if max_iter >= 0 and iterations >= max_iter:
                     break
                 self._take_new_params()
+                self.staleness.acted(self.params_version)
                 self._between()
                 if not self.done and self._holds_the_rest_of_the_budget():
                     # Stepping on would only add steps past max_step (before: up to 2 chunks per env per
@@ -255,6 +258,7 @@ class DistributedActor:
             "actor/insert_backlog": float(sink.backlog()),
             "actor/unsent_steps": float(sink.unsent_steps),
             "time/env_steps_per_second": steps_per_s,
+            **self.staleness.take(),
         }
 
     # -- peers ------------------------------------------------------------------------------
@@ -355,7 +359,8 @@ class DistributedActor:
             if reg is None or self._rejoin.is_set():
                 continue
             try:
-                beat = self.learner.heartbeat(reg.actor_id, self.env_steps, self.params_version)
+                beat = self.learner.heartbeat(reg.actor_id, self.env_steps)
+                self.staleness.learner_said(beat.updates)
                 self._learner_gone_since = None
                 known = beat.learner_id == reg.learner_id
                 if known:

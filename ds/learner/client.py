@@ -35,6 +35,7 @@ class Beat(NamedTuple):
     params_version: int
     run_done: bool
     live_actors: int = 0  # actors holding a lease (0: a learner that does not say)
+    updates: int = 0  # the learner's updates so far
 
 
 @dataclass(frozen=True)
@@ -97,19 +98,17 @@ class LearnerClient(RpcClient):
             return False
         return True
 
-    def heartbeat(self, actor_id: str, env_steps: int, acting_version: int = -1) -> Beat:
-        """Renew the lease (saying which parameter version this actor acts with); returns the learner's
-        id, its latest params version and whether the run's budget is spent; :class:`LeaseExpired` when
-        the learner no longer knows ``actor_id``."""
+    def heartbeat(self, actor_id: str, env_steps: int) -> Beat:
+        """Renew the lease; returns the learner's id, its latest params version and updates, and whether
+        the run's budget is spent; :class:`LeaseExpired` when the learner no longer knows ``actor_id``."""
         try:
-            request = learner_pb2.HeartbeatRequest(actor_id=actor_id, env_steps=env_steps,
-                                                   acting_version=acting_version)  # fmt: skip
+            request = learner_pb2.HeartbeatRequest(actor_id=actor_id, env_steps=env_steps)
             reply = self._call(self._stub.Heartbeat, request)
         except grpc.RpcError as e:
             if e.code() == grpc.StatusCode.NOT_FOUND:
                 raise LeaseExpired(e.details()) from None
             raise
-        return Beat(reply.learner_id, reply.params_version, reply.run_done, reply.live_actors)
+        return Beat(reply.learner_id, reply.params_version, reply.run_done, reply.live_actors, reply.updates)
 
     def get_params(self) -> tuple[int, list[bytes]]:
         """The latest published ``(version, frames)``; decode with :func:`ds.net.params.decode_params`."""

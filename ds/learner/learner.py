@@ -140,7 +140,7 @@ class Learner:
         self.sac, self.replay, self.publisher, self.store = sac, replay, publisher, store
         self.acting, self.registry = acting, registry
         if registry is not None:
-            registry.updates = lambda: self.updates  # its heartbeats' staleness is counted against this
+            registry.updates = lambda: self.updates  # heartbeats say it: actors estimate their staleness
         self.member = member
         self.replay_address = "" if member is None else member.link.replay_address
         self.prefetch_depth = prefetch_depth
@@ -355,9 +355,6 @@ class Learner:
             "learner/publish_deferred": float(self.publish_deferred),
         }
         if self.registry is not None:
-            if staleness := self.registry.take_staleness():
-                metrics["learner/actor_staleness_median"] = float(np.median(staleness))
-                metrics["learner/actor_staleness_p95"] = float(np.percentile(staleness, 95))
             metrics["learner/actors"] = float(len(self.registry.alive()))
             metrics["learner/actors_registered"] = float(self.registry.registered)
             metrics["learner/actors_expired"] = float(self.registry.expired)

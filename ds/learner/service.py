@@ -35,7 +35,6 @@ import logging
 import threading
 import time
 import uuid
-from collections import deque
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -57,7 +56,6 @@ from ds.replay.codec import GRPC_DEFAULT_MESSAGE_BYTES
 from protos import learner_pb2, learner_pb2_grpc
 
 SERVICE_NAME = "asac.LearnerService"
-STALENESS_SAMPLES = 4096  # heartbeats' staleness kept between two summaries (the oldest dropped past it)
 log = logging.getLogger("asac.learner")
 # Who calls what (under mutual TLS, no other role may): actors, except GetWeights, which feeds the
 # evolver's CEM round and is open to the evolver alone.
@@ -128,7 +126,6 @@ class ActorRegistry:
         self.left = 0
         self.run_done = threading.Event()
         self.updates: Callable[[], int] = lambda: 0  # the learner's update count (the Learner sets it)
-        self.staleness: deque[int] = deque(maxlen=STALENESS_SAMPLES)
 
     def register(self, name: str, preferred_index: int | None = None) -> ActorLease:
         with self._lock:
@@ -144,10 +141,8 @@ class ActorRegistry:
             log.info("%s registered as %s (index %d); %d live", name, lease.actor_id, index, len(self._actors))
             return lease
 
-    def renew(self, actor_id: str, env_steps: int, acting_version: int = -1) -> bool:
-        """Extend ``actor_id``'s lease and note how stale the weights it acts with are (the learner's
-        :attr:`updates` now minus ``acting_version``, when it has one); False if it is unknown or
-        already expired."""
+    def renew(self, actor_id: str, env_steps: int) -> bool:
+        """Extend ``actor_id``'s lease; False if it is unknown or already expired."""
         with self._lock:
             self._expire()
             lease = self._actors.get(actor_id)
@@ -155,16 +150,7 @@ class ActorRegistry:
                 return False
             lease.expires = self._clock() + self.lease_s
             lease.env_steps = int(env_steps)
-            if acting_version >= 0:
-                self.staleness.append(max(self.updates() - int(acting_version), 0))
             return True
-
-    def take_staleness(self) -> list[int]:
-        """The staleness samples noted since the last call (updates behind, one per heartbeat)."""
-        with self._lock:
-            samples = list(self.staleness)
-            self.staleness.clear()
-            return samples
 
     def leave(self, actor_id: str, env_steps: int) -> bool:
         """Forget ``actor_id`` now: it has sent everything it will insert and stops. False if it was
@@ -309,13 +295,14 @@ class LearnerServicer(learner_pb2_grpc.LearnerServiceServicer):
             context.abort(grpc.StatusCode.INVALID_ARGUMENT, f"env_steps must be >= 0, got {request.env_steps}")
         if request.leaving:
             self.registry.leave(request.actor_id, request.env_steps)  # an unknown id has gone already: fine
-        elif not self.registry.renew(request.actor_id, request.env_steps, request.acting_version):
+        elif not self.registry.renew(request.actor_id, request.env_steps):
             context.abort(grpc.StatusCode.NOT_FOUND, f"no live actor {request.actor_id!r} (lease expired?): register")
         return learner_pb2.HeartbeatReply(
             learner_id=self.learner_id,
             params_version=self.store.version,
             run_done=self.registry.run_done.is_set(),
             live_actors=len(self.registry.alive()),
+            updates=self.registry.updates(),
         )
 
     def GetParams(

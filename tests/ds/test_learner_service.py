@@ -108,23 +108,19 @@ def test_registry_gives_the_lowest_free_index_and_expires_leases() -> None:
     assert registry.register("wants a taken index", preferred_index=0).index == 3
 
 
-def test_heartbeats_say_how_stale_each_actors_weights_are(learner_side: LearnerSide) -> None:
-    """An actor's heartbeat carries the version it acts with; the learner notes its own updates minus
-    that, once per heartbeat, until it takes the samples for its summary (median, p95)."""
+def test_heartbeats_say_the_learners_updates_so_far(learner_side: LearnerSide) -> None:
+    """What actors estimate their staleness from (ds/actor/staleness.py)."""
     updates = [10]
     learner_side.registry.updates = lambda: updates[0]
-    a, b = learner_side.client.register("a"), learner_side.client.register("b")
-    learner_side.client.heartbeat(a.actor_id, 5, acting_version=7)
-    learner_side.client.heartbeat(b.actor_id, 5)  # no weights yet (-1): nothing to note
+    reg = learner_side.client.register("a")
+    assert learner_side.client.heartbeat(reg.actor_id, 5).updates == 10
     updates[0] = 40
-    learner_side.client.heartbeat(b.actor_id, 9, acting_version=40)
-    assert learner_side.registry.take_staleness() == [3, 0]
-    assert learner_side.registry.take_staleness() == []
+    assert learner_side.client.heartbeat(reg.actor_id, 9).updates == 40
 
 
 def test_heartbeat_of_an_unknown_actor_says_register_again(learner_side: LearnerSide) -> None:
     reg = learner_side.client.register("me")
-    learner_id, version, run_done, live = learner_side.client.heartbeat(reg.actor_id, 10)
+    learner_id, version, run_done, live, _ = learner_side.client.heartbeat(reg.actor_id, 10)
     assert learner_id == reg.learner_id and version == -1 and not run_done and live == 1
     with pytest.raises(LeaseExpired):
         learner_side.client.heartbeat("actor-9-unknown", 0)
