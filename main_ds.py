@@ -165,6 +165,8 @@ def resolve(args: argparse.Namespace) -> tuple[Config, Path, list[str]]:
     name = run_name(template, role)
     run_dir = run_directory(args.model_root, args.env, name)
     check_writable(run_dir, args.model_root)
+    if role == "local":
+        local_addresses(config.net_config, resolved.sources)  # what the task file or an override gives
     saved, drawn = RunDir(run_dir).config, dict[str, Any]()
     if saved.exists():
         config = apply_overrides(config_from_file(saved), overrides)
@@ -177,8 +179,8 @@ def resolve(args: argparse.Namespace) -> tuple[Config, Path, list[str]]:
             config, drawn = draw_for_run(config, config.sac_config.seed)
     config.base_config.name = name
     net = config.net_config
-    if role == "local":
-        local_addresses(net, resolved.sources)
+    if role == "local":  # a resumed run's config.yaml has the addresses its roles had: not said again
+        net.evolver_host = net.learner_host = net.replay_host = None
     for peer in ("evolver", "learner", "replay"):
         if (host := getattr(args, f"{peer}_host")) is not None:
             setattr(net, f"{peer}_host", host)
