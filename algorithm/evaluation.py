@@ -10,9 +10,11 @@ from __future__ import annotations
 
 import csv
 import io
+import threading
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any, Protocol
 
 import numpy as np
 
@@ -20,6 +22,12 @@ from algorithm.actor import Policy, VectorEnvLike
 from algorithm.files import atomic_write, open_regular
 
 CSV_FIELDS = ("env_steps", "updates", "wall_seconds", "return_mean", "return_std")
+
+
+class AcceptsWeights(Policy, Protocol):
+    """A policy that takes a learner's acting weights (``algorithm.policy.Policy``)."""
+
+    def load_acting_state_dict(self, state: dict[str, Any]) -> None: ...
 
 
 @dataclass
@@ -118,3 +126,71 @@ def append_evaluation(path: Path, env_steps: int, updates: int, wall_seconds: fl
 def read_evaluations(path: Path) -> list[dict[str, float]]:
     with path.open(newline="") as f:
         return [{k: float(v) for k, v in row.items()} for row in csv.DictReader(f)]
+
+
+@dataclass
+class Scored:
+    """An evaluation made beside training: the counters of the weights it scored, and its result."""
+
+    env_steps: int
+    updates: int
+    wall_seconds: float
+    result: EvalResult
+
+
+class BackgroundEvaluation:
+    """Evaluations on a thread of their own, with a copy of the acting weights, so that training goes
+    on meanwhile (the distributed learner's; ``main.py`` evaluates in line, between updates).
+
+    Usage::
+
+        evals = BackgroundEvaluation(eval_env, policy_copy, episodes=10)
+        evals.start(sac.acting_state_dict(), env_steps, updates, wall_seconds, seed)   # when one is due
+        scored = evals.collect()        # between updates: the finished one (or None); errors raise here
+        scored = evals.wait()           # at the end: waits for the one in flight
+
+    One runs at a time: :meth:`busy` says whether one is in flight. ``policy`` is only ever used by the
+    evaluation thread (weights are copied in before it starts)."""
+
+    def __init__(self, env: VectorEnvLike, policy: AcceptsWeights, episodes: int) -> None:
+        self.env, self.policy, self.episodes = env, policy, episodes
+        self._thread: threading.Thread | None = None
+        self._scored: Scored | None = None
+        self._error: BaseException | None = None
+
+    def busy(self) -> bool:
+        return self._thread is not None and self._thread.is_alive()
+
+    def start(self, weights: dict[str, Any], env_steps: int, updates: int, wall_seconds: float,
+              seed: int | None) -> None:  # fmt: skip
+        """Score ``weights`` (the acting state of ``updates`` updates at ``env_steps``) beside training."""
+        if self._thread is not None:
+            raise RuntimeError("BackgroundEvaluation.start: one is in flight or not collected")
+        self.policy.load_acting_state_dict(weights)
+
+        def run() -> None:
+            try:
+                result = evaluate(self.env, self.policy, self.episodes, seed)
+                self._scored = Scored(env_steps, updates, wall_seconds, result)
+            except BaseException as e:  # surfaces in the training thread, at collect()
+                self._error = e
+
+        self._thread = threading.Thread(target=run, name="evaluation", daemon=True)
+        self._thread.start()
+
+    def collect(self) -> Scored | None:
+        """The evaluation that has finished since the last call, or None (none, or still running)."""
+        if self._thread is None or self._thread.is_alive():
+            return None
+        self._thread.join()
+        self._thread = None
+        error, scored, self._error, self._scored = self._error, self._scored, None, None
+        if error is not None:
+            raise error
+        return scored
+
+    def wait(self) -> Scored | None:
+        """The one in flight, once it has finished (None when there is none)."""
+        if self._thread is not None:
+            self._thread.join()
+        return self.collect()

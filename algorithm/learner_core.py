@@ -50,7 +50,16 @@ from algorithm.checkpoint import (
 )
 from algorithm.config import config_to_yaml
 from algorithm.config_schema import BaseConfig, Config
-from algorithm.evaluation import EvalResult, append_evaluations, evaluate, evaluation_row, read_evaluations
+from algorithm.evaluation import (
+    AcceptsWeights,
+    BackgroundEvaluation,
+    EvalResult,
+    Scored,
+    append_evaluations,
+    evaluate,
+    evaluation_row,
+    read_evaluations,
+)
 from algorithm.files import WriteFailures, atomic_write
 from algorithm.logging import MetricsWriter, ProgressLine, RateMeter, Timers
 from algorithm.run_dir import EVAL_SEED_OFFSET, RunDir
@@ -177,6 +186,7 @@ class LearnerCore:
         on_evaluation: Callable[[float, int], None] = lambda mean, steps: None,
         extra_state: Callable[[], dict[str, Any]] = dict,
         newest_key: Callable[[], int] | None = None,
+        eval_policy: AcceptsWeights | None = None,
     ) -> None:
         self.config = config
         self.paths = RunDir(Path(run_dir))
@@ -184,6 +194,14 @@ class LearnerCore:
         self.log_dir = log_dir
         evaluating = eval_env is not None and config.eval_config.eval_per_step > 0
         self.eval_env = eval_env if evaluating else None
+        # With eval_policy (a copy to act with), evaluations run beside training (the distributed learner);
+        # without, between updates (main.py: the same cadence and rows, in line)
+        self.background = (
+            BackgroundEvaluation(self.eval_env, eval_policy, config.eval_config.eval_episodes)
+            if self.eval_env is not None and eval_policy is not None
+            else None
+        )
+        self.evaluations_skipped = 0  # due while the one before was still running (background only)
         self.eval_seed = int(config.sac_config.seed or 0) + EVAL_SEED_OFFSET
         self.progress = progress
         self.publish = publish
@@ -251,6 +269,8 @@ class LearnerCore:
             self.bar.close()
             self.bar = None
         self.finishing = True
+        if self.background is not None and (scored := self.background.wait()) is not None:
+            self._record(scored)  # the one in flight is kept, whatever stops the run
         if self.done() and self.eval_env is not None and c.last_eval_step != c.env_steps:
             self.evaluate()
         elif self._eval_rows:
@@ -327,35 +347,65 @@ class LearnerCore:
     def evaluate_if_due(self) -> None:
         """Evaluate when ``next_eval`` is reached, unless the budget is spent: then :meth:`finish`'s
         final evaluation, after the last updates, is the one (a distributed learner trains on what
-        the replay still owes it first, so a due one here would be a second row a few steps before)."""
-        if self.eval_env is not None and not self.done() and self.counters.env_steps >= self.counters.next_eval:
+        the replay still owes it first, so a due one here would be a second row a few steps before).
+        In the background, a finished evaluation is recorded here, and one due while another still
+        runs is skipped (counted, ``eval/skipped``)."""
+        c = self.counters
+        if self.background is not None and (scored := self.background.collect()) is not None:
+            self._record(scored)
+        if self.eval_env is None or self.done() or c.env_steps < c.next_eval:
+            return
+        if self.background is None:
             self.evaluate()
+            return
+        if self.background.busy():
+            self.evaluations_skipped += 1
+        else:
+            seed = self.eval_seed if not c.evaluations else None  # one seeded stream a run (in its checkpoints)
+            self.background.start(self.sac.acting_state_dict(), c.env_steps, c.updates, c.wall_seconds, seed)
+        self._advance_next_eval()
+
+    def _advance_next_eval(self) -> None:
+        """The next evaluation: at the next multiple of ``eval_per_step`` past the current env step
+        (a jump over several multiples evaluates once)."""
+        c, every = self.counters, self.config.eval_config.eval_per_step
+        if c.env_steps >= c.next_eval:
+            c.next_eval += every * math.ceil((c.env_steps - c.next_eval + 1) / every)
 
     def evaluate(self) -> EvalResult:
-        """Evaluate the policy on the eval envs; the next one is due at the next multiple of
-        ``eval_per_step`` past the current env step (a jump over several multiples evaluates once)."""
+        """Evaluate the policy on the eval envs now, in this thread (after the one in the background, if
+        any, is recorded)."""
         assert self.eval_env is not None
-        c, every = self.counters, self.config.eval_config.eval_per_step
+        c = self.counters
+        if self.background is not None and (scored := self.background.wait()) is not None:
+            self._record(scored)
         with self.timers.phase("eval"):
             seed = self.eval_seed if not c.evaluations else None  # one seeded stream a run (in its checkpoints)
             result = evaluate(self.eval_env, self.sac, self.config.eval_config.eval_episodes, seed)
-        c.evaluations += 1
-        c.last_eval_mean, c.last_eval_step = result.mean, c.env_steps
-        self._eval_rows.append(evaluation_row(c.env_steps, c.updates, c.wall_seconds, result))
-        self._write_evaluations()
-        self.write(
-            {
-                "eval/return_mean": result.mean,
-                "eval/return_std": result.std,
-                "eval/episode_length": float(result.lengths.mean()),
-            }
-        )
-        log.info("eval at %d env steps, %d updates: return %.1f +- %.1f", c.env_steps, c.updates, result.mean,
-                 result.std)  # fmt: skip
-        self.on_evaluation(result.mean, c.env_steps)
-        if c.env_steps >= c.next_eval:
-            c.next_eval += every * math.ceil((c.env_steps - c.next_eval + 1) / every)
+        self._record(Scored(c.env_steps, c.updates, c.wall_seconds, result))
+        self._advance_next_eval()
         return result
+
+    def _record(self, scored: Scored) -> None:
+        """An evaluation's row, scalars, log line and callback, at the counters of the weights it scored."""
+        c, result = self.counters, scored.result
+        c.evaluations += 1
+        c.last_eval_mean, c.last_eval_step = result.mean, scored.env_steps
+        self._eval_rows.append(evaluation_row(scored.env_steps, scored.updates, scored.wall_seconds, result))
+        self._write_evaluations()
+        if self.writer is not None:
+            self.writer.write(
+                {
+                    "eval/return_mean": result.mean,
+                    "eval/return_std": result.std,
+                    "eval/episode_length": float(result.lengths.mean()),
+                    **({} if self.background is None else {"eval/skipped": float(self.evaluations_skipped)}),
+                },
+                scored.env_steps,
+            )
+        log.info("eval at %d env steps, %d updates: return %.1f +- %.1f", scored.env_steps, scored.updates,
+                 result.mean, result.std)  # fmt: skip
+        self.on_evaluation(result.mean, scored.env_steps)
 
     def _write_evaluations(self) -> None:
         """The rows not written yet, all or none (the next evaluation tries again)."""

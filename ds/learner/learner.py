@@ -16,7 +16,8 @@ Inside, three threads keep the update loop busy without ever dropping data (ds/l
 
 The learner counts env steps by the replay's ``inserted_steps`` (actors may come and go). Its
 lifecycle is the single-process trainer's, written once in algorithm/learner_core.py: it evaluates
-every ``eval_per_step`` env steps on its own envs (``evaluations.csv``, ``eval/*``), checkpoints in
+every ``eval_per_step`` env steps on its own envs (``evaluations.csv``, ``eval/*``; with ``eval_policy``,
+a copy of the acting weights, on a thread of its own while training goes on), checkpoints in
 the same format (``model/<env_steps>.pt``), resumes from the latest checkpoint when started again on
 the same run directory, and at ``max_step`` first trains on what the replay still owes it (its rate
 limiter's surplus: the data inserted before the stop is trained on as the ratio says), then makes
@@ -44,6 +45,7 @@ import numpy as np
 from algorithm.actor import VectorEnvLike
 from algorithm.checkpoint import list_checkpoints
 from algorithm.config_schema import Config
+from algorithm.evaluation import AcceptsWeights
 from algorithm.learner_core import LearnerCore
 from algorithm.logging import Throttle
 from algorithm.replay import ReplayTable, ReplayUnavailable
@@ -128,6 +130,7 @@ class Learner:
         acting: PublishedPolicy | None = None,
         registry: ActorRegistry | None = None,
         eval_env: VectorEnvLike | None = None,
+        eval_policy: AcceptsWeights | None = None,
         stop: threading.Event | None = None,
         ckpt_step: int | None = None,
         progress: bool = False,
@@ -159,7 +162,7 @@ class Learner:
         self.core = LearnerCore(
             config, Path(run_dir), sac, log_dir=Path(run_dir) / "log" / "learner", eval_env=eval_env,
             progress=progress, publish=self.publish, on_evaluation=on_evaluation,
-            newest_key=lambda: self.replay_next_key,
+            newest_key=lambda: self.replay_next_key, eval_policy=eval_policy,
         )  # fmt: skip
         self.paths = self.core.paths
         self.env_steps = EnvSteps()

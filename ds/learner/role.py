@@ -146,13 +146,14 @@ def _train(
         server, port, health_ = listen("learner", address, "--learner_port", lambda: serve_learner(
             servicer, address, max_message_bytes=learner_message_limit(sac), credentials=role.credentials,
             health_port=net.health_port))  # fmt: skip
-        eval_env = None
-        if cfg.eval_config.eval_per_step > 0:
+        eval_env, eval_policy = None, None
+        if cfg.eval_config.eval_per_step > 0:  # evaluated beside training, with a copy of the acting weights
             eval_env = role.make_env(cfg.eval_config.eval_envs, role.seed + EVAL_SEED_OFFSET)
+            eval_policy = role.policy(spec)
         try:
             learner = Learner(cfg, role.run_dir, sac, replay, publisher, store, acting=acting, registry=registry,
-                              eval_env=eval_env, stop=role.stop, ckpt_step=ckpt_step, progress=progress,
-                              member=member)  # fmt: skip
+                              eval_env=eval_env, eval_policy=eval_policy, stop=role.stop, ckpt_step=ckpt_step,
+                              progress=progress, member=member)  # fmt: skip
             learner.replay_address = replay.address
             learner.publish()
             set_serving(health_, learner_service.SERVICE_NAME, True)

@@ -19,6 +19,7 @@ import torch
 
 from algorithm.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
 from algorithm.config import load_config
+from algorithm.evaluation import read_evaluations
 from algorithm.replay import PrioritizedTable
 from algorithm.sac import SAC
 from ds.learner.feeds import BatchPrefetcher, PriorityUpdater, merge_priorities
@@ -248,6 +249,51 @@ def test_learner_trains_publishes_checkpoints_and_resumes(over_grpc: ServeOverGr
     for name, value in learner.sac.state_dict()["models"].items():
         assert (torch_state[name] == value).all(), name
     again.publisher.close()
+
+
+class SlowEnv:
+    """A vector env whose every step takes ``delay_s`` more: an evaluation that takes a while."""
+
+    def __init__(self, env: object, delay_s: float) -> None:
+        self.env, self.delay_s = env, delay_s
+
+    def __getattr__(self, name: str) -> object:
+        return getattr(self.env, name)
+
+    def step(self, actions: np.ndarray) -> object:
+        time.sleep(self.delay_s)
+        return self.env.step(actions)  # type: ignore[attr-defined]
+
+
+def test_an_evaluation_runs_beside_training_and_records_the_weights_it_scored(
+    over_grpc: ServeOverGrpc, tmp_path: Path
+) -> None:
+    """With a copy of the acting weights to act with, the learner evaluates on a thread of its own:
+    it goes on updating while an evaluation runs, and the row it writes names the updates and env
+    steps of the weights it scored (those when it started), not those when it ended."""
+    client = over_grpc(pendulum_table(300))
+    stop = threading.Event()
+    config = load_config(ROOT / "envs/gym/pendulum", None, [*SMALL, "eval.eval_per_step=100"]).config
+    eval_env = SlowEnv(make_vector_env("Pendulum-v1", 1, seed=5), delay_s=0.01)  # 200 steps: >= 2 s an episode
+    learner = make_learner(tmp_path, client, stop, ("eval.eval_per_step=100", "eval.eval_episodes=1"),
+                           eval_env=eval_env, eval_policy=SAC(eval_env.spec, config.sac_config, config.nn_config,
+                                                               config.replay_config))  # fmt: skip
+    thread = threading.Thread(target=learner.run)
+    thread.start()
+    try:
+        background = learner.core.background
+        assert background is not None
+        until(background.busy, timeout_s=60)
+        started_at = learner.updates
+        until(lambda: (tmp_path / "evaluations.csv").exists(), timeout_s=60)
+        ended_at = learner.updates
+    finally:
+        stop.set()
+        thread.join(30)
+        learner.publisher.close()
+    rows = read_evaluations(tmp_path / "evaluations.csv")
+    assert ended_at - started_at >= 20, (started_at, ended_at)  # updates went on during the ~2 s evaluation
+    assert rows[0]["env_steps"] == 300 and rows[0]["updates"] <= started_at  # the weights it was given
 
 
 def test_publishing_keeps_to_its_budget_and_the_latest_weights_go_out_after_it(tmp_path: Path) -> None:
