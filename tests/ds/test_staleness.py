@@ -7,13 +7,7 @@ import pytest
 
 from ds.actor.staleness import Staleness
 
-
-class Clock:
-    def __init__(self) -> None:
-        self.now = 0.0
-
-    def __call__(self) -> float:
-        return self.now
+from .test_learner_service import Clock
 
 
 def test_a_step_is_as_stale_as_the_updates_the_learner_made_since_its_weights() -> None:
