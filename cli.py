@@ -105,7 +105,7 @@ def check_device(text: str) -> None:
         raise UsageError(f"--device {text}: MPS is not available on this machine")
 
 
-UNITY_ONLY = "a Unity setting; ASAC runs gymnasium envs only (Unity is out of scope): delete it"
+UNITY_ONLY = "it sets up Unity, and ASAC runs gymnasium envs only (Unity is out of scope): delete it"
 ORIGINAL_FLAGS: dict[tuple[str, ...], str] = {
     ("-p", "--port", "--build_port", "--unity_port"): UNITY_ONLY,
     ("--editor", "--additional_args", "--u_editor", "--u_port", "--u_quality_level", "--u_timescale"): UNITY_ONLY,
@@ -129,7 +129,7 @@ class _OriginalFlag(argparse.Action):
 
     def __call__(self, parser: argparse.ArgumentParser, namespace: argparse.Namespace, values: object,
                  option_string: str | None = None) -> None:  # fmt: skip
-        parser.error(f"{option_string} is a flag of the original ASAC; {self.help_text}")
+        parser.error(f"{option_string} is a flag of the original ASAC: {self.help_text}")
 
     help_text = ""
 

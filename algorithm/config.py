@@ -226,6 +226,19 @@ def task_config_path(task_dir: Path, distributed: bool = False) -> Path:
     return ds_file if distributed and ds_file.is_file() else task_dir / "config.yaml"
 
 
+def _section_elsewhere(task_dir: Path, read: Path, name: str) -> str:
+    """A hint when the folder's other task file (config.yaml beside config_ds.yaml) has section ``name``."""
+    other = task_dir / ("config.yaml" if read.name == DISTRIBUTED_TASK_FILE else DISTRIBUTED_TASK_FILE)
+    try:
+        sections = read_yaml(other) if other.is_file() else None
+    except ConfigError:
+        return ""
+    if isinstance(sections, dict) and name in sections:
+        which = "main.py" if other.name == "config.yaml" else "main_ds.py"
+        return f" ({other.name} beside it, which {which} reads, has it: add it to {read.name} for this launcher)"
+    return ""
+
+
 def load_config(
     task_dir: str | Path | None = None,
     config_name: str | None = None,
@@ -252,7 +265,8 @@ def load_config(
         if config_name is not None:
             if config_name not in task_file or config_name == "default":
                 names = sorted(k for k in task_file if k != "default")
-                raise ConfigError(f"{path}: no config section {config_name!r}; available: {names or 'none'}")
+                raise ConfigError(f"{path}: no config section {config_name!r}; available: {names or 'none'}"
+                                  f"{_section_elsewhere(Path(task_dir), path, config_name)}")  # fmt: skip
             layers.append((config_name, task_file[config_name]))
         # the original's keys anywhere in the file, or the original's distributed file beside it
         original = looks_like_original(task_file, (Path(task_dir) / DISTRIBUTED_TASK_FILE).is_file())

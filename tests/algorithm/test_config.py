@@ -155,3 +155,14 @@ def test_strings_that_read_as_numbers_survive_the_run_folders_round_trip() -> No
     unquoted by PyYAML's dumper and read back by ours (which takes 3e-4 as a float) as 0.0."""
     config = Config.model_validate({"reset_config": {"0E0": None, "1e5": "2E-3", "plain": 1e5}})
     assert config_from_yaml(config_to_yaml(config)) == config
+
+
+def test_a_section_only_the_other_task_file_has_is_named_there(tmp_path: Path) -> None:
+    """config_ds.yaml (main_ds.py's) without the -c section that config.yaml (main.py's) has: the error
+    says where it is, rather than only that this file has none."""
+    (tmp_path / "config.yaml").write_text("default: {}\nhard: {sac_config: {n_step: 3}}\n")
+    (tmp_path / "config_ds.yaml").write_text("default: {replay_config: {batch_size: 16}}\n")
+    with pytest.raises(ConfigError, match=r"no config section 'hard'; available: none \(config.yaml beside it, "
+                                          r"which main.py reads, has it: add it to config_ds.yaml"):  # fmt: skip
+        load_config(tmp_path, "hard", distributed=True)
+    assert load_config(tmp_path, "hard").config.sac_config.n_step == 3  # main.py's file
