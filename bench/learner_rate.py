@@ -1,6 +1,7 @@
 """The learner role's update rate against the in-process loop's, with the same config, side by side.
 
-    python -m bench.learner_rate gym/pendulum mujoco/half_cheetah [--seeds 0 1] [--steps N] [--out FILE]
+    python -m bench.learner_rate gym/pendulum mujoco/half_cheetah [--seeds 0 1] [--steps N] [--device cuda]
+        [--override KEY=VALUE] [--out FILE]
 
 For each task and seed, ``main.py TASK`` and ``main_ds.py TASK local --actors 1`` run one after the
 other with the task's default config (``base.max_step`` cut to ``--steps``; a seed fixed), and each
@@ -64,13 +65,13 @@ def over_run(tags: dict[str, list[tuple[float, float]]], tag: str) -> float:
     return round(statistics.median(v for _, v in tags[tag]), 1) if tag in tags else float("nan")
 
 
-def run(task: str, seed: int, mode: str, root: Path, overrides: list[str]) -> dict[str, object]:
+def run(task: str, seed: int, mode: str, root: Path, overrides: list[str], device: str = "cpu") -> dict[str, object]:
     """One run of ``mode`` (main or local) and what its TensorBoard files say (see the module docstring)."""
     name = f"{mode}_{seed}"
     flags = [arg for o in overrides for arg in ("--override", o)]
     entry = ["main.py", task] if mode == "main" else ["main_ds.py", task, "local", "--actors", "1"]
     command = [sys.executable, str(ROOT / entry[0]), *entry[1:], "-n", name, "--model_root", str(root),
-               "--no_progress", *flags]  # fmt: skip
+               "--no_progress", "--device", device, *flags]  # fmt: skip
     started = time.perf_counter()
     done = subprocess.run(command, cwd=root, capture_output=True, text=True)
     wall = time.perf_counter() - started
@@ -97,6 +98,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--seeds", type=int, nargs="+", default=[0])
     p.add_argument("--steps", type=int, default=None, help="base.max_step of every run (default: the task's)")
     p.add_argument("--override", action="append", default=[], help="for both modes, e.g. sac.publish_budget=0")
+    p.add_argument("--device", default="cpu", help="the learner's torch device in both modes (cuda: the CUDA graph)")
     p.add_argument("--out", type=Path, default=ROOT / "bench/results/learner_rate/rows.csv")
     args = p.parse_args(argv)
     args.out.parent.mkdir(parents=True, exist_ok=True)
@@ -110,7 +112,7 @@ def main(argv: list[str] | None = None) -> int:
         for task in args.tasks:
             for seed in args.seeds:
                 for mode in ("main", "local"):  # back to back: machine noise hits both alike
-                    row = run(task, seed, mode, Path(tmp), [*budget, f"sac.seed={seed}", *args.override])
+                    row = run(task, seed, mode, Path(tmp), [*budget, f"sac.seed={seed}", *args.override], args.device)
                     rows.append(row)
                     writer.writerow(row)
                     f.flush()
