@@ -200,6 +200,7 @@ class DistributedActor:
         beats.start()
         try:
             while not self.stop.is_set() and not self.done:
+                self.staleness.acted(self.params_version)  # the step's actions come from these weights, now
                 try:
                     stats = loop.step()
                 except grpc.RpcError as e:  # update_policy_mode false: the learner did not answer
@@ -214,7 +215,6 @@ class DistributedActor:
                 if max_iter >= 0 and iterations >= max_iter:
                     break
                 self._take_new_params()
-                self.staleness.acted(self.params_version)
                 self._between()
                 if not self.done and self._holds_the_rest_of_the_budget():
                     # Stepping on would only add steps past max_step (before: up to 2 chunks per env per
