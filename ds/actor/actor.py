@@ -146,6 +146,9 @@ class DistributedActor:
             replay,
             lambda: self.stop.is_set() or self.done,
             between=self._between,
+            # held back by the rate limiter (the learner trains on), it keeps taking the newest weights:
+            # a subscriber not read holds old versions and ZeroMQ drops the newer ones meanwhile
+            waiting=self._take_new_params,
             in_flight=actor_cfg.inserts_in_flight,
             max_chunks_per_insert=actor_cfg.chunks_per_insert or config.base_config.n_agents,
             # at the run's end the learner trains until the actors leave: the last inserts may wait

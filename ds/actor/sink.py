@@ -82,6 +82,7 @@ class ReplaySink:
         replay: ReplayClient,
         stopping: Callable[[], bool],
         between: Callable[[], None] = lambda: None,
+        waiting: Callable[[], None] = lambda: None,
         timeout_s: float = 2.0,
         in_flight: int = 4,
         max_chunks_per_insert: int = 16,
@@ -95,6 +96,7 @@ class ReplaySink:
         self.replay = replay
         self.stopping = stopping
         self.between = between
+        self.waiting = waiting  # called every 50 ms while an insert is waited for (new weights come in)
         self.timeout_s = timeout_s
         self.in_flight = in_flight
         self.max_chunks_per_insert = max_chunks_per_insert
@@ -214,7 +216,7 @@ class ReplaySink:
         start = time.monotonic()
         pending = self._pending.popleft()
         try:
-            inserted = pending.result()
+            inserted = pending.result(while_waiting=self.waiting)
         except InsertTimeout as e:
             self.insert_waits += 1
             if not self.stopping() and self._log():  # while stopping, the final inserts pass the limiter anyway

@@ -14,6 +14,7 @@ its docstring lists how every error maps to a gRPC status and back to the except
 
 from __future__ import annotations
 
+import threading
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any, TypeVar
@@ -309,11 +310,17 @@ class PendingInsert:
     def steps(self) -> int:
         return sum(len(c) for c in self.chunks)
 
-    def result(self) -> Inserted:
+    def result(self, while_waiting: Callable[[], None] | None = None, every_s: float = 0.05) -> Inserted:
         """Wait for the answer: each chunk's keys and whether it was a duplicate, or the exceptions
         :meth:`ReplayClient.insert_many` raises (:class:`InsertTimeout` when the rate limiter held
         it back for its whole timeout, :class:`ReplayRpcError` with UNAVAILABLE when the replay is
-        gone or the answer was lost, ``ValueError`` if refused)."""
+        gone or the answer was lost, ``ValueError`` if refused). ``while_waiting`` is called every
+        ``every_s`` until the answer is in (an actor takes new weights meanwhile)."""
+        if while_waiting is not None:
+            answered = threading.Event()
+            self._future.add_done_callback(lambda _: answered.set())
+            while not answered.wait(every_s):
+                while_waiting()
         try:
             reply = self._future.result()
         except grpc.RpcError as e:

@@ -186,7 +186,9 @@ def test_a_held_back_actor_waits_checks_in_between_and_returns_once_stopping(
         checks += 1
         stopping = checks >= 3
 
-    sink = ReplaySink(client, lambda: stopping, between=between, timeout_s=0.2, in_flight=2, max_chunks_per_insert=2)
+    waits: list[float] = []  # while an insert is held back, the actor takes new weights (every 50 ms)
+    sink = ReplaySink(client, lambda: stopping, between=between, waiting=lambda: waits.append(time.monotonic()),
+                      timeout_s=0.2, in_flight=2, max_chunks_per_insert=2)  # fmt: skip
     backlog, settled, stopped_after = [], [], []
     for i in range(20):
         waited_before = sink.wait_seconds
@@ -197,6 +199,7 @@ def test_a_held_back_actor_waits_checks_in_between_and_returns_once_stopping(
     waited = stopped_after.index(True)  # the call that waited for the replay until the run stopped
     assert checks == 3 and stopping
     assert settled[waited] and sink.insert_waits >= 3  # it waited: three refusals, a check after each
+    assert len(waits) >= 3  # three refusals of 0.2 s each: the actor's weights kept coming in meanwhile
     assert max(backlog[:waited]) <= sink.max_backlog - 1 == 5  # (the calls after it do not wait: stopping)
     assert backlog[waited] <= sink.max_backlog
     assert not any(settled[waited + 1 :])  # once stopping, calls return at once: no insert is waited for
