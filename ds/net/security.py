@@ -344,7 +344,7 @@ def client_roles(auth: Mapping[str, Sequence[bytes]]) -> frozenset[str]:
     ``peer_dns`` property of the call's ``auth_context()``) that are in :data:`ROLES`.
 
     Only DNS SANs: gRPC's ``x509_subject_alternative_name`` lists every SAN type alike, so reading
-    it let a certificate naming ``URI:evolver`` pass as the evolver (issue 17). Never the subject
+    it would let a certificate naming ``URI:evolver`` pass as the evolver. Never the subject
     CN either (the code never read it): roles are DNS SANs (docs/security.md section 3), so a certificate
     without them names no role, whatever its CN says.
     """
