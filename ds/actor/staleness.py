@@ -18,11 +18,12 @@ from __future__ import annotations
 
 import threading
 import time
+from collections import deque
 from collections.abc import Callable
 
 import numpy as np
 
-SAMPLES = 4096  # steps kept between two takes (every n-th step kept past it, so the spread stays)
+SAMPLES = 4096  # the latest steps kept between two takes
 
 
 class Staleness:
@@ -30,8 +31,7 @@ class Staleness:
         self._clock = clock
         self._lock = threading.Lock()
         self._said: list[tuple[float, int]] = []  # the last two (time, updates) answers
-        self._samples: list[float] = []
-        self._seen = 0
+        self._samples: deque[float] = deque(maxlen=SAMPLES)
 
     def learner_said(self, updates: int) -> None:
         """A heartbeat answer: the learner has made ``updates`` updates (a smaller count: it restarted)."""
@@ -57,13 +57,12 @@ class Staleness:
         learner = self.estimate()
         if learner is None or version < 0:
             return
-        self._seen += 1
-        if len(self._samples) < SAMPLES or self._seen % (self._seen // SAMPLES + 1) == 0:
-            self._samples.append(max(learner - version, 0.0))
+        self._samples.append(max(learner - version, 0.0))
 
     def take(self) -> dict[str, float]:
         """Median and p95 of the steps since the last take (empty when there were none)."""
-        samples, self._samples, self._seen = self._samples, [], 0
+        samples = list(self._samples)
+        self._samples.clear()
         if not samples:
             return {}
         return {
