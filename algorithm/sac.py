@@ -334,7 +334,11 @@ class SAC(SacCheckpoint, SacLosses, Policy):
                 batch.mask, batch.behaviour_logp, rnn_state, weights, noise, target_heads, policy_heads]  # fmt: skip
 
     def _on_device(self, inputs: list[np.ndarray | Tensor | None]) -> list[Tensor | None]:
-        return [torch.from_numpy(x).to(self.device) if isinstance(x, np.ndarray) else x for x in inputs]
+        """The inputs on the device; from pinned memory (a distributed learner's batches on CUDA) the
+        copies do not block: the stream orders them before the pass, and the batch outlives the update
+        (whose non-finite check waits for the stream)."""
+        return [torch.from_numpy(x).to(self.device, non_blocking=True) if isinstance(x, np.ndarray) else x
+                for x in inputs]  # fmt: skip
 
     def _batch_losses(self, inputs: list[Tensor | None]) -> Losses:
         """:meth:`_losses` of a pass's inputs on the device, observations normalized. Autocast's cache of

@@ -140,7 +140,7 @@ class UpdateGraph:
             return None
         for buffer, x in zip(self._inputs, inputs, strict=True):
             if buffer is not None and x is not None:  # the signature matched: both or neither
-                buffer.copy_(torch.from_numpy(x) if isinstance(x, np.ndarray) else x)
+                buffer.copy_(torch.from_numpy(x) if isinstance(x, np.ndarray) else x, non_blocking=True)
         assert self._recorder is not None
         self._recorder.replay()
         for p, g in self._grads:  # an optimizer's zero_grad(set_to_none) may have let go of them
@@ -179,7 +179,7 @@ class UpdateGraph:
 
 
 def _to_device(x: np.ndarray | Tensor, device: torch.device) -> Tensor:
-    return (torch.from_numpy(x) if isinstance(x, np.ndarray) else x).to(device)
+    return (torch.from_numpy(x) if isinstance(x, np.ndarray) else x).to(device, non_blocking=True)
 
 
 def _signature(x: np.ndarray | Tensor | None) -> tuple[Any, ...] | None:

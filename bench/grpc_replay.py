@@ -47,21 +47,32 @@ REVERB = {"insert": (7_000, 10_000), "sample": (50_000, 50_000)}  # items/s, low
 GOAL = {"insert": 10.0, "sample": 2.0}  # x Reverb's upper figure
 
 
-def make_table(sensors: tuple[SensorSpec, ...] = SENSORS, action_size: int = ACT) -> PrioritizedTable:
+def make_table(
+    sensors: tuple[SensorSpec, ...] = SENSORS, action_size: int = ACT, window: int = 1, rnn_state_size: int = 0
+) -> PrioritizedTable:
     """A prioritized table without the actor/learner rate limiter: benches measure capacity."""
-    return PrioritizedTable(CAPACITY, sensors, action_size, window=1, alpha=0.6, seed=0)
+    return PrioritizedTable(CAPACITY, sensors, action_size, window, alpha=0.6, rnn_state_size=rnn_state_size, seed=0)
 
 
 def serve(
-    port: Any, stop: Event, sensors: tuple[SensorSpec, ...] = SENSORS, action_size: int = ACT, limit: int = LIMIT
+    port: Any,
+    stop: Event,
+    sensors: tuple[SensorSpec, ...] = SENSORS,
+    action_size: int = ACT,
+    limit: int = LIMIT,
+    window: int = 1,
+    rnn_state_size: int = 0,
 ) -> None:
-    """A replay process: a table prefilled with ``PREFILL`` random steps behind the gRPC servicer,
-    its port put in ``port.value``, until ``stop`` is set."""
+    """A replay process: a table of ``window``-step windows prefilled with ``PREFILL`` random steps
+    behind the gRPC servicer, its port put in ``port.value``, until ``stop`` is set."""
     from ds.replay.service import serve_replay
 
-    table, rng = make_table(sensors, action_size), np.random.default_rng(1)
+    table, rng = make_table(sensors, action_size, window, rnn_state_size), np.random.default_rng(1)
     for _ in range(PREFILL // CHUNK):
-        table.insert(random_chunk(sensors, action_size, CHUNK, rng))
+        chunk = random_chunk(sensors, action_size, CHUNK, rng)
+        if rnn_state_size:
+            chunk.rnn_state = rng.standard_normal((CHUNK, rnn_state_size), dtype=np.float32)
+        table.insert(chunk)
     server, port.value = serve_replay(table, "127.0.0.1:0", max_message_bytes=limit)
     stop.wait()
     server.stop(grace=1.0)
@@ -69,12 +80,17 @@ def serve(
 
 @contextmanager
 def replay_process(
-    sensors: tuple[SensorSpec, ...] = SENSORS, action_size: int = ACT, limit: int = LIMIT
+    sensors: tuple[SensorSpec, ...] = SENSORS,
+    action_size: int = ACT,
+    limit: int = LIMIT,
+    window: int = 1,
+    rnn_state_size: int = 0,
 ) -> Iterator[int]:
     """Run :func:`serve` in a child process for the ``with`` block; yields its port."""
     ctx = mp.get_context("spawn")
     port, stop = ctx.Value("i", 0), ctx.Event()
-    server = ctx.Process(target=serve, args=(port, stop, sensors, action_size, limit), daemon=True)
+    args = (port, stop, sensors, action_size, limit, window, rnn_state_size)
+    server = ctx.Process(target=serve, args=args, daemon=True)
     server.start()
     deadline = time.monotonic() + 120
     while port.value == 0:

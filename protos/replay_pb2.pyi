@@ -65,40 +65,26 @@ class InsertReply(_message.Message):
     def __init__(self, keys: _Optional[_Iterable[_Union[Tensor, _Mapping]]] = ..., duplicate: _Optional[_Iterable[bool]] = ..., inserted_steps: _Optional[int] = ...) -> None: ...
 
 class SampleRequest(_message.Message):
-    __slots__ = ("batch_size", "timeout_s")
+    __slots__ = ("batch_size", "timeout_s", "batches")
     BATCH_SIZE_FIELD_NUMBER: _ClassVar[int]
     TIMEOUT_S_FIELD_NUMBER: _ClassVar[int]
+    BATCHES_FIELD_NUMBER: _ClassVar[int]
     batch_size: int
     timeout_s: float
-    def __init__(self, batch_size: _Optional[int] = ..., timeout_s: _Optional[float] = ...) -> None: ...
+    batches: int
+    def __init__(self, batch_size: _Optional[int] = ..., timeout_s: _Optional[float] = ..., batches: _Optional[int] = ...) -> None: ...
 
 class SampleReply(_message.Message):
-    __slots__ = ("keys", "probabilities", "table_size", "obs", "actions", "prev_actions", "rewards", "terminated", "truncated", "behaviour_logp", "mask", "rnn_state")
-    KEYS_FIELD_NUMBER: _ClassVar[int]
-    PROBABILITIES_FIELD_NUMBER: _ClassVar[int]
+    __slots__ = ("batch_size", "window", "table_size", "data")
+    BATCH_SIZE_FIELD_NUMBER: _ClassVar[int]
+    WINDOW_FIELD_NUMBER: _ClassVar[int]
     TABLE_SIZE_FIELD_NUMBER: _ClassVar[int]
-    OBS_FIELD_NUMBER: _ClassVar[int]
-    ACTIONS_FIELD_NUMBER: _ClassVar[int]
-    PREV_ACTIONS_FIELD_NUMBER: _ClassVar[int]
-    REWARDS_FIELD_NUMBER: _ClassVar[int]
-    TERMINATED_FIELD_NUMBER: _ClassVar[int]
-    TRUNCATED_FIELD_NUMBER: _ClassVar[int]
-    BEHAVIOUR_LOGP_FIELD_NUMBER: _ClassVar[int]
-    MASK_FIELD_NUMBER: _ClassVar[int]
-    RNN_STATE_FIELD_NUMBER: _ClassVar[int]
-    keys: Tensor
-    probabilities: Tensor
-    table_size: int
-    obs: _containers.RepeatedCompositeFieldContainer[Tensor]
-    actions: Tensor
-    prev_actions: Tensor
-    rewards: Tensor
-    terminated: Tensor
-    truncated: Tensor
-    behaviour_logp: Tensor
-    mask: Tensor
-    rnn_state: Tensor
-    def __init__(self, keys: _Optional[_Union[Tensor, _Mapping]] = ..., probabilities: _Optional[_Union[Tensor, _Mapping]] = ..., table_size: _Optional[int] = ..., obs: _Optional[_Iterable[_Union[Tensor, _Mapping]]] = ..., actions: _Optional[_Union[Tensor, _Mapping]] = ..., prev_actions: _Optional[_Union[Tensor, _Mapping]] = ..., rewards: _Optional[_Union[Tensor, _Mapping]] = ..., terminated: _Optional[_Union[Tensor, _Mapping]] = ..., truncated: _Optional[_Union[Tensor, _Mapping]] = ..., behaviour_logp: _Optional[_Union[Tensor, _Mapping]] = ..., mask: _Optional[_Union[Tensor, _Mapping]] = ..., rnn_state: _Optional[_Union[Tensor, _Mapping]] = ...) -> None: ...
+    DATA_FIELD_NUMBER: _ClassVar[int]
+    batch_size: int
+    window: int
+    table_size: _containers.RepeatedScalarFieldContainer[int]
+    data: bytes
+    def __init__(self, batch_size: _Optional[int] = ..., window: _Optional[int] = ..., table_size: _Optional[_Iterable[int]] = ..., data: _Optional[bytes] = ...) -> None: ...
 
 class WindowsRequest(_message.Message):
     __slots__ = ("from_key", "max_windows")

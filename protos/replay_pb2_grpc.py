@@ -119,7 +119,8 @@ class ReplayServiceServicer:
 
     def Sample(self, request, context):
         """Draws batch_size windows with probability proportional to priority and returns them with
-        their keys, probabilities and the table size. Called by learners.
+        their keys, probabilities and the table size; with batches > 1, up to that many such batches
+        (at least one), each drawn as a separate sample. Called by learners.
         Errors: INVALID_ARGUMENT (batch_size < 1 or timeout_s < 0), DEADLINE_EXCEEDED (no batch
         allowed within timeout_s or the call's deadline: too few steps stored, or the learner is
         ahead of the actors; the message says which), RESOURCE_EXHAUSTED (the reply would exceed the
@@ -142,7 +143,7 @@ class ReplayServiceServicer:
         """The windows starting at the oldest max_windows stored steps with keys >= from_key, in key
         order, with their current sampling probabilities: what a learner scores to give new data its
         |TD| as priority (sac_config.insert_td_priorities). Not a sample: the rate limiter does not
-        count it and it never waits; no such step: an empty reply (no keys). Errors: INVALID_ARGUMENT
+        count it and it never waits; no such step: an empty reply (no batch). Errors: INVALID_ARGUMENT
         (max_windows < 1), RESOURCE_EXHAUSTED (the windows would exceed the message limit).
         """
         context.set_code(grpc.StatusCode.UNIMPLEMENTED)

@@ -135,7 +135,7 @@ class Learner:
         ckpt_step: int | None = None,
         progress: bool = False,
         member: Membership | None = None,
-        prefetch_depth: int = 4,
+        prefetch_depth: int = 8,
         info_every_s: float = 0.25,
         republish_every_s: float = 2.0,
     ) -> None:
@@ -150,7 +150,7 @@ class Learner:
         self.stop = stop or threading.Event()
         self.info_every_s = info_every_s
         self.republish_every_s = republish_every_s
-        self.prefetcher = BatchPrefetcher(replay, config.replay_config.batch_size, prefetch_depth)
+        self.prefetcher = self._prefetcher(replay)
         self.priorities = PriorityUpdater(replay)
         self.rnn_refreshes_skipped = 0
         self.publish_deferred = 0  # updates whose publish waited for the budget (the next one carries them)
@@ -232,6 +232,10 @@ class Learner:
         interrupted = not core.done() and not retired
         core.finish()
         return LearnerSummary(c.env_steps, c.updates, c.wall_seconds, c.last_eval_mean, interrupted, retired)
+
+    def _prefetcher(self, replay: ReplayTable) -> BatchPrefetcher:
+        batch_size, on_cuda = self.config.replay_config.batch_size, self.sac.device.type == "cuda"
+        return BatchPrefetcher(replay, batch_size, self.prefetch_depth, pin_memory=on_cuda)
 
     def _train_on(self, batch: Batch) -> None:
         result = self.core.train_on(batch, self.sink, self._metrics)
@@ -318,7 +322,7 @@ class Learner:
             self.priorities.close(timeout=1.0)
             self.replay, self.replay_address = member.connect_replay(address), address
             self.env_steps.seen = 0  # a new table counts its inserts from 0; each is an env step of this run
-            self.prefetcher = BatchPrefetcher(self.replay, self.config.replay_config.batch_size, self.prefetch_depth)
+            self.prefetcher = self._prefetcher(self.replay)
             self.priorities = PriorityUpdater(self.replay)
             self.prefetcher.start()
             self.priorities.start()

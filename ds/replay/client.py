@@ -43,6 +43,7 @@ from ds.replay.codec import (
     ReplaySpecs,
     chunk_to_proto,
 )
+from ds.replay.packed import Allocate
 from protos import replay_pb2, replay_pb2_grpc
 
 __all__ = ["PendingInsert", "ReplayClient", "ReplayRequestRejected", "ReplayRpcError", "ReplayUnreachable"]
@@ -193,9 +194,21 @@ class ReplayClient(RpcClient):
     def sample(self, batch_size: int, timeout: float | None = None) -> Batch:
         """Draw ``batch_size`` windows; raises :class:`SampleTimeout` after ``timeout`` seconds
         (None: wait forever). See :meth:`PrioritizedTable.sample`."""
-        request = replay_pb2.SampleRequest(batch_size=int(batch_size))
+        return self.sample_many(batch_size, 1, timeout)[0]
+
+    def sample_many(
+        self, batch_size: int, count: int, timeout: float | None = None, allocate: Allocate | None = None
+    ) -> list[Batch]:
+        """Draw up to ``count`` batches of ``batch_size`` windows in one call (at least one; the others
+        as far as the rate limiter allows at once and the message limit holds), each a sample of its
+        own. The reply is copied once into ``allocate(nbytes)`` (a writable uint8 array: pinned memory
+        on CUDA; None: new memory) and the batches are views of it. Raises :class:`SampleTimeout` as
+        :meth:`sample` does."""
+        request = replay_pb2.SampleRequest(batch_size=int(batch_size), batches=int(count))
         reply = self._blocking("Sample", self._stub.Sample, request, timeout, SampleTimeout)
-        return self.specs.batch_from_proto(reply, int(batch_size))
+        if not 1 <= len(reply.table_size) <= max(int(count), 1):
+            raise WireError("table_size", f"holds {len(reply.table_size)} batches, expected 1 to {max(int(count), 1)}")
+        return self.specs.batches_from_reply(reply, int(batch_size), allocate=allocate)
 
     def windows_after(self, key: int, limit: int) -> Batch | None:
         """The windows of the oldest ``limit`` stored steps with keys ``>= key`` (None: none); see
@@ -204,12 +217,12 @@ class ReplayClient(RpcClient):
             raise ValueError(f"windows_after: key must be >= 0, got {key}")
         request = replay_pb2.WindowsRequest(from_key=int(key), max_windows=int(limit))
         reply = self._call("Windows", self._stub.Windows, request, self.rpc_timeout_s)
-        if not reply.HasField("keys"):
+        if not reply.table_size:
             return None
-        n = reply.keys.shape[0] if reply.keys.shape else 0
-        if not 1 <= n <= int(limit):
-            raise WireError("keys", f"holds {n} windows, expected 1 to {limit}")
-        return self.specs.batch_from_proto(reply, n)
+        if not 1 <= reply.batch_size <= int(limit) or len(reply.table_size) != 1:
+            shape = f"{len(reply.table_size)} x {reply.batch_size}"
+            raise WireError("batch_size", f"holds {shape} windows, expected one batch of 1 to {limit}")
+        return self.specs.batches_from_reply(reply, reply.batch_size)[0]
 
     def update_priorities(self, keys: np.ndarray, priorities: np.ndarray) -> None:
         """Set raw priorities of ``keys`` (any integer dtype; evicted keys are ignored)."""

@@ -1,11 +1,12 @@
 """Replay messages <-> algorithm types (Chunk, Batch, info dicts), checked against the replay's specs.
 
 The server decodes what actors and learners send with :meth:`ReplaySpecs.chunk_from_proto` and
-:meth:`ReplaySpecs.priorities_from_proto`; the client decodes what the server returns with
-:meth:`ReplaySpecs.batch_from_proto`. Both check every tensor (dtype, shape, leading dimensions
-consistent within the message, finiteness) before the data goes anywhere, and name the offending
-field in the :class:`~ds.net.wire.WireError`. :func:`message_limit_bytes` sizes gRPC's message limits
-from the largest message the configuration produces.
+:meth:`ReplaySpecs.priorities_from_proto`; the client decodes the batches the server returns with
+:meth:`ReplaySpecs.batches_from_reply` (packed in one buffer: ds/replay/packed.py). Both check
+every tensor (dtype, shape, leading dimensions consistent within the message, finiteness) before
+the data goes anywhere, and name the offending field in the :class:`~ds.net.wire.WireError`.
+:func:`message_limit_bytes` sizes gRPC's message limits from the largest message the configuration
+produces.
 """
 
 from __future__ import annotations
@@ -21,18 +22,21 @@ from algorithm.replay.base import NormalizerStats, ReplayInfo
 from algorithm.spaces import SensorSpec
 from algorithm.types import Batch, Chunk
 from ds.net.wire import TensorSpec, WireError, from_tensor, to_tensor
+from ds.replay.packed import Allocate, BatchLayout, pack_batches, unpack_batches
 from protos import replay_pb2
 
 # gRPC's own default receive limit; the limits are never set below it.
 GRPC_DEFAULT_MESSAGE_BYTES = 4 * 1024 * 1024
 # protobuf cannot serialise a message of 2 GiB or more.
 PROTOBUF_MAX_MESSAGE_BYTES = 2**31 - 1
-# Framing of one Tensor inside a message: tags, length prefixes, dtype name, up to ~6 shape varints.
+# Framing of one Tensor inside a message (tags, length prefixes, dtype name, up to ~6 shape varints), or
+# of a SampleReply around its data.
 TENSOR_FRAMING_BYTES = 128
 
 # Specs are built per received tensor with the same arguments over and over (field names carry the
 # chunk index): cache them, as building one costs several microseconds on the servers' hot path.
 _spec = functools.lru_cache(maxsize=4096)(TensorSpec)
+_layout = functools.lru_cache(maxsize=64)(BatchLayout.of)
 _F32, _F64, _BOOL, _U64 = np.dtype(np.float32), np.dtype(np.float64), np.dtype(bool), np.dtype(np.uint64)
 # Per-step fields shared by Chunk and Batch, with their dtypes; actions also have a trailing A.
 _STEP_FIELDS = (
@@ -104,28 +108,20 @@ class ReplaySpecs:
 
     # ------------------------------------------------------------------ batches (server -> learner)
 
-    def batch_from_proto(self, msg: replay_pb2.SampleReply, batch_size: int) -> Batch:
-        """Decode and check a sampled batch of ``batch_size`` windows (``L`` read from its mask)."""
-        dims = {"B": int(batch_size)}
-        mask = _required(msg, "mask", _spec("mask", _BOOL, leading=("B", "L")), dims)
-        steps = {name: _required(msg, name, self._window_spec(name, dtype), dims) for name, dtype in _STEP_FIELDS}
-        if len(msg.obs) != len(self.sensors):
-            raise WireError("obs", f"has {len(msg.obs)} observation sensors, expected {len(self.sensors)}")
-        rnn_state = None
-        if self.rnn_state_size:
-            spec = _spec("rnn_state", _F32, (self.rnn_state_size,), finite=True, leading=("B",))
-            rnn_state = _required(msg, "rnn_state", spec, dims)
-        return Batch(
-            keys=_required(msg, "keys", _spec("keys", _U64, leading=("B",)), dims),
-            probabilities=_required(
-                msg, "probabilities", _spec("probabilities", _F64, finite=True, leading=("B",)), dims
-            ),
-            table_size=int(msg.table_size),
-            obs=[from_tensor(t, self._obs_spec("", i, "B", "L+1"), dims) for i, t in enumerate(msg.obs)],
-            mask=mask,
-            rnn_state=rnn_state,
-            **steps,
-        )
+    def layout(self, batch_size: int, window: int) -> BatchLayout:
+        """Where each field of a sampled batch lies in a SampleReply's data (ds/replay/packed.py)."""
+        return _layout(self.sensors, self.action_size, int(batch_size), int(window), self.rnn_state_size)
+
+    def batches_from_reply(
+        self, msg: replay_pb2.SampleReply, batch_size: int, window: int | None = None, allocate: Allocate | None = None
+    ) -> list[Batch]:
+        """The checked batches of a SampleReply of ``batch_size`` windows (``window`` steps each;
+        None: as the reply says), in memory from ``allocate`` (see :func:`~ds.replay.packed.unpack_batches`)."""
+        if msg.batch_size != batch_size:
+            raise WireError("batch_size", f"is {msg.batch_size}, expected {batch_size}")
+        if msg.window < 1 or (window is not None and msg.window != window):
+            raise WireError("window", f"is {msg.window}, expected {window if window is not None else '>= 1'}")
+        return unpack_batches(self.layout(batch_size, msg.window), msg.data, msg.table_size, allocate)
 
     # ------------------------------------------------------------------ info (server -> anyone)
 
@@ -162,10 +158,6 @@ class ReplaySpecs:
         suffix = (self.action_size,) if name in ("actions", "prev_actions") else ()
         return _spec(f"{where}.{name}", dtype, suffix, finite=dtype.kind == "f", leading=("T",))
 
-    def _window_spec(self, name: str, dtype: np.dtype) -> TensorSpec:
-        suffix = (self.action_size,) if name in ("actions", "prev_actions") else ()
-        return _spec(name, dtype, suffix, finite=dtype.kind == "f", leading=("B", "L"))
-
 
 def _required(msg: Any, name: str, spec: TensorSpec, dims: dict[str, int]) -> np.ndarray:
     """Decode the Tensor field ``name`` of ``msg``, which must be present."""
@@ -189,20 +181,14 @@ def chunk_to_proto(chunk: Chunk, priorities: np.ndarray | None = None, where: st
     return msg
 
 
-def batch_to_proto(batch: Batch) -> replay_pb2.SampleReply:
-    """Encode a sampled batch as a SampleReply."""
-    msg = replay_pb2.SampleReply(
-        keys=to_tensor(batch.keys, "keys"),
-        probabilities=to_tensor(batch.probabilities, "probabilities"),
-        table_size=batch.table_size,
-        obs=[to_tensor(o, f"obs[{i}]") for i, o in enumerate(batch.obs)],
-        mask=to_tensor(batch.mask, "mask"),
+def sample_reply(layout: BatchLayout, batches: list[Batch]) -> replay_pb2.SampleReply:
+    """Encode sampled batches (each ``layout.batch_size`` x ``layout.window``; none: an empty reply)."""
+    return replay_pb2.SampleReply(
+        batch_size=layout.batch_size,
+        window=layout.window,
+        table_size=[b.table_size for b in batches],
+        data=pack_batches(layout, batches),
     )
-    for name, _ in _STEP_FIELDS:
-        getattr(msg, name).CopyFrom(to_tensor(getattr(batch, name), name))
-    if batch.rnn_state is not None:
-        msg.rnn_state.CopyFrom(to_tensor(batch.rnn_state, "rnn_state"))
-    return msg
 
 
 def info_to_proto(info: ReplayInfo) -> replay_pb2.InfoReply:
@@ -231,11 +217,8 @@ def info_to_proto(info: ReplayInfo) -> replay_pb2.InfoReply:
 def batch_payload_bytes(
     sensors: tuple[SensorSpec, ...], action_size: int, batch_size: int, window: int, rnn_state_size: int = 0
 ) -> int:
-    """Raw tensor bytes of a SampleReply with ``batch_size`` windows of ``window`` steps."""
-    b, steps = int(batch_size), int(batch_size) * int(window)
-    obs = sum(b * (window + 1) * math.prod(s.shape) * np.dtype(s.dtype).itemsize for s in sensors)
-    per_step = 2 * 4 * action_size + 4 + 1 + 1 + 4 + 1  # actions, prev_actions, reward, flags, logp, mask
-    return obs + steps * per_step + b * (8 + 8 + 4 * rnn_state_size)  # keys, probabilities, state
+    """Bytes of one batch of ``batch_size`` windows of ``window`` steps in a SampleReply's data."""
+    return _layout(tuple(sensors), int(action_size), int(batch_size), int(window), int(rnn_state_size)).batch_bytes
 
 
 def chunk_payload_bytes(sensors: tuple[SensorSpec, ...], action_size: int, steps: int, rnn_state_size: int = 0) -> int:
@@ -248,11 +231,8 @@ def chunk_payload_bytes(sensors: tuple[SensorSpec, ...], action_size: int, steps
 def sample_reply_bytes(
     sensors: tuple[SensorSpec, ...], action_size: int, batch_size: int, window: int, rnn_state_size: int = 0
 ) -> int:
-    """Upper estimate of a serialised SampleReply: payload plus framing of each tensor."""
-    tensors = len(sensors) + len(_STEP_FIELDS) + 4
-    return (
-        batch_payload_bytes(sensors, action_size, batch_size, window, rnn_state_size) + tensors * TENSOR_FRAMING_BYTES
-    )
+    """Upper estimate of a serialised SampleReply of one batch: its data plus the framing."""
+    return batch_payload_bytes(sensors, action_size, batch_size, window, rnn_state_size) + TENSOR_FRAMING_BYTES
 
 
 def message_limit_bytes(

@@ -55,10 +55,11 @@ from ds.net.security import ACTOR, LEARNER, NO_CREDENTIALS, Credentials
 from ds.net.wire import WireError, to_tensor
 from ds.replay.codec import (
     GRPC_DEFAULT_MESSAGE_BYTES,
+    TENSOR_FRAMING_BYTES,
     ReplaySpecs,
-    batch_to_proto,
     info_to_proto,
     message_limit_bytes,
+    sample_reply,
     sample_reply_bytes,
 )
 from ds.replay.files import FileWork, FileWorkAbandoned, FileWorkBusy, SnapshotFolder
@@ -143,31 +144,42 @@ class ReplayServicer(replay_pb2_grpc.ReplayServiceServicer):
         return replay_pb2.InsertReply(keys=[to_tensor(k) for k in keys])
 
     def Sample(self, request: replay_pb2.SampleRequest, context: grpc.ServicerContext) -> replay_pb2.SampleReply:
-        spec, b = self.specs, request.batch_size
-        size = sample_reply_bytes(spec.sensors, spec.action_size, b, self.table.window, spec.rnn_state_size)
+        spec, b, window = self.specs, request.batch_size, self.table.window
+        size = sample_reply_bytes(spec.sensors, spec.action_size, b, window, spec.rnn_state_size)
         if size > self.max_message_bytes:  # refuse before drawing: a drawn batch would be lost
             context.abort(
                 grpc.StatusCode.RESOURCE_EXHAUSTED,
-                f"a batch of {b} windows of {self.table.window} steps is about {size} bytes, over this replay "
+                f"a batch of {b} windows of {window} steps is about {size} bytes, over this replay "
                 f"server's message limit of {self.max_message_bytes} bytes: start server and clients with "
                 f"max_message_bytes=message_limit_bytes(..., batch_size={b}, ...)",
             )
+        if request.batches < 0:
+            context.abort(grpc.StatusCode.INVALID_ARGUMENT, f"batches must be >= 0, got {request.batches}")
+        fitting = (self.max_message_bytes - size) // max(size - TENSOR_FRAMING_BYTES, 1) + 1
+        wanted = min(max(request.batches, 1), fitting)
         with _status_codes(context):
-            batch = self.table.sample(b, _wait_seconds(request, context))
-        return batch_to_proto(batch)
+            batches = [self.table.sample(b, _wait_seconds(request, context))]
+            while len(batches) < wanted:  # the rest only while the rate limiter allows them at once
+                try:
+                    batches.append(self.table.sample(b, 0.0))
+                except SampleTimeout:
+                    break
+        return sample_reply(self.specs.layout(b, window), batches)
 
     def Windows(self, request: replay_pb2.WindowsRequest, context: grpc.ServicerContext) -> replay_pb2.SampleReply:
-        spec, n = self.specs, request.max_windows
-        size = sample_reply_bytes(spec.sensors, spec.action_size, max(n, 1), self.table.window, spec.rnn_state_size)
+        spec, n, window = self.specs, request.max_windows, self.table.window
+        size = sample_reply_bytes(spec.sensors, spec.action_size, max(n, 1), window, spec.rnn_state_size)
         if size > self.max_message_bytes:
             context.abort(
                 grpc.StatusCode.RESOURCE_EXHAUSTED,
-                f"{n} windows of {self.table.window} steps are about {size} bytes, over this replay server's "
+                f"{n} windows of {window} steps are about {size} bytes, over this replay server's "
                 f"message limit of {self.max_message_bytes} bytes: ask for fewer (max_windows)",
             )
         with _status_codes(context):
             batch = self.table.windows_after(request.from_key, n)
-        return replay_pb2.SampleReply() if batch is None else batch_to_proto(batch)
+        if batch is None:
+            return replay_pb2.SampleReply(window=window)
+        return sample_reply(self.specs.layout(batch.batch_size, window), [batch])
 
     def UpdatePriorities(
         self, request: replay_pb2.UpdatePrioritiesRequest, context: grpc.ServicerContext

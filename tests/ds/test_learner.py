@@ -410,12 +410,13 @@ class PoisonedReplay:
     def __init__(self, client: ReplayClient, poisoned: set[int]) -> None:
         self.client, self.poisoned, self.sampled = client, poisoned, 0
 
-    def sample(self, batch_size: int, timeout: float | None = None) -> object:
-        batch = self.client.sample(batch_size, timeout)
-        self.sampled += 1
-        if self.sampled in self.poisoned:
-            batch.rewards[0, 0] = np.nan
-        return batch
+    def sample_many(self, batch_size: int, count: int, timeout: float | None = None, allocate: object = None) -> object:
+        batches = self.client.sample_many(batch_size, count, timeout, allocate)  # type: ignore[arg-type]
+        for batch in batches:
+            self.sampled += 1
+            if self.sampled in self.poisoned:
+                batch.rewards[0, 0] = np.nan
+        return batches
 
     def __getattr__(self, name: str) -> object:
         return getattr(self.client, name)
