@@ -1,6 +1,6 @@
 #!/bin/bash
 # The checks this project runs on a machine with a GPU, in one go (BENCHMARKS.md section 12): the CUDA
-# graph's tests against eager updates on the GPU, its speed against eager updates (bench.cuda_graph), the
+# graph's tests against eager updates on the GPU and the pinned batches' test, its speed against eager updates (bench.cuda_graph), the
 # --device cuda journeys (bench/cuda_journeys.sh), the learner role against main.py (bench.learner_rate),
 # and HalfCheetah toward 3,000 with 1, 4 and 12 actors side by side for L seconds (bench/scaling_parallel.sh). Packages the machine lacks can travel as wheels in .whl/
 # (installed into /tmp/site first; on 2026-11-29 the H200 image lacked gymnasium, farama-notifications, mujoco,
@@ -18,8 +18,8 @@ if ls .whl/*.whl >/dev/null 2>&1; then
 fi
 export PYTHONUNBUFFERED=1
 nvidia-smi -L 2>/dev/null; echo "cores $(nproc)"; $PY -c "import torch; print('torch', torch.__version__)"; date
-echo "== tests/algorithm/test_update_graph.py"
-timeout 150 $PY -m pytest -q -p no:cacheprovider tests/algorithm/test_update_graph.py 2>&1 | tail -12
+echo "== tests/algorithm/test_update_graph.py, tests/ds/test_packed.py (pinned batches)"
+timeout 150 $PY -m pytest -q -p no:cacheprovider tests/algorithm/test_update_graph.py tests/ds/test_packed.py 2>&1 | tail -12
 echo "== bench.cuda_graph"
 timeout 120 $PY -m bench.cuda_graph --rounds 5 --updates 300 --out "$O/cuda_graph.csv" 2>&1 | tail -6
 echo "== bench/cuda_journeys.sh"
