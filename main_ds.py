@@ -369,6 +369,9 @@ def run(args: argparse.Namespace) -> int:
 
 
 def run_role(role: str, context: RoleContext, args: argparse.Namespace) -> int:
+    from ds.net.heap import keep_freed_memory
+
+    keep_freed_memory()  # every role moves messages of hundreds of KB
     if role == "evolver":
         from ds.evolver.role import run_evolver
 

@@ -65,7 +65,10 @@ def serve(
 ) -> None:
     """A replay process: a table of ``window``-step windows prefilled with ``PREFILL`` random steps
     behind the gRPC servicer, its port put in ``port.value``, until ``stop`` is set."""
+    from ds.net.heap import keep_freed_memory
     from ds.replay.service import serve_replay
+
+    keep_freed_memory()  # as main_ds.py does for every role
 
     table, rng = make_table(sensors, action_size, window, rnn_state_size), np.random.default_rng(1)
     for _ in range(PREFILL // CHUNK):

@@ -135,7 +135,7 @@ class Learner:
         ckpt_step: int | None = None,
         progress: bool = False,
         member: Membership | None = None,
-        prefetch_depth: int = 8,
+        prefetch_depth: int = 16,
         info_every_s: float = 0.25,
         republish_every_s: float = 2.0,
     ) -> None:
@@ -249,7 +249,7 @@ class Learner:
         limiter surplus, in batches) plus the batches already fetched, so the last data is trained on."""
         batch_size = self.config.replay_config.batch_size
         self._poll_replay()
-        owed = math.floor(max(self.replay_surplus, 0.0) / batch_size) + self.prefetch_depth
+        owed = math.floor(max(self.replay_surplus, 0.0) / batch_size) + self.prefetcher.ahead
         trained = 0
         while trained < owed and not self.stop.is_set():
             batch = self.prefetcher.get(timeout=1.0)

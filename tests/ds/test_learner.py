@@ -60,20 +60,21 @@ def free_port() -> int:
 
 
 def test_prefetcher_fills_its_queue_then_blocks_and_counts(over_grpc: ServeOverGrpc) -> None:
+    """Three batches per call, a queue of one call: one call queued and one held while the queue is full."""
     client = over_grpc(filled())
-    prefetcher = BatchPrefetcher(client, batch_size=8, depth=2)
+    prefetcher = BatchPrefetcher(client, batch_size=8, depth=2, per_call=3)
     prefetcher.start()
     try:
         until(lambda: prefetcher.full_waits >= 1)  # queue full: the thread waits instead of dropping
-        assert prefetcher.metrics()["learner/prefetch_queue"] == 2
-        batches = [prefetcher.get(timeout=5) for _ in range(5)]
+        assert prefetcher.sampled == 6 and prefetcher.metrics()["learner/prefetch_queue"] == 6
+        batches = [prefetcher.get(timeout=5) for _ in range(4)]
         assert all(b is not None and b.batch_size == 8 for b in batches)
-        # every batch drawn was delivered (5), is queued (2) or is held by the blocked thread (1);
-        # full_waits may have reached 2 during the gets already, so wait on the counts themselves
-        until(lambda: prefetcher.sampled == 5 + 2 + 1 and prefetcher.metrics()["learner/prefetch_queue"] == 2)
+        # taking the first call's batches freed the queue (the second went in, a third was drawn); taking
+        # the second's first freed it again: 4 delivered, 2 taken and not yet handed out, 3 queued, 3 held
+        until(lambda: prefetcher.sampled == 12 and prefetcher.metrics()["learner/prefetch_queue"] == 8)
         time.sleep(0.3)  # blocked, not dropping: nothing more is drawn while the queue stays full
-        assert prefetcher.sampled == 5 + 2 + 1
-        assert prefetcher.full_waits >= 2
+        assert prefetcher.sampled == 12 and prefetcher.calls == 4
+        assert prefetcher.full_waits >= 2  # the second call's batches, and the fourth's (the third's may not)
     finally:
         prefetcher.stop()
 
