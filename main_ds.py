@@ -394,7 +394,7 @@ def local(args: argparse.Namespace, config: Config, run_dir: Path, creds: securi
     ``base_config.evolver_enabled``: N defaults to 2), an evolver, N replays, N learners and the actors.
     Without ``net_config.token_file`` (nor ``--no_token``) the run gets a fresh token in ``<run>/token``
     (mode 0600), handed to every child as an explicit one is: ``--override net.token_file=<run>/token``."""
-    from ds.launch.local import run_local
+    from ds.launch.local import learner_threads, run_local
     from ds.launch.local_summary import PlayableRun, resume_argv, summary
 
     learners = local_learners(args, config)
@@ -425,6 +425,9 @@ def local(args: argparse.Namespace, config: Config, run_dir: Path, creds: securi
         "learner": [] if args.ckpt is None else ["--ckpt", str(args.ckpt)],
         "actor": [] if args.noise is None else ["--noise", str(args.noise)],
     }
+    if not config.base_config.torch_threads:  # torch would give each learner every core the actors use too
+        threads = learner_threads(args.actors, learners)
+        extra["learner"] += ["--override", f"base.torch_threads={threads}"]
     command = [sys.executable, str(here), args.env]
     return run_local(command, child_args(args, config) + token_flags, args.actors, extra, learners=learners,
                      credentials=creds, run=playable)  # fmt: skip

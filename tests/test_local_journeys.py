@@ -24,6 +24,7 @@ import torch
 import yaml
 
 from algorithm.evaluation import read_evaluations
+from ds.launch.local import learner_threads
 from tests.role_runs import (
     ENV,
     TINY,
@@ -222,6 +223,8 @@ def test_a_local_run_is_placed_by_the_launcher_draws_random_params_and_says_the_
     assert drawn and saved["sac_config"]["n_step"] in (2, 3) and 0.001 <= saved["sac_config"]["tau"] <= 0.01, out
     assert f"sac_config.n_step={saved['sac_config']['n_step']}" in drawn.group(1)
     assert saved["actor_config"]["noise_max"] == 0.2
+    # torch's threads left to it (0): the learner gets the cores less the actor's and the replay's
+    assert saved["base_config"]["torch_threads"] == learner_threads(1, None) == max(1, (os.cpu_count() or 1) - 2)
     learner_said = re.search(r"^\[learner\] .*learner of run", out, re.M)
     assert learner_said, out[-4000:]
 

@@ -253,6 +253,16 @@ def plan(
     return children + [(f"actor-{i}", child("actor", *actor, "--index", str(i))) for i in range(actors)]
 
 
+def learner_threads(actors: int, learners: int | None, cores: int | None = None) -> int:
+    """Torch threads for each learner of a ``local`` run whose config leaves them to torch (0): the
+    cores less one per actor process and one for the replay, shared by the learners, at least 1.
+    Torch alone would give every learner every core, and the learner's threads would then wait on
+    the actors' and the replay's (on 2 cores a 2-thread learner beside one actor updated 1.2x
+    slower than with 1 thread; small batches gain little from a second thread anyway)."""
+    cores = cores or os.cpu_count() or 1
+    return max(1, (cores - actors - 1) // (learners or 1))
+
+
 def unset(*peers: str) -> list[str]:
     """Overrides that clear the addresses of ``peers``, so that a child asks for them (or has none)."""
     return [arg for peer in peers for arg in ("--override", f"net.{peer}_host=null")]

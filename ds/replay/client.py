@@ -42,6 +42,7 @@ from ds.replay.codec import (
     GRPC_DEFAULT_MESSAGE_BYTES,
     ReplaySpecs,
     chunk_to_proto,
+    split_sample_reply,
 )
 from ds.replay.packed import Allocate
 from protos import replay_pb2, replay_pb2_grpc
@@ -115,6 +116,10 @@ class ReplayClient(RpcClient):
         self.max_message_bytes = int(max_message_bytes)
         self.file_timeout_s = float(file_timeout_s)
         self.poll_s = float(poll_s)
+        # Sample's reply as the bytes received: batches are read from them (split_sample_reply)
+        self._sample_bytes = self.channel.unary_unary(
+            "/asac.ReplayService/Sample", request_serializer=replay_pb2.SampleRequest.SerializeToString
+        )
 
     # ------------------------------------------------------------------ the table interface
 
@@ -205,10 +210,10 @@ class ReplayClient(RpcClient):
         on CUDA; None: new memory) and the batches are views of it. Raises :class:`SampleTimeout` as
         :meth:`sample` does."""
         request = replay_pb2.SampleRequest(batch_size=int(batch_size), batches=int(count))
-        reply = self._blocking("Sample", self._stub.Sample, request, timeout, SampleTimeout)
+        reply, data = split_sample_reply(self._blocking("Sample", self._sample_bytes, request, timeout, SampleTimeout))
         if not 1 <= len(reply.table_size) <= max(int(count), 1):
             raise WireError("table_size", f"holds {len(reply.table_size)} batches, expected 1 to {max(int(count), 1)}")
-        return self.specs.batches_from_reply(reply, int(batch_size), allocate=allocate)
+        return self.specs.batches_from_reply(reply, int(batch_size), allocate=allocate, data=data)
 
     def windows_after(self, key: int, limit: int) -> Batch | None:
         """The windows of the oldest ``limit`` stored steps with keys ``>= key`` (None: none); see

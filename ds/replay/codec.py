@@ -113,15 +113,22 @@ class ReplaySpecs:
         return _layout(self.sensors, self.action_size, int(batch_size), int(window), self.rnn_state_size)
 
     def batches_from_reply(
-        self, msg: replay_pb2.SampleReply, batch_size: int, window: int | None = None, allocate: Allocate | None = None
+        self,
+        msg: replay_pb2.SampleReply,
+        batch_size: int,
+        window: int | None = None,
+        allocate: Allocate | None = None,
+        data: bytes | memoryview | None = None,
     ) -> list[Batch]:
         """The checked batches of a SampleReply of ``batch_size`` windows (``window`` steps each;
-        None: as the reply says), in memory from ``allocate`` (see :func:`~ds.replay.packed.unpack_batches`)."""
+        None: as the reply says), in memory from ``allocate`` (see :func:`~ds.replay.packed.unpack_batches`).
+        ``data``: the reply's data where it was kept apart (:func:`split_sample_reply`)."""
         if msg.batch_size != batch_size:
             raise WireError("batch_size", f"is {msg.batch_size}, expected {batch_size}")
         if msg.window < 1 or (window is not None and msg.window != window):
             raise WireError("window", f"is {msg.window}, expected {window if window is not None else '>= 1'}")
-        return unpack_batches(self.layout(batch_size, msg.window), msg.data, msg.table_size, allocate)
+        payload = msg.data if data is None else data
+        return unpack_batches(self.layout(batch_size, msg.window), payload, msg.table_size, allocate)
 
     # ------------------------------------------------------------------ info (server -> anyone)
 
@@ -189,6 +196,44 @@ def sample_reply(layout: BatchLayout, batches: list[Batch]) -> replay_pb2.Sample
         table_size=[b.table_size for b in batches],
         data=pack_batches(layout, batches),
     )
+
+
+def split_sample_reply(raw: bytes) -> tuple[replay_pb2.SampleReply, memoryview]:
+    """A serialised SampleReply as its small fields (parsed) and its data (a view of ``raw``, not a
+    copy): the learner reads batches straight from the received bytes, two copies of each fewer than
+    parsing the message and then taking its ``data``. A field the message does not define, or bytes
+    that end inside a field, are a :class:`WireError`."""
+    view, pos, kept, data = memoryview(raw), 0, bytearray(), memoryview(b"")
+    while pos < len(raw):
+        start = pos
+        tag, pos = _varint(raw, pos)
+        field, wire_type = tag >> 3, tag & 7
+        if wire_type == 0 and field in (1, 2, 3):  # batch_size, window; table_size unpacked
+            _, pos = _varint(raw, pos)
+        elif wire_type == 2 and field in (3, 4):  # table_size packed; data
+            size, pos = _varint(raw, pos)
+            if pos + size > len(raw):
+                raise WireError("SampleReply", f"field {field} runs past the message's end")
+            if field == 4:
+                data, pos = view[pos : pos + size], pos + size
+                continue
+            pos += size
+        else:
+            raise WireError("SampleReply", f"has field {field} of wire type {wire_type}, which it does not define")
+        kept += raw[start:pos]
+    return replay_pb2.SampleReply.FromString(bytes(kept)), data
+
+
+def _varint(raw: bytes, pos: int) -> tuple[int, int]:
+    value = shift = 0
+    while True:
+        if pos >= len(raw) or shift > 63:
+            raise WireError("SampleReply", "ends inside a number")
+        byte = raw[pos]
+        value |= (byte & 0x7F) << shift
+        pos, shift = pos + 1, shift + 7
+        if not byte & 0x80:
+            return value, pos
 
 
 def info_to_proto(info: ReplayInfo) -> replay_pb2.InfoReply:

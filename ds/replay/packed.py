@@ -119,7 +119,7 @@ def pack_batches(layout: BatchLayout, batches: Sequence[Batch]) -> bytes:
 
 
 def unpack_batches(
-    layout: BatchLayout, data: bytes, table_sizes: Sequence[int], allocate: Allocate | None = None
+    layout: BatchLayout, data: bytes | memoryview, table_sizes: Sequence[int], allocate: Allocate | None = None
 ) -> list[Batch]:
     """The batches of ``data``: copied once into ``allocate(len(data))`` (a writable uint8 array of
     that many bytes, such as a pinned buffer's; None: new memory), checked there and returned as

@@ -13,7 +13,7 @@ from algorithm.spaces import SensorSpec
 from algorithm.types import Batch, Chunk
 from ds.learner.feeds import BatchPrefetcher
 from ds.net.wire import WireError
-from ds.replay.codec import ReplaySpecs, message_limit_bytes, sample_reply
+from ds.replay.codec import ReplaySpecs, message_limit_bytes, sample_reply, split_sample_reply
 from ds.replay.packed import ALIGN, BatchLayout, pack_batches, unpack_batches
 from tests.ds.conftest import ServeOverGrpc
 
@@ -197,3 +197,27 @@ def test_on_cuda_batches_land_in_pinned_memory(over_grpc: ServeOverGrpc) -> None
     finally:
         prefetcher.stop()
     assert batch is not None and torch.from_numpy(batch.actions).is_pinned()
+
+
+def test_a_reply_split_from_its_bytes_is_the_message_and_a_bad_one_is_refused() -> None:
+    specs = ReplaySpecs((VECTOR,), 2)
+    rng = np.random.default_rng(7)
+    sent = [random_batch(rng, (VECTOR,), 4, 1, 0) for _ in range(2)]
+    reply = sample_reply(specs.layout(4, 1), sent)
+    header, data = split_sample_reply(reply.SerializeToString())
+    assert (header.batch_size, header.window, list(header.table_size), header.data) == (
+        4,
+        1,
+        [s.table_size for s in sent],
+        b"",
+    )
+    assert bytes(data) == reply.data
+    for got, batch in zip(specs.batches_from_reply(header, 4, data=data), sent, strict=True):
+        assert_same(got, batch)
+    raw = reply.SerializeToString()
+    with pytest.raises(WireError, match="runs past the message's end"):
+        split_sample_reply(raw[:-1])
+    with pytest.raises(WireError, match="has field 9 of wire type 0"):
+        split_sample_reply(raw + bytes([9 << 3, 1]))
+    with pytest.raises(WireError, match="ends inside a number"):
+        split_sample_reply(bytes([1 << 3, 0x80]))
