@@ -1,8 +1,10 @@
 #!/bin/bash
 # The checks this project runs on a machine with a GPU, in one go (BENCHMARKS.md section 12): the CUDA
-# graph's tests against eager updates on the GPU and the pinned batches' test, its speed against eager updates (bench.cuda_graph), the
-# --device cuda journeys (bench/cuda_journeys.sh), the learner role against main.py (bench.learner_rate),
-# and HalfCheetah toward 3,000 with 1, 4 and 12 actors side by side for L seconds (bench/scaling_parallel.sh). Packages the machine lacks can travel as wheels in .whl/
+# graph's tests against eager updates on the GPU and the pinned batches' test, its speed against eager
+# updates (bench.cuda_graph), the --device cuda journeys (bench/cuda_journeys.sh), the learner role
+# against main.py (bench.learner_rate), and HalfCheetah toward 3,000 with -c throughput and 1, 2, 4 and
+# 8 actors side by side for L seconds (bench/scaling_parallel.sh). Packages the machine lacks can travel
+# as wheels in .whl/
 # (installed into /tmp/site first; on 2026-11-29 the H200 image lacked gymnasium, farama-notifications, mujoco,
 # glfw, pyopengl, pyzmq, pydantic, pydantic_core, annotated-types, typing-inspection and grpcio-health-checking,
 # and needed grpcio 1.85.3 and protobuf 7.36.2 for protos/: fetch them with `pip download --no-deps
@@ -27,6 +29,6 @@ PYTHON=$PY timeout 200 bash bench/cuda_journeys.sh "$D" 2>&1
 grep -h "CUDA graph" /tmp/m1.log /tmp/m2.log 2>/dev/null | head -4
 echo "== bench.learner_rate: the learner role against main.py's CUDA-graph loop, same config"
 timeout 300 $PY -m bench.learner_rate mujoco/half_cheetah --steps 16000 --device "$D" --out "$O/learner_rate.csv" 2>&1 | tail -3
-echo "== HalfCheetah, 1, 4 and 12 actors side by side, $L s"; date
-OUT=$O timeout $((L + 90)) bash bench/scaling_parallel.sh "$L" "$D" "$PY" 2>&1 | tail -30
+echo "== HalfCheetah -c throughput, 1, 2, 4 and 8 actors side by side, $L s"; date
+ACTORS="1 2 4 8" SECTION=throughput OUT=$O timeout $((L + 90)) bash bench/scaling_parallel.sh "$L" "$D" "$PY" 2>&1 | tail -30
 date

@@ -1,6 +1,6 @@
 """How a distributed HalfCheetah run scales with the number of actor processes.
 
-    python -m bench.scaling [--actors 1 2 4 8 12] [--device cuda] [--limit-s 85] [--seed 0]
+    python -m bench.scaling [--actors 1 2 4 8 12] [-c SECTION] [--device cuda] [--limit-s 85] [--seed 0]
                             [--threshold 3000] [--out bench/results/scaling.csv]
 
 For each actor count, ``main_ds.py mujoco/half_cheetah local --actors N`` runs with the task's
@@ -88,6 +88,7 @@ def run_one(args: argparse.Namespace, actors: int, root: str, log_dir: Path) -> 
     run = f"actors_{actors}"
     command = [
         sys.executable, "main_ds.py", TASK, "local", "--actors", str(actors), "--device", args.device,
+        *(["-c", args.config] if args.config else []),
         "-n", run, "--model_root", root, "--override", f"sac.seed={args.seed}",
         "--override", f"base.max_step={args.max_steps}",
         *(a for o in args.override for a in ("--override", o)),
@@ -133,6 +134,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--actors", type=int, nargs="+", default=[1, 2, 4, 8, 12])
     parser.add_argument("--device", default="cuda")
+    parser.add_argument("-c", "--config", default=None, help="the task's config section (e.g. throughput)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--threshold", type=float, default=3000.0)
     parser.add_argument("--limit-s", type=float, default=85.0, help="wall seconds per actor count")
