@@ -16,6 +16,7 @@ from pathlib import Path
 
 import pytest
 
+from ds.learner.feeds import BatchPrefetcher
 from envs.make import make_vector_env
 from tests.role_runs import RoleRun, flags, rss_mb, running, scalars
 
@@ -24,7 +25,9 @@ DURATION_S = float(os.environ.get("ASAC_SOAK_S", "600"))
 SAMPLE_EVERY_S = min(10.0, DURATION_S / 30)
 ACTORS = 4
 CAPACITY = 20_000  # rows: full within seconds at full speed, then every insert evicts
-PREFETCH_DEPTH, PRIORITY_DEPTH = 16, 64  # ds/learner/learner.py's and ds/learner/feeds.py's queue sizes
+# Batches the learner's prefetcher may hold ahead with ds/learner/learner.py's depth (16 batches, 16 per
+# call: 48) and ds/learner/feeds.py's priority queue size.
+PREFETCH_AHEAD, PRIORITY_DEPTH = BatchPrefetcher(None, batch_size=1, depth=16).max_ahead, 64  # type: ignore[arg-type]
 # ReplaySink with the actor's defaults (actor_config.inserts_in_flight 1, chunks_per_insert = n_agents
 # = 1): one insert of one chunk on its way and one waiting (ReplaySink.max_backlog).
 SINK_BACKLOG = (1 + 1) * 1
@@ -113,7 +116,7 @@ def test_four_actors_at_full_speed_for_ten_minutes_memory_and_queues_stay_bounde
     assert last[-1] > last[0]  # inserting to the end
 
     # Every queue a role reports stays within its bound for the whole run.
-    for tag, bound in (("learner/prefetch_queue", PREFETCH_DEPTH), ("learner/priority_queue", PRIORITY_DEPTH)):
+    for tag, bound in (("learner/prefetch_queue", PREFETCH_AHEAD), ("learner/priority_queue", PRIORITY_DEPTH)):
         written = [v for _, _, v in scalars(run.run / "log/learner", tag)]
         assert written and max(written) <= bound, (tag, max(written))
     updates = [v for _, _, v in scalars(run.run / "log/learner", "learner/updates")]

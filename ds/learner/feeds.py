@@ -74,7 +74,8 @@ class BatchPrefetcher(_Worker):
     of CPU, shared by several batches). Each call's batches go into a queue as one item, at most
     ``ceil(depth / per_call)`` items (at least ``depth`` batches) waiting; :meth:`get` hands them out
     one by one. So the thread is woken once per call, not per batch (waking a thread costs ~0.1 ms of
-    CPU on a virtual machine), and at most :attr:`ahead` batches are drawn ahead of training. The
+    CPU on a virtual machine). :attr:`ahead` batches are drawn ahead of training, never more than
+    :attr:`max_ahead`: the queued calls, the call being handed out and the one the thread holds. The
     replay being short of data (SampleTimeout) or unreachable (UNAVAILABLE) is waited out, logged now
     and then; a full queue blocks the thread (``full_waits`` counts the blocked puts,
     ``full_wait_seconds`` their time); any other replay error stops it and :meth:`get` raises it.
@@ -113,6 +114,12 @@ class BatchPrefetcher(_Worker):
     def ahead(self) -> int:
         """Batches drawn and not yet handed out (queued, taken, or held by the blocked thread)."""
         return self.sampled - self.delivered
+
+    @property
+    def max_ahead(self) -> int:
+        """The most batches :attr:`ahead` can reach: the queue full, one call's batches being handed
+        out, one more held by the thread waiting for room."""
+        return (self._queue.maxsize + 2) * self.per_call
 
     def get(self, timeout: float) -> Batch | None:
         """The next batch, or None if none came within ``timeout`` seconds."""

@@ -74,6 +74,7 @@ def test_prefetcher_fills_its_queue_then_blocks_and_counts(over_grpc: ServeOverG
         until(lambda: prefetcher.sampled == 12 and prefetcher.metrics()["learner/prefetch_queue"] == 8)
         time.sleep(0.3)  # blocked, not dropping: nothing more is drawn while the queue stays full
         assert prefetcher.sampled == 12 and prefetcher.calls == 4
+        assert prefetcher.max_ahead == 9  # one call queued, one being handed out, one held: 3 batches each
         assert prefetcher.full_waits >= 2  # the second call's batches, and the fourth's (the third's may not)
     finally:
         prefetcher.stop()
