@@ -2,14 +2,19 @@
 
 from __future__ import annotations
 
+import re
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
 import yaml
 
 from algorithm.config import load_config
+from algorithm.evaluation import read_evaluations
 from algorithm.trainer import EmbeddedTrainer
 from envs.make import vector_env_factory
+from tests.role_runs import ENV
 
 ROOT = Path(__file__).resolve().parents[1]
 TASKS = sorted(str(p.parent.relative_to(ROOT / "envs")) for p in (ROOT / "envs").glob("*/*/config.yaml"))
@@ -89,3 +94,38 @@ def test_an_annealed_step_size_ends_with_its_run(task: str) -> None:
                 continue
             updates = c.replay_config.updates_per_step * (max_step - c.replay_config.min_size_to_sample)
             assert c.sac_config.learning_rate_anneal_updates == updates, (task, section, max_step)
+
+
+@pytest.mark.slow
+@pytest.mark.grpc
+def test_the_throughput_variant_trains_through_both_launchers(tmp_path: Path) -> None:
+    """``-c throughput`` (README: for many actors) as a user runs it, on HalfCheetah with a small net:
+    ``main_ds.py TASK local --actors 2 -c throughput`` finishes at its budget with each actor on 4 envs,
+    the learner on batches of 1,024 with weights published by its 1% budget, every collected step
+    stored; ``main.py TASK -c throughput`` trains the same section in one process."""
+    small = ["nn.hidden_units=[16,16]", "replay.min_size_to_sample=1100", "base.max_step=1600",
+             "eval.eval_per_step=800", "eval.eval_episodes=1", "eval.eval_envs=1", "sac.seed=0"]  # fmt: skip
+    args = [a for o in small for a in ("--override", o)] + ["-c", "throughput", "--no_progress"]
+    done = subprocess.run([sys.executable, str(ROOT / "main_ds.py"), "mujoco/half_cheetah", "local", "--actors", "2",
+                           "-n", "wide", *args], cwd=tmp_path, env=ENV, text=True, stdout=subprocess.PIPE,
+                          stderr=subprocess.STDOUT, timeout=600)  # fmt: skip
+    out = done.stdout
+    assert done.returncode == 0, out[-4000:]
+    assert len(re.findall(r"^\[actor-\d\] .*actor .*: index \d, noise .*, 4 envs$", out, re.M)) == 2, out[-4000:]
+    collected = sum(int(n) for n in re.findall(r"^\[actor-\d\] .*actor \d finished after (\d+) env steps", out, re.M))
+    ended = int(re.findall(r"^\[learner\] .*learner finished after (\d+) env steps", out, re.M)[0])
+    assert ended == collected >= 1600, out[-4000:]
+    run = tmp_path / "models/mujoco/half_cheetah/wide"
+    saved = yaml.safe_load((run / "config.yaml").read_text())
+    assert saved["replay_config"]["batch_size"] == 1024 and saved["base_config"]["n_agents"] == 4
+    assert saved["sac_config"]["publish_budget"] == 0.01 and saved["sac_config"]["learning_rate"] == 1e-3
+    assert read_evaluations(run / "evaluations.csv"), out[-4000:]
+
+    done = subprocess.run([sys.executable, str(ROOT / "main.py"), "mujoco/half_cheetah", "-n", "one", *args],
+                          cwd=tmp_path, env=ENV, text=True, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                          timeout=600)  # fmt: skip
+    assert done.returncode == 0, done.stdout[-4000:]
+    one = tmp_path / "models/mujoco/half_cheetah/one"
+    assert yaml.safe_load((one / "config.yaml").read_text())["replay_config"] == saved["replay_config"]
+    last = read_evaluations(one / "evaluations.csv")[-1]
+    assert last["env_steps"] >= 1600 and last["updates"] > 0, last
