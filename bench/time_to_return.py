@@ -2,6 +2,7 @@
 
     python -m bench.time_to_return mujoco/half_cheetah --threshold 3000 --seeds 0 1 2 3 4 \\
         --contender "main.py" --contender "local --actors 2 -c throughput" [--limit-s 2400] [--out FILE]
+        [--summarize]
 
 Each contender is a launcher and its arguments: ``main.py ARGS`` runs ``python main.py TASK ARGS``,
 ``local ARGS`` runs ``python main_ds.py TASK local ARGS``. For each seed, each contender runs alone
@@ -11,12 +12,15 @@ then it is interrupted (it saves and stops). The wall seconds count from the lau
 warm-up and evaluations are in. Rows (one per run) go to ``--out`` as they land; the summary gives
 per contender the runs that reached the threshold, the median and worst wall seconds and env steps,
 and each contender's median against the first's with a 90% interval over the seeds drawn again
-(a run that did not reach it counts as ``--limit-s``).
+(a run that did not reach it counts as ``--limit-s``). ``--summarize`` runs nothing: it summarises the
+rows already in ``--out`` for the task, threshold, contenders and seeds given (runs made in several
+sittings).
 """
 
 from __future__ import annotations
 
 import argparse
+import csv
 import shlex
 import statistics
 import sys
@@ -62,9 +66,23 @@ def main() -> None:
     parser.add_argument("--contender", action="append", required=True, help='"main.py ARGS" or "local ARGS"')
     parser.add_argument("--limit-s", type=float, default=2400.0)
     parser.add_argument("--out", type=Path, default=ROOT / "bench" / "results" / "time_to_return" / "rows.csv")
+    parser.add_argument("--summarize", action="store_true", help="summarise the rows in --out; run nothing")
     args = parser.parse_args()
 
     results: dict[str, list[tuple[float, int]]] = {c: [] for c in args.contender}
+    if args.summarize:
+        with args.out.open(newline="") as f:
+            for row in csv.DictReader(f):
+                seed_matches = int(row["seed"]) in args.seeds and row["contender"] in results
+                if seed_matches and (row["task"], float(row["threshold"])) == (args.task, args.threshold):
+                    wall = float(row["wall_s"]) if row["reached"] == "True" else float("inf")
+                    results[row["contender"]].append((wall, int(row["env_steps"])))
+    else:
+        run_all(args, results)
+    summarize(args, results)
+
+
+def run_all(args: argparse.Namespace, results: dict[str, list[tuple[float, int]]]) -> None:
     with tempfile.TemporaryDirectory() as root:
         for seed in args.seeds:
             for i, contender in enumerate(args.contender):
@@ -81,6 +99,8 @@ def main() -> None:
                 print(f"seed {seed}, {contender}: {f'{wall:.0f} s, {steps} env steps' if reached else 'not reached'}",
                       flush=True)  # fmt: skip
 
+
+def summarize(args: argparse.Namespace, results: dict[str, list[tuple[float, int]]]) -> None:
     print(f"\n{args.task} to {args.threshold:g}, seeds {args.seeds}, one run at a time, wall seconds from launch")
     print("| contender | reached | median s (worst) | median env steps | each seed (s) | median / first's (90%) |")
     print("|---|---|---|---|---|---|")
