@@ -280,6 +280,18 @@ def sample_reply_bytes(
     return batch_payload_bytes(sensors, action_size, batch_size, window, rnn_state_size) + TENSOR_FRAMING_BYTES
 
 
+def batches_per_reply(
+    sensors: tuple[SensorSpec, ...], action_size: int, batch_size: int, window: int, rnn_state_size: int,
+    max_message_bytes: int,
+) -> int:  # fmt: skip
+    """How many batches one SampleReply carries within ``max_message_bytes`` (0: not even one): the
+    first with the reply's framing, each further one its data."""
+    size = sample_reply_bytes(sensors, action_size, batch_size, window, rnn_state_size)
+    if size > max_message_bytes:
+        return 0
+    return (max_message_bytes - size) // max(size - TENSOR_FRAMING_BYTES, 1) + 1
+
+
 def message_limit_bytes(
     sensors: tuple[SensorSpec, ...],
     action_size: int,

@@ -55,8 +55,8 @@ from ds.net.security import ACTOR, LEARNER, NO_CREDENTIALS, Credentials
 from ds.net.wire import WireError, to_tensor
 from ds.replay.codec import (
     GRPC_DEFAULT_MESSAGE_BYTES,
-    TENSOR_FRAMING_BYTES,
     ReplaySpecs,
+    batches_per_reply,
     info_to_proto,
     message_limit_bytes,
     sample_reply,
@@ -145,8 +145,10 @@ class ReplayServicer(replay_pb2_grpc.ReplayServiceServicer):
 
     def Sample(self, request: replay_pb2.SampleRequest, context: grpc.ServicerContext) -> replay_pb2.SampleReply:
         spec, b, window = self.specs, request.batch_size, self.table.window
-        size = sample_reply_bytes(spec.sensors, spec.action_size, b, window, spec.rnn_state_size)
-        if size > self.max_message_bytes:  # refuse before drawing: a drawn batch would be lost
+        fitting = batches_per_reply(spec.sensors, spec.action_size, b, window, spec.rnn_state_size,
+                                    self.max_message_bytes)  # fmt: skip
+        if not fitting:  # refuse before drawing: a drawn batch would be lost
+            size = sample_reply_bytes(spec.sensors, spec.action_size, b, window, spec.rnn_state_size)
             context.abort(
                 grpc.StatusCode.RESOURCE_EXHAUSTED,
                 f"a batch of {b} windows of {window} steps is about {size} bytes, over this replay "
@@ -155,7 +157,6 @@ class ReplayServicer(replay_pb2_grpc.ReplayServiceServicer):
             )
         if request.batches < 0:
             context.abort(grpc.StatusCode.INVALID_ARGUMENT, f"batches must be >= 0, got {request.batches}")
-        fitting = (self.max_message_bytes - size) // max(size - TENSOR_FRAMING_BYTES, 1) + 1
         wanted = min(max(request.batches, 1), fitting)
         with _status_codes(context):
             batches = [self.table.sample(b, _wait_seconds(request, context))]
