@@ -14,6 +14,11 @@ import os
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
+from ds.net.grpc_env import read_replies_on_calling_thread
+
+if __name__ == "__main__":  # a role process, not a test importing the parser
+    read_replies_on_calling_thread()  # before grpc is imported (ds/net/grpc_env.py)
+
 from algorithm.signals import exit_quietly_on_sigint
 
 exit_quietly_on_sigint()  # a Ctrl-C while still importing: exit 130, no traceback

@@ -30,6 +30,10 @@ import os
 
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
+from ds.net.grpc_env import read_replies_on_calling_thread  # noqa: E402
+
+read_replies_on_calling_thread()  # as main_ds.py does for every role (ds/net/grpc_env.py)
+
 import argparse  # noqa: E402
 import multiprocessing as mp  # noqa: E402
 import statistics  # noqa: E402
