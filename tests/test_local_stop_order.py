@@ -145,9 +145,12 @@ def test_the_resume_command_names_the_run_and_restores_the_latest_checkpoint(tmp
 def test_actor_k_is_started_asking_for_index_k() -> None:
     """Both a one-learner run and a population give actor k ``--index k``, the index it asks for."""
     for learners in (None, 2):
-        for name, argv in plan(["main_ds.py", "gym/pendulum"], [], 3, learners=learners):
-            if name.startswith("actor-"):
-                assert argv[argv.index("--index") + 1] == name.removeprefix("actor-")
+        asked = {
+            name: argv[argv.index("--index") + 1]
+            for name, argv in plan(["main_ds.py", "gym/pendulum"], [], 3, learners=learners)
+            if name.startswith("actor-")
+        }
+        assert asked == {"actor-0": "0", "actor-1": "1", "actor-2": "2"}, learners
 
 
 def test_an_actor_asks_its_learner_for_its_index_first_and_its_own_index_after(monkeypatch: pytest.MonkeyPatch) -> None:
