@@ -224,7 +224,7 @@ class Policy:
         """Whether stochastic acting takes the most novel of RND's candidates: until the loop's env
         steps reach ``rnd_choice_steps`` (0: no limit) and until one of its episodes has returned
         ``rnd_choice_until_return`` (None: no limit). The choice leaves a path once its pairs are
-        familiar, also after it found the goal (BENCHMARKS.md section 8, MountainCar); ending it
+        familiar, also after it found the goal (bench/results/mountain_car/README.md); ending it
         hands acting back to the policy. A chance fading from 1 to 0, drawn per step, was tried
         first: mixing the two actions step by step lost the sustained push that finds the goal (4 of
         5 development seeds never found it)."""

@@ -29,7 +29,7 @@ def munchausen_scale_at(sac: SacConfig, updates: int) -> float:
     """The Munchausen term's weight after ``updates`` updates: ``munchausen_scale``, or with
     ``munchausen_scale_start`` set, moving linearly from it to ``munchausen_scale`` on the step size's
     schedule (``learning_rate_anneal_updates``). Starting at 0 keeps the early learning of plain targets,
-    which the term slows, and gives the later updates its wider action gaps (BENCHMARKS.md 8)."""
+    which the term slows, and gives the later updates its wider action gaps (bench/results/cartpole/README.md)."""
     start, final = sac.munchausen_scale_start, sac.munchausen_scale
     if start is None:
         return final

@@ -8,7 +8,7 @@ them as one. What stays outside the graph, run eagerly as without it: moving the
 input buffers, the noise draws (the same generator stream as without the graph), the non-finite check's
 one host sync, the optimizer steps and the target update. So an update computes the same with and without
 the graph (tests/algorithm/test_update_graph.py compares the weights after many updates); on an H200 it
-made 5.9x the updates per second with bit-identical weights (BENCHMARKS.md section 12).
+made 5.9x the updates per second with bit-identical weights (bench/results/gpu/README.md).
 
 Recording follows PyTorch's recipe for capturing a whole training step (the CUDA semantics notes, "CUDA
 Graphs"): a few warm-up passes on a side stream first, gradients set to None before recording so that the

@@ -7,10 +7,10 @@ Reported evaluations act with the mode (``argmax`` for a discrete policy, ``tanh
 continuous one). When a discrete policy's actions are near-equal in value for long stretches (a
 balanced CartPole pole), the argmax picks the same action whenever the tie leans one way, and a
 small systematic lean could walk the cart to the edge of its track over 500 steps, where sampling
-would jitter around it (on CartPole it does not: sampling scores below the mode; BENCHMARKS.md 8).
+would jitter around it (on CartPole it does not: sampling scores below the mode; bench/results/cartpole/README.md).
 This prints, per checkpoint, both returns, and how the mode's episodes ended: by the time limit,
 or (for CartPole, from the last observation) by the cart leaving the track (``|x| > 2.4``) or the
-pole falling (``|theta| > 12 degrees``) -- the diagnostic behind BENCHMARKS.md section 8's question
+pole falling (``|theta| > 12 degrees``) -- the diagnostic behind bench/results/cartpole/README.md's question
 of why CartPole's late evaluations dip.
 
 ``--critic STEP`` (a discrete policy) asks whether the critic of checkpoint STEP saw such an ending

@@ -8,7 +8,7 @@ inside the log: there ``1 - tanh(u)^2 ~ 4 exp(-2|u|)`` falls to ~1e-5 and below,
 the entropy bonus's pull back from the edge. Below ~5 the two agree to under 1% per dimension. This
 prints, per run (its latest checkpoint), the episode's return and the distribution of ``|mean u|`` over
 steps and action dimensions, and the policy's standard deviation: whether that difference can matter
-for the task at all (BENCHMARKS.md section 11). An SB3 model that ``python -m bench.vs_sb3 mujoco``
+for the task at all (bench/results/mujoco_float32/README.md). An SB3 model that ``python -m bench.vs_sb3 mujoco``
 saved (``<runs>/mujoco_suite/<task>/sb3_s<seed>_<k>k.zip``) is probed the same way, on the same env.
 """
 

@@ -1,6 +1,6 @@
 """ASAC's SAC update against SB3's, step for step, from the same weights, batches and noise.
 
-The MuJoCo suite (BENCHMARKS.md 11) compares the two systems by their returns, which swing by hundreds
+The MuJoCo suite (BENCHMARKS.md section 11) compares the two systems by their returns, which swing by hundreds
 between seeds. This checks the update itself. SB3 SAC is built for a task as the suite builds it, its
 initial weights are copied into an ASAC learner made from the task's config (float32), and both are
 stepped on the same batches of real transitions (uniformly random actions on the task's env, as in the
@@ -303,7 +303,7 @@ def rounding_floor(task: str, updates: int, seed: int, report: Report, reorder: 
     in another order (drawn from ``reorder``): the same sums taken in another order, what float32 rounding
     alone makes of :func:`compare`'s gaps. Training amplifies rounding once a row's input to a ReLU
     unit lands within rounding of 0 (:func:`relu_disagreements`): some orders take the gap from 1e-6 to
-    1e-3 within 200 Walker2d updates (BENCHMARKS.md 11), so the floor is a spread over orders."""
+    1e-3 within 200 Walker2d updates (bench/results/mujoco_float32/README.md), so the floor is a spread over orders."""
     torch.manual_seed(seed)
     one, batch = asac_learner(task, "critic_first")
     other, _ = asac_learner(task, "critic_first")

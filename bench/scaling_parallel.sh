@@ -1,6 +1,6 @@
 #!/bin/bash
 # HalfCheetah to 3,000 with several actor counts (ACTORS, default "1 4 12"), the local runs at once (16
-# cores, one GPU), each stopped at its first evaluation >= 3,000 or after L seconds (BENCHMARKS section
+# cores, one GPU), each stopped at its first evaluation >= 3,000 or after L seconds (BENCHMARKS.md section
 # 12); SECTION picks the config section (e.g. throughput; default: the task's default). Rows and logs
 # go to $OUT (default /tmp/ht_out). Usage: bash bench/scaling_parallel.sh [L] [DEVICE] [PYTHON]
 L=${1:-520}; D=${2:-cuda}; PY=${3:-python3}; O=${OUT:-/tmp/ht_out}; mkdir -p $O

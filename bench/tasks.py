@@ -11,10 +11,10 @@ the last evaluation's mean return, the lowest evaluation from the first that rea
 on ("kept": whether a result, once found, was held to the end), the final policy's mean return over
 ``--final-episodes`` more deterministic episodes (100 unless told; 0 skips them), and the wall time.
 One evaluation of 10 episodes is a noisy reading of a policy that fails now and then: a CartPole policy
-that loses the cart on 14% of its episodes scores 500 on 10 episodes about one time in five (BENCHMARKS.md
-8), and Gym's "solved" for CartPole-v1 is a mean of 475 over 100 episodes. ``--report``
-prints every row so far as the table of BENCHMARKS.md section 8. Examples (BENCHMARKS.md lists
-the exact commands behind its numbers):
+that loses the cart on 14% of its episodes scores 500 on 10 episodes about one time in five
+(bench/results/cartpole/README.md), and Gym's "solved" for CartPole-v1 is a mean of 475 over 100
+episodes. ``--report`` prints every row so far as the table in bench/results/features/README.md.
+Examples (BENCHMARKS.md and bench/results/ list the exact commands behind their numbers):
 
     python -m bench.tasks gym/cartpole --threshold 475 --steps 30000
     python -m bench.tasks gym/pendulum_novel -c feedforward --threshold -300 --steps 15000

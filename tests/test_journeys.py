@@ -148,7 +148,8 @@ def test_interrupted_at_three_points_the_same_command_resumes_each_time_and_ends
     assert re.search(r"replay restored from \S+replay\.npz: \d+ steps", resumed.stderr), resumed.stderr  # says so
     got = final_return(run)
     curve = [(int(r["env_steps"]), round(r["return_mean"], 1)) for r in read_evaluations(run / "evaluations.csv")]
-    print(f"evaluations {curve}, uninterrupted at the end {uninterrupted:.1f}")  # pytest -rP shows it (BENCHMARKS 6)
+    # pytest -rP shows it (bench/results/modes/README.md, "Evaluations after a resume")
+    print(f"evaluations {curve}, uninterrupted at the end {uninterrupted:.1f}")
     assert abs(got - uninterrupted) <= RETURN_BAND, f"resumed run ended at {got:.1f}, uninterrupted {uninterrupted:.1f}"
     # Started again once finished, it reports and leaves: the snapshot written at the last interruption
     # is neither loaded nor talked about (it was: "not loading replay.npz: checkpoint ... saved without it").
