@@ -142,7 +142,9 @@ def add_original_flags(p: argparse.ArgumentParser) -> None:
 
 
 def add_common_args(p: argparse.ArgumentParser) -> None:
-    p.add_argument("env", help="task folder under envs/, e.g. gym/pendulum or mujoco/half_cheetah")
+    p.add_argument(
+        "env", help="a task under envs/ (gym/pendulum, mujoco/half_cheetah) or the path of your own task folder"
+    )
     p.add_argument("-c", "--config", help="variant section of the task's config.yaml")
     p.add_argument("--run", action="store_true", help="play the latest (or --ckpt) checkpoint deterministically")
     p.add_argument("--render", action="store_true", help="with --run: show frames, or save an mp4 when headless")
@@ -173,20 +175,50 @@ def add_common_args(p: argparse.ArgumentParser) -> None:
 
 
 def task_dir(task: str) -> Path:
-    path = (ENVS_DIR / task).resolve()
-    if ENVS_DIR.resolve() not in path.parents or not (path / "config.yaml").is_file():
-        known = sorted(str(p.parent.relative_to(ENVS_DIR)) for p in ENVS_DIR.glob("*/*/config.yaml"))
-        raise UsageError(f"unknown task {task!r}: no envs/{task}/config.yaml. Known tasks: {', '.join(known)}")
-    return path
+    """The folder holding the task's ``config.yaml``: ``envs/<task>`` for ASAC's own tasks
+    (``gym/pendulum``), else ``task`` read as the path of a folder of the user's own (absolute, ``~``,
+    or relative to the working directory). Resolving a task also makes its modules importable (see
+    :func:`import_from_task_folder`), so every launcher and role that reads a task can make its envs."""
+    own = (ENVS_DIR / task).resolve()
+    if ENVS_DIR.resolve() in own.parents and (own / "config.yaml").is_file():
+        return own
+    folder = Path(task).expanduser()
+    if folder.is_dir() and (folder / "config.yaml").is_file() and folder.resolve().name:
+        folder = folder.resolve()
+        import_from_task_folder(folder)
+        return folder
+    known = sorted(str(p.parent.relative_to(ENVS_DIR)) for p in ENVS_DIR.glob("*/*/config.yaml"))
+    found = f"the folder {folder} holds no config.yaml" if folder.is_dir() else f"no folder {folder}"
+    raise UsageError(
+        f"unknown task {task!r}: no envs/{task}/config.yaml, and {found}. Give one of ASAC's tasks "
+        f"({', '.join(known)}) or the path of your own task folder holding a config.yaml (README: Your own environment)"
+    )
+
+
+def import_from_task_folder(folder: Path) -> None:
+    """Let ``base_config.build_path: mymodule:MyEnv-v0`` import a module from the task's own folder or
+    from the working directory (as ``python -m`` would), after everything installed: both go at the end
+    of ``sys.path``, so a module of the user's never shadows one of ASAC's or an installed package's."""
+    for path in (str(folder), os.getcwd()):
+        if path not in sys.path:
+            sys.path.append(path)
+
+
+def task_label(task: str) -> str:
+    """The ``<task>`` of ``<model_root>/<task>/<name>``: ASAC's task name (``gym/pendulum``, also when
+    given as ``envs/gym/pendulum``), or the name of a user's own task folder (``~/work/mytask``: ``mytask``)."""
+    folder, envs = task_dir(task), ENVS_DIR.resolve()
+    return folder.relative_to(envs).as_posix() if envs in folder.parents else folder.name
 
 
 def run_directory(model_root: str, task: str, name: str) -> Path:
-    """``<model_root>/<task>/<name>``; the name must stay inside the task's folder (it may have
-    subfolders: ``-n myrun/learner_1`` plays one learner of a population)."""
+    """``<model_root>/<task>/<name>`` (``<task>`` as :func:`task_label` names it); the name must stay
+    inside the task's folder (it may have subfolders: ``-n myrun/learner_1`` plays one learner of a population)."""
+    label = task_label(task)
     parts = Path(name).parts
     if not name.strip() or Path(name).is_absolute() or ".." in parts or "\0" in name:
-        raise UsageError(f"run name {name!r} must be a relative path inside {model_root}/{task}/ (no '..')")
-    return Path(model_root) / task / name
+        raise UsageError(f"run name {name!r} must be a relative path inside {model_root}/{label}/ (no '..')")
+    return Path(model_root) / label / name
 
 
 def check_writable(run_dir: Path, model_root: str) -> None:
@@ -351,9 +383,8 @@ def play(args: argparse.Namespace) -> int:
     from algorithm.policy import Policy
     from algorithm.seeding import seed_everything
 
-    task_dir(args.env)  # validates the task name
     check_device(args.device)
-    run_root = Path(args.model_root) / args.env
+    run_root = Path(args.model_root) / task_label(args.env)
     if args.name is None or "{time}" in args.name:
         runs = sorted((p for p in run_root.glob("*") if RunDir(p).config.exists()), key=lambda p: p.stat().st_mtime)
         if not runs:

@@ -57,6 +57,7 @@ from cli import (
     run_directory,
     setup_logging,
     task_dir,
+    task_label,
 )
 
 log = logging.getLogger("asac")
@@ -65,7 +66,7 @@ log = logging.getLogger("asac")
 def build_parser(prog: str = "main.py") -> argparse.ArgumentParser:
     p = ArgumentParser(
         prog=prog,
-        description="Train or play ASAC (Soft Actor-Critic) on a task from envs/.",
+        description="Train or play ASAC (Soft Actor-Critic) on a task from envs/ or your own task folder.",
         epilog="examples:\n  python main.py gym/pendulum\n"
         "  python main.py mujoco/half_cheetah -n 'test_{time}' --agents 2 --override sac.n_step=3\n"
         "  python main.py gym/pendulum -n myrun --run --render",
@@ -152,7 +153,7 @@ def train(args: argparse.Namespace) -> int:
 
 def run_command(args: argparse.Namespace, run_dir: Path) -> str:
     """The command that trains ``run_dir`` on (resumes it), as the user would type it here."""
-    name = run_dir.relative_to(Path(args.model_root) / args.env)
+    name = run_dir.relative_to(Path(args.model_root) / task_label(args.env))
     root = [] if args.model_root == "models" else ["--model_root", args.model_root]
     return shlex.join([python_command(), shown_path(Path(__file__)), args.env, "-n", str(name), *root])
 

@@ -46,7 +46,13 @@ def _check_env_id(build_path: str) -> None:
     env_id = build_path
     if ":" in build_path:
         module, env_id = build_path.split(":", 1)
-        importlib.import_module(module)
+        try:
+            importlib.import_module(module)
+        except ImportError as e:  # the user's own module, or something it imports, is not to be found
+            raise ValueError(
+                f"cannot import {module!r} for {build_path!r} ({type(e).__name__}: {e}); put the module in the "
+                "task's folder or the working directory, or install its package (pip install -e ...)"
+            ) from None
     if env_id not in gym.registry:
         close = difflib.get_close_matches(env_id, list(gym.registry), n=3)
         hint = f"; did you mean {', '.join(repr(c) for c in close)}?" if close else ""

@@ -54,6 +54,8 @@ SERIAL: dict[str, tuple[str, ...]] = {
         "tests/test_features.py::test_feature_trains_and_plays_through_main_ds_local",
         # a local run of HalfCheetah with 2 actors of 4 envs, then the same section in main.py
         "tests/test_tasks.py::test_the_throughput_variant_trains_through_both_launchers",
+        # a user's own task folder: main.py, then a local run (replay, learner, actor)
+        "tests/test_own_environment.py::test_a_task_folder_of_ones_own_trains_and_plays_through_both_launchers",
         # ~15 processes side by side (the processes fixture), and the tests sharing its trained fixture
         "tests/test_bad_input.py::test_a_damaged_run_is_refused_naming_the_file_and_left_as_it_was",
         "tests/test_bad_input.py::test_a_bad_command_line_is_one_line_exit_2_and_creates_nothing",
