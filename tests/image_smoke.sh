@@ -3,7 +3,8 @@
 # documents, with podman or docker, whichever is installed (ENGINE picks one); skips, saying so,
 # where neither is. Checks: the default command (--help), also on a read-only root file system; a short
 # `gym/pendulum local --actors 1` writing its run folder to a volume at /data; every role starting
-# without extra environment; a role given a model root it cannot write ends with one line, exit 2.
+# without extra environment; a role given a model root it cannot write ends with one line, exit 2; a task
+# folder of one's own, mounted read-only, trains through `local`.
 #
 # TORCH_WHEELS: a folder holding the torch 2.13.0+cpu wheel, for machines that cannot reach the
 # PyTorch index (podman only: mounted into the build, named by the build argument PIP_FIND_LINKS). Default: the host pip's PIP_FIND_LINKS
@@ -79,4 +80,45 @@ set -e
 [ "$code" = 2 ] && [ "$(wc -l < "$work/bad.txt")" = 1 ] && grep -q "^error: .*/opt/asac" "$work/bad.txt" \
     || { cat "$work/bad.txt"; fail "a non-writable model root: exit $code, not one line with exit 2"; }
 echo "image-test: ok: non-writable model root: exit 2: $(cat "$work/bad.txt")"
+# 5. A task folder of one's own (README, "Your own environment"), mounted read-only, its env module
+#    beside its config.yaml: trains through `local`, its run folder under /data/models/reach/.
+mkdir -p "$work/reach"
+cat > "$work/reach/reach_env.py" <<'PY'
+import gymnasium as gym
+import numpy as np
+from gymnasium.envs.registration import register
+
+
+class Reach(gym.Env):
+    observation_space = gym.spaces.Box(-2.0, 2.0, (1,), np.float32)
+    action_space = gym.spaces.Box(-1.0, 1.0, (1,), np.float32)
+
+    def __init__(self, render_mode=None):
+        self.render_mode = render_mode
+
+    def reset(self, *, seed=None, options=None):
+        super().reset(seed=seed)
+        self.x = float(self.np_random.uniform(-1.0, 1.0))
+        return np.array([self.x], np.float32), {}
+
+    def step(self, action):
+        self.x = float(np.clip(self.x + 0.2 * float(action[0]), -2.0, 2.0))
+        return np.array([self.x], np.float32), -abs(self.x), False, False, {}
+
+
+register("MyReach-v0", entry_point="reach_env:Reach", max_episode_steps=20)
+PY
+cat > "$work/reach/config.yaml" <<'YAML'
+default:
+  base_config: {scene: reach, build_path: "reach_env:MyReach-v0", max_step: 600}
+  replay_config: {min_size_to_sample: 200, capacity: 10000}
+  nn_config: {hidden_units: [32, 32]}
+  eval_config: {eval_per_step: 600, eval_episodes: 1, eval_envs: 1}
+YAML
+chmod -R a+rX "$work"
+"$ENGINE" run --rm -v "$tag:/data" -v "$work/reach:/tasks/reach:ro" "$IMAGE" /tasks/reach local --actors 1 -n own \
+    --no_progress > "$work/own.txt" 2>&1 || { tail -30 "$work/own.txt"; fail "/tasks/reach local --actors 1"; }
+"$ENGINE" run --rm -v "$tag:/data" --entrypoint sh "$IMAGE" -c 'ls /data/models/reach/own/evaluations.csv' \
+    > "$work/own_files.txt" 2>&1 || { cat "$work/own_files.txt"; fail "no /data/models/reach/own/evaluations.csv"; }
+echo "image-test: ok: a task folder of one's own, mounted: $(cat "$work/own_files.txt")"
 echo "image-test: PASSED ($(( $(date +%s) - start )) s)"

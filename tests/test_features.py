@@ -1,9 +1,9 @@
-"""README.md's "Algorithm features" table as a matrix: every row trains a short run through each
+"""docs/features.md's table (README: "Algorithm features") as a matrix: every row trains a short run through each
 launcher, ``main.py`` (one process) and ``main_ds.py TASK local`` (replay, learner and an actor as
 real processes, with the run's token), then plays it with ``main.py --run``.
 
-A row is switched on by FEATURES below; a row added to the README without an entry here fails
-test_every_readme_feature_has_a_matrix_entry. COMBINATIONS trains a few features together, the same ways.
+A row is switched on by FEATURES below; a row added to docs/features.md without an entry here fails
+test_every_documented_feature_has_a_matrix_entry. COMBINATIONS trains a few features together, the same ways.
 Each test's failure message ends with the launcher's output."""
 
 from __future__ import annotations
@@ -20,7 +20,7 @@ from tests.test_main import run_main
 ROOT = Path(__file__).resolve().parents[1]
 TIMEOUT_S = 240
 
-# README row -> (task, -c section or None, what switches the row's feature on). An item is a config
+# docs/features.md row -> (task, -c section or None, what switches the row's feature on). An item is a config
 # override (SECTION.KEY=VALUE), or a launcher flag when it starts with "--" (passed as written).
 FEATURES: dict[str, tuple[str, str | None, list[str]]] = {
     "Q ensemble": ("gym/pendulum", None, ["sac.ensemble_q_num=10", "sac.ensemble_q_sample=2"]),
@@ -80,10 +80,10 @@ SMALL = [
 ]
 
 
-def readme_features() -> list[str]:
-    """The first column of README.md's "Algorithm features" table, row by row."""
-    lines = (ROOT / "README.md").read_text().splitlines()
-    start = lines.index("## Algorithm features")
+def documented_features() -> list[str]:
+    """The first column of docs/features.md's table, row by row."""
+    lines = (ROOT / "docs" / "features.md").read_text().splitlines()
+    start = lines.index("# Algorithm features")
     rows: list[str] = []
     in_table = False
     for line in lines[start + 1 :]:
@@ -96,12 +96,12 @@ def readme_features() -> list[str]:
     return rows[2:]
 
 
-def test_every_readme_feature_has_a_matrix_entry() -> None:
-    rows = readme_features()
+def test_every_documented_feature_has_a_matrix_entry() -> None:
+    rows = documented_features()
     assert len(rows) == len(set(rows)), rows
     assert set(FEATURES) == set(rows), (
-        f"README rows without a matrix entry: {sorted(set(rows) - set(FEATURES))}; "
-        f"entries without a README row: {sorted(set(FEATURES) - set(rows))}"
+        f"docs/features.md rows without a matrix entry: {sorted(set(rows) - set(FEATURES))}; "
+        f"entries without a docs/features.md row: {sorted(set(FEATURES) - set(rows))}"
     )
 
 

@@ -1,7 +1,7 @@
 """A new user's journeys through ``main.py``, on real processes: train, interrupt (Ctrl-C or SIGTERM)
 at several points, run the same command again, finish, re-run the finished run, play it.
 
-What must hold (README, "Quick start"): every interruption saves and exits 130 (SIGINT) or 143
+What must hold (README, "Train, resume, play"): every interruption saves and exits 130 (SIGINT) or 143
 (SIGTERM); the same command resumes and never hangs, whether or not the replay was saved; updates
 owed before the interruption are never demanded from data that is not there, and over the resumed
 part the update-to-data ratio is the config's; a resumed run ends within the return band of the same

@@ -16,34 +16,16 @@ from tests.role_runs import ENV
 
 ROOT = Path(__file__).resolve().parents[1]
 
-ENV_MODULE = '''
-import gymnasium as gym
-import numpy as np
-from gymnasium.envs.registration import register
+
+def readme_block(language: str) -> str:
+    """The first ``language`` code block of README.md's "Your own environment": the test runs what a
+    user copies from there."""
+    text = (ROOT / "README.md").read_text()
+    section = text[text.index("## Your own environment") :]
+    return section.split(f"```{language}\n", 1)[1].split("```", 1)[0]
 
 
-class Reach(gym.Env):
-    """Move a point on a line to 0: each action in [-1, 1] moves it by a fifth; reward -|x|."""
-
-    observation_space = gym.spaces.Box(-2.0, 2.0, (1,), np.float32)
-    action_space = gym.spaces.Box(-1.0, 1.0, (1,), np.float32)
-
-    def __init__(self, render_mode=None):
-        self.render_mode = render_mode
-
-    def reset(self, *, seed=None, options=None):
-        super().reset(seed=seed)
-        self.x = float(self.np_random.uniform(-1.0, 1.0))
-        return np.array([self.x], np.float32), {}
-
-    def step(self, action):
-        self.x = float(np.clip(self.x + 0.2 * float(action[0]), -2.0, 2.0))
-        return np.array([self.x], np.float32), -abs(self.x), False, False, {}
-
-
-register("MyReach-v0", entry_point="mypkg.envs:Reach", max_episode_steps=20)
-'''
-
+ENV_MODULE = readme_block("python")
 MODEL_FILE = """
 import torch
 from torch import nn
@@ -65,24 +47,20 @@ def build_representation(spec, nn_config):
     return Tanh(spec)
 """
 
-CONFIG = {
-    "default": {
-        "base_config": {"scene": "reach", "build_path": "mypkg.envs:MyReach-v0", "max_step": 1200, "nn": "my_nn"},
-        "replay_config": {"min_size_to_sample": 200, "capacity": 10000},
-        "nn_config": {"hidden_units": [32, 32]},
-        "eval_config": {"eval_per_step": 600, "eval_episodes": 2, "eval_envs": 1},
-        "sac_config": {"seed": 0},
-    }
-}
+CONFIG = yaml.safe_load(readme_block("yaml"))
+# a short run of the README's task: its config, these overrides, and a model file of its own
+SHORT = ["base.max_step=1200", "replay.min_size_to_sample=200", "replay.capacity=10000", "nn.hidden_units=[32,32]",
+         "eval.eval_per_step=600", "eval.eval_episodes=2", "eval.eval_envs=1", "sac.seed=0"]  # fmt: skip
+OVERRIDES = [a for o in SHORT for a in ("--override", o)] + ["--nn", "my_nn"]
 
 
 def _project(tmp_path: Path) -> Path:
-    """The user's project: their package (``mypkg/envs.py``) and a task folder (``tasks/mytask``)."""
+    """The user's project: their package (``mypkg/envs.py``) and a task folder (``tasks/reach``)."""
     project = tmp_path / "project"
     (project / "mypkg").mkdir(parents=True)
     (project / "mypkg" / "__init__.py").write_text("")
     (project / "mypkg" / "envs.py").write_text(ENV_MODULE)
-    task = project / "tasks" / "mytask"
+    task = project / "tasks" / "reach"
     task.mkdir(parents=True)
     (task / "config.yaml").write_text(yaml.safe_dump(CONFIG))
     (task / "my_nn.py").write_text(MODEL_FILE)
@@ -100,24 +78,24 @@ def _run(cwd: Path, *argv: str) -> str:
 @pytest.mark.grpc
 def test_a_task_folder_of_ones_own_trains_and_plays_through_both_launchers(tmp_path: Path) -> None:
     project = _project(tmp_path)
-    _run(project, str(ROOT / "main.py"), "tasks/mytask", "-n", "first")
-    run = project / "models" / "mytask" / "first"
+    _run(project, str(ROOT / "main.py"), "tasks/reach", "-n", "first", *OVERRIDES)
+    run = project / "models" / "reach" / "first"
     assert (run / "nn.py").read_text() == MODEL_FILE  # the model file beside config.yaml went with the run
     assert yaml.safe_load((run / "config.yaml").read_text())["base_config"]["build_path"] == "mypkg.envs:MyReach-v0"
     curve = read_evaluations(run / "evaluations.csv")
     assert [row["env_steps"] for row in curve][-1] == 1200
-    assert all(-40.0 <= row["return_mean"] <= 0.0 for row in curve), curve  # 20 steps of -|x|, |x| <= 2
+    assert all(-400.0 <= row["return_mean"] <= 0.0 for row in curve), curve  # 200 steps of -|x|, |x| <= 2
 
-    played = _run(project, str(ROOT / "main.py"), "tasks/mytask", "-n", "first", "--run", "--episodes", "1")
+    played = _run(project, str(ROOT / "main.py"), "tasks/reach", "-n", "first", "--run", "--episodes", "1")
     assert "return" in played, played
 
     # the same folder by its absolute path, from elsewhere, in the distributed launcher
     elsewhere = tmp_path / "elsewhere"
     elsewhere.mkdir()
     (elsewhere / "mypkg").symlink_to(project / "mypkg")  # the package importable from the working directory
-    out = _run(elsewhere, str(ROOT / "main_ds.py"), str(project / "tasks" / "mytask"), "local", "--actors", "1",
-               "-n", "dist")  # fmt: skip
-    run = elsewhere / "models" / "mytask" / "dist"
+    out = _run(elsewhere, str(ROOT / "main_ds.py"), str(project / "tasks" / "reach"), "local", "--actors", "1",
+               "-n", "dist", *OVERRIDES)  # fmt: skip
+    run = elsewhere / "models" / "reach" / "dist"
     assert (run / "nn.py").read_text() == MODEL_FILE, out[-4000:]
     assert [row["env_steps"] for row in read_evaluations(run / "evaluations.csv")][-1] >= 1200, out[-4000:]
 
@@ -129,13 +107,15 @@ def test_a_module_beside_config_yaml_is_importable_and_a_folder_without_one_is_r
     (task / "mypkg").mkdir(parents=True)
     (task / "mypkg" / "__init__.py").write_text("")
     (task / "mypkg" / "envs.py").write_text(ENV_MODULE)
-    config = {"default": {**CONFIG["default"], "base_config": {**CONFIG["default"]["base_config"], "max_step": 300}}}
+    base = {**CONFIG["default"]["base_config"], "max_step": 300, "nn": "my_nn"}
+    config = {"default": {**CONFIG["default"], "base_config": base}}
     config["default"]["replay_config"] = {"min_size_to_sample": 100, "capacity": 1000}
     config["default"]["eval_config"] = {"eval_per_step": 300, "eval_episodes": 1, "eval_envs": 1}
     (task / "config.yaml").write_text(yaml.safe_dump(config))
     (task / "my_nn.py").write_text(MODEL_FILE)
     _run(tmp_path, str(ROOT / "main.py"), str(task), "-n", "beside")
     assert read_evaluations(tmp_path / "models" / "mytask" / "beside" / "evaluations.csv")
+    assert (tmp_path / "models" / "mytask" / "beside" / "nn.py").read_text() == MODEL_FILE
 
     empty = tmp_path / "notask"
     empty.mkdir()
