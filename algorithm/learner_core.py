@@ -471,10 +471,10 @@ class LearnerCore:
 
 
 def restore_env_rngs(env: VectorEnvLike, states: list[dict[str, Any]] | None, which: str, path: Path) -> bool:
-    """Put a checkpoint's env RNGs (``VectorEnv.rng_states``) back into ``env``; whether it did. None
-    (checkpoints before 2026-12-02) leaves the envs as made: their streams start again from their seeds,
-    as they did then. States that do not fit (a run resumed with another env count) are logged, and the
-    envs draw their starts anew."""
+    """Put a checkpoint's env RNGs (``VectorEnv.rng_states``) back into ``env``; whether it did. None (a
+    checkpoint written without them) leaves the envs as made: their streams start again from their seeds.
+    States that do not fit (a run resumed with another env count) are logged, and the envs draw their
+    starts anew."""
     if states is None:
         return False
     try:
