@@ -19,7 +19,7 @@ from typing import Any
 import grpc
 import pytest
 
-from ds.evolver.service import EvolverClient
+from ds.evolver.client import EvolverClient
 from ds.evolver.state import EvolverInfo
 from ds.launch.local import free_port
 from ds.net.rpc import RetryPolicy

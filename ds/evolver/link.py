@@ -28,8 +28,8 @@ import torch
 
 from algorithm.logging import Throttle
 from algorithm.replay import ReplayTable
+from ds.evolver.client import EvolverClient, Sample
 from ds.evolver.population import Joined, register, unreachable
-from ds.evolver.service import EvolverClient, Sample
 from ds.evolver.state import Instruction, LearnerRetired, UnknownLearner
 from ds.net.params import ParamsError, ParamsSpec, encode_params
 from ds.net.rpc import PEER_WARN_AFTER_S

@@ -42,7 +42,7 @@ from algorithm.config_schema import Config
 from algorithm.files import WriteFailures, atomic_write
 from algorithm.folder_lock import FolderLock, try_hold
 from algorithm.logging import Throttle
-from ds.evolver.service import EvolverClient
+from ds.evolver.client import EvolverClient
 from ds.evolver.state import (
     Assignment,
     LearnerRegistration,

@@ -51,7 +51,7 @@ import grpc
 
 from algorithm.logging import Throttle
 from algorithm.signals import LAUNCHER_PID_ENV, StopRequest, stop_on_signals
-from ds.evolver.service import EvolverClient
+from ds.evolver.client import EvolverClient
 from ds.evolver.state import LearnerInfo
 from ds.launch.local_summary import PlayableRun, summary
 from ds.net.rpc import LOCAL_HOST, RetryPolicy

@@ -43,7 +43,7 @@ from algorithm.errors import RoleError
 from algorithm.nn.shapes import default_recurrent_state_size
 from algorithm.spaces import EnvSpec
 from ds.evolver import service as evolver_service
-from ds.evolver.service import EvolverClient
+from ds.evolver.client import EvolverClient
 from ds.net.rpc import LOCAL_HOST, wait_until_serving
 from ds.net.security import NO_CREDENTIALS, Credentials
 from ds.replay.client import ReplayClient

@@ -19,9 +19,9 @@ from algorithm.files import WriteFailures, atomic_write
 from algorithm.run_dir import EVAL_SEED_OFFSET, RunDir
 from algorithm.sac import SAC
 from algorithm.seeding import seed_everything
+from ds.evolver.client import EvolverClient
 from ds.evolver.link import EvolverLink, Membership, WeightsSnapshot, exit_code, wait_for_replay
 from ds.evolver.population import Joined, LearnerAddress, SlotTaken, join_population, member_config
-from ds.evolver.service import EvolverClient
 from ds.launch.role_context import RoleContext, RoleError, fixed_port, listen, process_name
 from ds.learner import service as learner_service
 from ds.learner.learner import Learner

@@ -25,8 +25,8 @@ from algorithm.replay import PrioritizedTable
 from algorithm.replay.persistence import load_replay_snapshot, snapshot_kept
 from algorithm.run_dir import RunDir
 from algorithm.seeding import seed_python_and_numpy
+from ds.evolver.client import EvolverClient
 from ds.evolver.population import AssignmentKeeper, learner_dir, member_config, wait_for_assignment
-from ds.evolver.service import EvolverClient
 from ds.evolver.state import Assignment
 from ds.launch.role_context import RoleContext, fixed_port, listen, process_name
 from ds.replay import service as replay_service

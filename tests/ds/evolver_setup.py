@@ -14,8 +14,9 @@ import numpy as np
 
 from algorithm.config_schema import Config
 from algorithm.spaces import ActionSpec, EnvSpec, SensorSpec
+from ds.evolver.client import EvolverClient
 from ds.evolver.evolver import Evolver
-from ds.evolver.service import EvolverClient, serve_evolver
+from ds.evolver.service import serve_evolver
 from ds.learner.service import ActorRegistry, LearnerServicer, ParamsStore, serve_learner
 from ds.net.params import encode_params
 from ds.net.rpc import RetryPolicy

@@ -19,10 +19,10 @@ from algorithm.config import load_config
 from algorithm.config_schema import Config
 from algorithm.replay import PrioritizedTable
 from algorithm.sac import SAC
+from ds.evolver.client import EvolverClient
 from ds.evolver.evolver import Evolver
 from ds.evolver.link import EvolverLink, Membership, WeightsSnapshot
 from ds.evolver.population import LearnerAddress, join_population
-from ds.evolver.service import EvolverClient
 from ds.evolver.state import STATE_FILE, EvolverStateError, Instruction, save_state
 from ds.learner.learner import Learner
 from ds.learner.service import ActorRegistry, LearnerServicer, ParamsStore, serve_learner

@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from algorithm.config import config_from_yaml
-from ds.evolver.service import EvolverRequestRejected
+from ds.evolver.client import EvolverRequestRejected
 from ds.evolver.state import (
     Instruction,
     LearnerRetired,

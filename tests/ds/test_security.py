@@ -20,7 +20,7 @@ from cryptography import x509
 from grpc_health.v1 import health_pb2
 
 from ds.evolver import service as evolver_service
-from ds.evolver.service import EvolverClient
+from ds.evolver.client import EvolverClient
 from ds.learner import service as learner_service
 from ds.learner.client import LearnerClient
 from ds.net import security
