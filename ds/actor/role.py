@@ -15,11 +15,11 @@ from typing import Any
 
 from algorithm.seeding import seed_everything
 from ds.actor.actor import DistributedActor
-from ds.evolver.population import AssignmentKeeper, learner_dir, member_config, wait_for_assignment
 from ds.evolver.state import Assignment
 from ds.launch.role_context import RoleContext, process_name
 from ds.learner.client import LearnerClient, Registration
 from ds.learner.service import learner_message_limit
+from ds.member.population import AssignmentKeeper, learner_dir, member_config, wait_for_assignment
 from ds.net.rpc import LOCAL_HOST
 
 log = logging.getLogger("asac.roles")

@@ -1,3 +1,3 @@
 """The evolver role: its composition (role.py), its loop (evolver.py), gRPC server and client (service.py,
-client.py), learner registry and assignment (registry.py, assign.py), persisted state (state.py), the
-population of a local run (population.py), and the learner's side of the link (link.py)."""
+client.py), learner registry and assignment (registry.py, assign.py) and persisted state (state.py). What
+learners, actors and replays run to take part in its population is ds/member/."""

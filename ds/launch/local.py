@@ -9,7 +9,7 @@ Usage (``main_ds.py`` builds the command and the flags each child gets)::
 
 One learner: a replay, the learner and the actors, told each other's ports. A population: an evolver,
 ``learners`` replays and learners, told only the evolver's port (the evolver pairs replays with
-learners, ds/evolver/population.py), and, once every learner has registered with a replay, the actors, so
+learners, ds/member/population.py), and, once every learner has registered with a replay, the actors, so
 that the evolver spreads them over all learners (it gives each actor the least-loaded learner there
 is when it asks). Every child gets the same flags, so with TLS they share one certificate, which must
 name every role (docs/security.md section 3); none opens a plaintext health port (``net_config.health_port`` is

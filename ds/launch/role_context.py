@@ -19,7 +19,7 @@ mutual TLS; a server beyond loopback without them logs a warning).
 With an evolver (``base_config.evolver_enabled``, or ``net_config.evolver_host`` set, e.g. by
 ``--evolver_host``) learners register with it and run with the config it gives them (their own flags on
 top), replays and actors started without a learner ask it where to work, and every role of learner k
-works in ``<run>/learner_<k>/`` (ds/evolver/population.py).
+works in ``<run>/learner_<k>/`` (ds/member/population.py).
 
 Like the role compositions, this touches no envs itself (they arrive as the ``make_env`` factory).
 """

@@ -23,7 +23,7 @@ the same run directory, and at ``max_step`` first trains on what the replay stil
 limiter's surplus: the data inserted before the stop is trained on as the ratio says), then makes
 its final evaluation and checkpoint.
 
-In an evolver's population (``member``, ds/evolver/link.py) it also posts every evaluation's return,
+In an evolver's population (``member``, ds/member/link.py) it also posts every evaluation's return,
 copies its full weights for the evolver's GetWeights between updates, loads the CEM samples the
 evolver draws for it (:meth:`SAC.load_model_weights`; one waiting when it starts, a new learner's draw
 of the CEM distribution, before its first update) and publishes them to its actors at once,
@@ -52,9 +52,9 @@ from algorithm.replay import ReplayTable, ReplayUnavailable
 from algorithm.sac import SAC
 from algorithm.types import Batch
 from ds.actor.sink import LAST_INSERTS_WAIT_S
-from ds.evolver.link import Membership
 from ds.learner.feeds import BatchPrefetcher, PriorityUpdater
 from ds.learner.service import ActorRegistry, ParamsStore, PublishedPolicy
+from ds.member.link import Membership
 from ds.net.params import ParamsPublisher
 
 log = logging.getLogger("asac.learner")

@@ -20,8 +20,6 @@ from algorithm.run_dir import EVAL_SEED_OFFSET, RunDir
 from algorithm.sac import SAC
 from algorithm.seeding import seed_everything
 from ds.evolver.client import EvolverClient
-from ds.evolver.link import EvolverLink, Membership, WeightsSnapshot, exit_code, wait_for_replay
-from ds.evolver.population import Joined, LearnerAddress, SlotTaken, join_population, member_config
 from ds.launch.role_context import RoleContext, RoleError, fixed_port, listen, process_name
 from ds.learner import service as learner_service
 from ds.learner.learner import Learner
@@ -33,6 +31,8 @@ from ds.learner.service import (
     learner_message_limit,
     serve_learner,
 )
+from ds.member.link import EvolverLink, Membership, WeightsSnapshot, exit_code, wait_for_replay
+from ds.member.population import Joined, LearnerAddress, SlotTaken, join_population, member_config
 from ds.net.params import ParamsPublisher, params_spec
 from ds.net.rpc import set_serving, wait_until_serving
 from ds.net.security import warn_if_exposed

@@ -26,9 +26,9 @@ from algorithm.replay.persistence import load_replay_snapshot, snapshot_kept
 from algorithm.run_dir import RunDir
 from algorithm.seeding import seed_python_and_numpy
 from ds.evolver.client import EvolverClient
-from ds.evolver.population import AssignmentKeeper, learner_dir, member_config, wait_for_assignment
 from ds.evolver.state import Assignment
 from ds.launch.role_context import RoleContext, fixed_port, listen, process_name
+from ds.member.population import AssignmentKeeper, learner_dir, member_config, wait_for_assignment
 from ds.replay import service as replay_service
 from ds.replay.service import serve_replay
 

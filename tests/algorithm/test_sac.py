@@ -376,7 +376,7 @@ def test_acting_state_dict_carries_the_policy_to_another_instance() -> None:
 
 
 def test_load_model_weights_hard_copies_targets_and_restarts_the_moments() -> None:
-    """An evolver's sample (ds/evolver/population.py): online weights replaced, targets equal to them at once,
+    """An evolver's sample (ds/member/population.py): online weights replaced, targets equal to them at once,
     Adam's moments of the replaced weights gone (the alpha optimizer's kept), log_alpha untouched."""
     elite, learner = make_sac(seed=3), make_sac()
     for s in range(3):

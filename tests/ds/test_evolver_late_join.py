@@ -21,11 +21,11 @@ from algorithm.replay import PrioritizedTable
 from algorithm.sac import SAC
 from ds.evolver.client import EvolverClient
 from ds.evolver.evolver import Evolver
-from ds.evolver.link import EvolverLink, Membership, WeightsSnapshot
-from ds.evolver.population import LearnerAddress, join_population
 from ds.evolver.state import STATE_FILE, EvolverStateError, Instruction, save_state
 from ds.learner.learner import Learner
 from ds.learner.service import ActorRegistry, LearnerServicer, ParamsStore, serve_learner
+from ds.member.link import EvolverLink, Membership, WeightsSnapshot
+from ds.member.population import LearnerAddress, join_population
 from ds.net.params import ParamsPublisher, encode_params, params_spec
 from envs.make import make_vector_env
 from tests.ds.evolver_setup import LEASE_S, SPEC, Setup, evolver_config, register, until, weights_of

@@ -2,7 +2,7 @@
 to load, retirement (:class:`EvolverLink`); the snapshot of its full weights the evolver fetches for a
 round (:class:`WeightsSnapshot`); and what ds/learner/learner.py gets of both (:class:`Membership`).
 
-Usage (ds/learner/role.py; the learner joined with :func:`ds.evolver.population.join_population`)::
+Usage (ds/learner/role.py; the learner joined with :func:`ds.member.population.join_population`)::
 
     link = EvolverLink(client, joined, params_spec(sac.models.state_dict()))
     link.start()                               # a new learner after a round: its first sample; then
@@ -29,8 +29,8 @@ import torch
 from algorithm.logging import Throttle
 from algorithm.replay import ReplayTable
 from ds.evolver.client import EvolverClient, Sample
-from ds.evolver.population import Joined, register, unreachable
 from ds.evolver.state import Instruction, LearnerRetired, UnknownLearner
+from ds.member.population import Joined, register, unreachable
 from ds.net.params import ParamsError, ParamsSpec, encode_params
 from ds.net.rpc import PEER_WARN_AFTER_S
 

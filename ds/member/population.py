@@ -1,6 +1,6 @@
 """How the roles take part in an evolver's population (docs/architecture.md section 10, protos/evolver.proto): a
 learner's folder and identity, the config a learner's group runs with, and the assignments of actors
-and replays (a learner's live link with the evolver is ds/evolver/link.py).
+and replays (a learner's live link with the evolver is ds/member/link.py).
 ds/learner/role.py, ds/replay/role.py and ds/actor/role.py compose these with the role loops; nothing here touches envs.
 
 Usage, a learner's (``run_learner``)::
@@ -8,7 +8,7 @@ Usage, a learner's (``run_learner``)::
     client = EvolverClient("evolver:61000", token=token, credentials=creds)  # creds: ds/net/security.py
     joined = join_population(client, run_dir, LearnerAddress(name, "", 61001, params_port, ""), stop)
     config = member_config(joined.registration.config_yaml, joined.learner_id, own_config, overrides)
-    ...                                    # ds/evolver/link.py: heartbeats, returns, samples, retirement
+    ...                                    # ds/member/link.py: heartbeats, returns, samples, retirement
 
 an actor's or replay's::
 
