@@ -15,9 +15,9 @@ from algorithm.spaces import EnvSpec
 from algorithm.types import ActingProgress
 from ds.net import rpc, security
 from ds.net.client import RpcClient
+from ds.net.rpc import GRPC_DEFAULT_MESSAGE_BYTES
 from ds.net.security import NO_CREDENTIALS, Credentials
 from ds.net.wire import TensorSpec, from_tensor, to_tensor
-from ds.replay.codec import GRPC_DEFAULT_MESSAGE_BYTES
 from protos import learner_pb2, learner_pb2_grpc
 
 LEAVE_TIMEOUT_S = 2.0  # an actor's goodbye (LearnerClient.leave) is one try: the run is ending

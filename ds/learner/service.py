@@ -49,10 +49,10 @@ from algorithm.config_schema import MAX_EXPLORATION_NOISE
 from algorithm.policy import Policy
 from algorithm.spaces import EnvSpec
 from ds.net import rpc, security
+from ds.net.rpc import GRPC_DEFAULT_MESSAGE_BYTES
 from ds.net.security import ACTOR, EVOLVER, NO_CREDENTIALS, Credentials
 from ds.net.stream_key import StreamKey
 from ds.net.wire import TensorSpec, WireError, from_tensor, to_tensor
-from ds.replay.codec import GRPC_DEFAULT_MESSAGE_BYTES
 from protos import learner_pb2, learner_pb2_grpc
 
 SERVICE_NAME = "asac.LearnerService"

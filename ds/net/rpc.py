@@ -60,6 +60,10 @@ def status_details(message: str, limit: int = MAX_STATUS_DETAILS) -> str:
     return f"{message[:head]} ...[{cut} characters]... {message[head + cut :]}"
 
 
+# gRPC's own default receive limit: every client's and server's default, and the least any limit is set to.
+GRPC_DEFAULT_MESSAGE_BYTES = 4 * 1024 * 1024
+
+
 def channel_options(max_message_bytes: int) -> list[tuple[str, int]]:
     """Send and receive limits for a channel or server (both ends must raise them)."""
     return [

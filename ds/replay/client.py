@@ -35,11 +35,10 @@ from algorithm.spaces import SensorSpec
 from algorithm.types import Batch, Chunk
 from ds.net import security
 from ds.net.client import RpcClient
-from ds.net.rpc import RetryPolicy, peer_gone
+from ds.net.rpc import GRPC_DEFAULT_MESSAGE_BYTES, RetryPolicy, peer_gone
 from ds.net.security import NO_CREDENTIALS, Credentials
 from ds.net.wire import TensorSpec, WireError, from_tensor, to_tensor
 from ds.replay.codec import (
-    GRPC_DEFAULT_MESSAGE_BYTES,
     ReplaySpecs,
     chunk_to_proto,
     split_sample_reply,

@@ -21,12 +21,11 @@ import numpy as np
 from algorithm.replay.base import NormalizerStats, ReplayInfo
 from algorithm.spaces import SensorSpec
 from algorithm.types import Batch, Chunk
+from ds.net.rpc import GRPC_DEFAULT_MESSAGE_BYTES
 from ds.net.wire import TensorSpec, WireError, from_tensor, to_tensor
 from ds.replay.packed import Allocate, BatchLayout, pack_batches, unpack_batches
 from protos import replay_pb2
 
-# gRPC's own default receive limit; the limits are never set below it.
-GRPC_DEFAULT_MESSAGE_BYTES = 4 * 1024 * 1024
 # protobuf cannot serialise a message of 2 GiB or more.
 PROTOBUF_MAX_MESSAGE_BYTES = 2**31 - 1
 # Framing of one Tensor inside a message (tags, length prefixes, dtype name, up to ~6 shape varints), or

@@ -50,11 +50,10 @@ from algorithm.replay import (
 )
 from algorithm.spaces import SensorSpec
 from ds.net import rpc, security
-from ds.net.rpc import channel_options
+from ds.net.rpc import GRPC_DEFAULT_MESSAGE_BYTES, channel_options
 from ds.net.security import ACTOR, LEARNER, NO_CREDENTIALS, Credentials
 from ds.net.wire import WireError, to_tensor
 from ds.replay.codec import (
-    GRPC_DEFAULT_MESSAGE_BYTES,
     ReplaySpecs,
     batches_per_reply,
     info_to_proto,
