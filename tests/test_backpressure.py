@@ -19,9 +19,8 @@ import pytest
 from algorithm.replay import PrioritizedTable, RateLimiter, SampleTimeout
 from algorithm.sac import SAC
 from ds.actor.actor import DistributedActor
-from ds.actor.sink import LAST_INSERTS_WAIT_S
 from ds.learner.client import LearnerClient, Registration
-from ds.replay.client import ReplayClient
+from ds.replay.client import LAST_INSERTS_WAIT_S, ReplayClient
 from ds.replay.service import serve_replay
 from envs.make import vector_env_factory
 from tests.ds.test_reconnect import CONFIG, FAST_RETRY, SPEC, Learner, free_port

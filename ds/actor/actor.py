@@ -55,7 +55,7 @@ from algorithm.config_schema import Config
 from algorithm.logging import MetricsWriter, RateMeter, Throttle
 from algorithm.policy import Policy
 from algorithm.replay import ReplayUnavailable
-from ds.actor.sink import LAST_INSERTS_WAIT_S, ReplaySink
+from ds.actor.sink import ReplaySink
 from ds.actor.staleness import Staleness
 from ds.learner import service as learner_service
 from ds.learner.client import LearnerClient, LeaseExpired, Registration, RemotePolicy
@@ -63,7 +63,7 @@ from ds.net.params import ParamsError, ParamsSubscriber, decode_params, params_s
 from ds.net.rpc import peer_unresponsive, wait_until_serving
 from ds.net.stream_key import StreamKey
 from ds.replay import service as replay_service
-from ds.replay.client import ReplayClient
+from ds.replay.client import LAST_INSERTS_WAIT_S, ReplayClient
 
 log = logging.getLogger("asac.actor")
 ACTOR_SEED_STRIDE = 1000  # actor i's env j gets seed + 1000 * (i + 1) + j: never a training or eval seed

@@ -32,10 +32,6 @@ from ds.replay.client import PendingInsert, ReplayClient, ReplayRpcError
 from ds.replay.codec import chunk_payload_bytes
 
 log = logging.getLogger("asac.actor")
-# How long an actor's last inserts at the end of a run may wait in the rate limiter, all together: the learner
-# trains on until the actors have left (ds/learner/learner.py), so they are let in within a few updates. 2 s
-# was too short on a loaded 2-core machine (a learner ~1,500 windows behind: one chunk of 8 steps lost).
-LAST_INSERTS_WAIT_S = 10.0
 
 
 class ReplaySink:

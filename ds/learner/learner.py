@@ -51,11 +51,11 @@ from algorithm.logging import Throttle
 from algorithm.replay import ReplayTable, ReplayUnavailable
 from algorithm.sac import SAC
 from algorithm.types import Batch
-from ds.actor.sink import LAST_INSERTS_WAIT_S
 from ds.learner.feeds import BatchPrefetcher, PriorityUpdater
 from ds.learner.service import ActorRegistry, ParamsStore, PublishedPolicy
 from ds.member.link import Membership
 from ds.net.params import ParamsPublisher
+from ds.replay.client import LAST_INSERTS_WAIT_S
 
 log = logging.getLogger("asac.learner")
 

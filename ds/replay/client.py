@@ -46,7 +46,20 @@ from ds.replay.codec import (
 from ds.replay.packed import Allocate
 from protos import replay_pb2, replay_pb2_grpc
 
-__all__ = ["PendingInsert", "ReplayClient", "ReplayRequestRejected", "ReplayRpcError", "ReplayUnreachable"]
+__all__ = [
+    "LAST_INSERTS_WAIT_S",
+    "PendingInsert",
+    "ReplayClient",
+    "ReplayRequestRejected",
+    "ReplayRpcError",
+    "ReplayUnreachable",
+]
+
+# How long an actor's last inserts at the end of a run may wait in the replay's rate limiter, all together. A
+# stopping learner trains on until its actors have left, allowing them this long (ds/learner/learner.py), so
+# the inserts are let in within a few of its updates; 10 s leaves room for a learner ~1,500 windows behind on
+# a loaded 2-core machine.
+LAST_INSERTS_WAIT_S = 10.0
 
 _T = TypeVar("_T")
 
