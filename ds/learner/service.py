@@ -11,7 +11,7 @@ Usage, the learner's side (ds/learner/learner.py feeds the store and the acting 
                                stream=publisher.stream)      # the key actors check the parameters with
     server, port, health = serve_learner(servicer, "127.0.0.1:61001", max_message_bytes=limit, credentials=creds)
     store.put(version, publisher.frames); acting.load(version, sac.acting_state_dict())
-    set_serving(health, True)                                  # after the first publication
+    rpc.set_serving(health, SERVICE_NAME, True)                # after the first publication
 
 and an actor's (the client is ds/learner/client.py, which imports no torch)::
 

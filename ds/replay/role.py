@@ -29,6 +29,7 @@ from ds.evolver.client import EvolverClient
 from ds.evolver.state import Assignment
 from ds.launch.role_context import RoleContext, fixed_port, listen, process_name
 from ds.member.population import AssignmentKeeper, learner_dir, member_config, wait_for_assignment
+from ds.net.rpc import set_serving
 from ds.replay import service as replay_service
 from ds.replay.service import serve_replay
 
@@ -150,7 +151,7 @@ def _serve_replay(role: RoleContext, keeper: AssignmentKeeper | None, metrics_ev
                 snapshots.attempt(path, lambda: table.save(path))
                 last_save = time.monotonic()
     finally:
-        replay_service.set_serving(checker, False)
+        set_serving(checker, replay_service.SERVICE_NAME, False)
         server.stop(grace=2.0).wait()
         if saving_at_stop and snapshots.attempt(path, lambda: table.save(path), final=True):
             info = table.info()

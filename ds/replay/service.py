@@ -70,7 +70,6 @@ __all__ = [
     "ReplayServicer",
     "message_limit_bytes",
     "serve_replay",
-    "set_serving",
 ]
 
 SERVICE_NAME = "asac.ReplayService"
@@ -278,11 +277,6 @@ def _status_codes(context: grpc.ServicerContext) -> Iterator[None]:
         context.abort(code, f"{type(e).__name__}: {e}")
 
 
-def set_serving(health_servicer: health.HealthServicer, serving: bool) -> None:
-    """Report SERVING or NOT_SERVING for the server as a whole and for the replay service."""
-    rpc.set_serving(health_servicer, SERVICE_NAME, serving)
-
-
 def serve_replay(
     table: PrioritizedTable,
     address: str = "127.0.0.1:0",
@@ -302,10 +296,11 @@ def serve_replay(
     :func:`~ds.replay.codec.message_limit_bytes`). ``max_workers`` threads serve calls; a call
     blocked by the rate limiter holds one, so give at least one per actor and learner. The health
     service reports NOT_SERVING until the server has started, then SERVING; pass ``ready=False``
-    and your own ``health_servicer`` to flip it with :func:`set_serving` later (after loading a
-    saved table, say). ``credentials`` and ``health_port``: see :func:`ds.net.security.listen` (TLS, the
-    token, who may call what); plaintext on loopback by default (docs/security.md section 1:
-    without credentials servers bind to loopback). ``interceptors`` wrap every call after those checks (tests inject
+    and your own ``health_servicer`` to flip it later with
+    ``ds.net.rpc.set_serving(health_servicer, SERVICE_NAME, True)`` (after loading a saved table,
+    say). ``credentials`` and ``health_port``: see :func:`ds.net.security.listen` (TLS, the token, who
+    may call what); plaintext on loopback by default (docs/security.md section 1: without credentials
+    servers bind to loopback). ``interceptors`` wrap every call after those checks (tests inject
     faults with them). ``snapshot_dir``: the folder whose files the Save and Load rpcs may name
     (a replay role's ``<run>/replay/``; ds/replay/files.py), None: Save and Load are refused. Stop
     it with ``server.stop(grace)``.
@@ -318,9 +313,9 @@ def serve_replay(
     rpc.add_servicer(server, servicer, replay_pb2.DESCRIPTOR.services_by_name["ReplayService"])
     health_servicer = health_servicer or health.HealthServicer()
     health_pb2_grpc.add_HealthServicer_to_server(health_servicer, server)
-    set_serving(health_servicer, False)
+    rpc.set_serving(health_servicer, SERVICE_NAME, False)
     port = security.listen(server, address, credentials, "replay", health_port)
     server.start()
     if ready:
-        set_serving(health_servicer, True)
+        rpc.set_serving(health_servicer, SERVICE_NAME, True)
     return server, port

@@ -20,11 +20,11 @@ from grpc_health.v1 import health, health_pb2, health_pb2_grpc
 
 from algorithm.replay import InsertTimeout, PrioritizedTable, RateLimiter, ReplayUnavailable, SampleTimeout
 from algorithm.types import Batch
-from ds.net.rpc import RetryPolicy
+from ds.net.rpc import RetryPolicy, set_serving
 from ds.net.wire import WireError, to_tensor
 from ds.replay.client import ReplayClient, ReplayRequestRejected, ReplayRpcError
 from ds.replay.codec import chunk_to_proto, message_limit_bytes
-from ds.replay.service import serve_replay, set_serving
+from ds.replay.service import SERVICE_NAME, serve_replay
 from protos import replay_pb2, replay_pb2_grpc
 from tests.algorithm.replay.chunks import IMAGE, VECTOR, make_chunk
 
@@ -461,7 +461,7 @@ def test_health_is_not_serving_until_ready_then_serving() -> None:
         not_serving = health_pb2.HealthCheckResponse.NOT_SERVING
         for name in ("", "asac.ReplayService"):
             assert stub.Check(health_pb2.HealthCheckRequest(service=name), timeout=5).status == not_serving
-        set_serving(checker, True)
+        set_serving(checker, SERVICE_NAME, True)
         for name in ("", "asac.ReplayService"):
             assert stub.Check(health_pb2.HealthCheckRequest(service=name), timeout=5).status == serving
     finally:
