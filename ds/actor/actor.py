@@ -220,9 +220,9 @@ class DistributedActor:
                 self._take_new_params()
                 self._between()
                 if not self.done and self._holds_the_rest_of_the_budget():
-                    # Stepping on would only add steps past max_step (before: up to 2 chunks per env per
-                    # actor): send what is held and wait until it is stored, as at any other time (the
-                    # rate limiter, a replay that restarts), then take the replay's count.
+                    # Stepping on would only add steps past max_step (up to 2 chunks per env per actor):
+                    # send what is held and wait until it is stored, as at any other time (the rate
+                    # limiter, a replay that restarts), then take the replay's count.
                     loop.flush()
                     self.sink.flush()
                     self._between()

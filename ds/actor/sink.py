@@ -9,10 +9,10 @@ Usage (``ds/actor/actor.py`` wires it into :class:`~algorithm.actor.ActorLoop`):
     sink.flush()        # at the end: everything stored, or (once stopping) counted in unsent_steps
     sink.acknowledge_all()  # the replay may forget this producer
 
-Back-pressure, not backlog: an actor that went on stepping while the replay's rate limiter held
-its inserts back (the learner is behind) built a queue without bound, threw most of it away at the
-end, and what it did insert was minutes old. The sink instead keeps the actor waiting, so what it
-holds, and so how old what it inserts is, stays within :attr:`ReplaySink.max_backlog` chunks.
+Back-pressure, not backlog: while the replay's rate limiter holds inserts back (the learner is
+behind) the sink keeps the actor waiting, so what it holds, and so how old what it inserts is, stays
+within :attr:`ReplaySink.max_backlog` chunks. An actor stepping on meanwhile would build a queue
+without bound, most of it thrown away at the end and the rest minutes old when stored.
 """
 
 from __future__ import annotations

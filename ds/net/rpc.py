@@ -46,7 +46,7 @@ LOCAL_HOST = "127.0.0.1"  # where a client connects when no host is named (and e
 
 # gRPC sends a status's details as a header; headers past its soft limit (8 KiB) drop the answer for
 # RESOURCE_EXHAUSTED "received metadata size exceeds soft limit", so the caller would not see the
-# status or the message. A zip error on a damaged snapshot quoted 11 KB of the file's bytes.
+# status or the message. A zip error on a damaged snapshot can quote 11 KB of the file's bytes.
 MAX_STATUS_DETAILS = 2000
 
 

@@ -215,9 +215,9 @@ def new_server(
     guard = [_Guard(service, callers, credentials)] if credentials.secured else []
     executor = futures.ThreadPoolExecutor(max_workers=max_workers, thread_name_prefix=f"{what}-rpc")
     # gRPC sets SO_REUSEPORT on Linux by default, so a second server on a port already served would bind
-    # as well and the kernel would spread connections over both (measured: a new run's learner sampled
-    # from a forgotten earlier run's replay while its actor inserted into the new one, and both waited
-    # forever). Off, the second bind fails and the role says the port is taken.
+    # as well and the kernel would spread connections over both (a new run's learner would sample from a
+    # forgotten earlier run's replay while its actor inserts into the new one, and both wait forever).
+    # Off, the second bind fails and the role says the port is taken.
     exclusive = [("grpc.so_reuseport", 0), *options]
     return grpc.server(executor, options=exclusive, interceptors=[*guard, *interceptors])
 
