@@ -23,7 +23,7 @@ from ds.learner.client import LearnerClient, Registration
 from ds.replay.client import LAST_INSERTS_WAIT_S, ReplayClient
 from ds.replay.service import serve_replay
 from envs.make import vector_env_factory
-from tests.ds.test_reconnect import CONFIG, FAST_RETRY, SPEC, Learner, free_port
+from tests.ds.actor.test_actor_reconnect import CONFIG, FAST_RETRY, SPEC, Learner, free_port
 
 pytestmark = pytest.mark.grpc
 MAX_STEP = 600

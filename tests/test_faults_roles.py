@@ -18,7 +18,7 @@ import torch
 from algorithm.checkpoint import list_checkpoints, load_checkpoint
 from envs.make import make_vector_env
 from tests import fault_envs
-from tests.ds.test_reconnect import Learner, Replay
+from tests.ds.actor.test_actor_reconnect import Learner, Replay
 from tests.role_runs import RoleRun, flags, running, scalars
 
 pytestmark = [pytest.mark.fault, pytest.mark.grpc]

@@ -3,7 +3,7 @@
 each kind of file that cannot be written is said once on one line, never with a traceback; the
 files before stay as they were; once the filler is gone they are written again, and the process
 ends with its usual status. tests/algorithm/test_full_disk_writes.py and
-tests/ds/test_evolver_full_disk.py check each writer on its own."""
+tests/ds/evolver/test_state_full_disk.py check each writer on its own."""
 
 from __future__ import annotations
 

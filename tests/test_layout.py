@@ -152,6 +152,30 @@ def module_imports(path: Path) -> set[str]:
     return {n for n in names if n.split(".")[0] in OURS}
 
 
+def test_the_tests_mirror_the_source() -> None:
+    """A test folder below tests/ is the folder of the source it tests (tests/algorithm/replay/ for
+    algorithm/replay/, tests/ds/learner/ for ds/learner/), with an ``__init__.py`` so that files of one
+    name in two folders (tests/ds/replay/test_service.py, tests/ds/learner/test_service.py) are two
+    modules. In tests/ds/ and tests/protos/ each test file is named after the module it tests,
+    ``test_<module>.py`` or ``test_<module>_<aspect>.py``, and tests/ds/ itself holds only what
+    several of its packages share (conftest.py, fuzz.py). Tests across the packages stay in tests/."""
+    tests = ROOT / "tests"
+    problems = []
+    for folder in sorted({p.parent for p in tests.rglob("*.py") if "__pycache__" not in p.parts}):
+        if not (folder / "__init__.py").is_file():
+            problems.append(f"{folder.relative_to(ROOT)} has no __init__.py")
+        if folder != tests and not (ROOT / folder.relative_to(tests)).is_dir():
+            problems.append(f"{folder.relative_to(ROOT)} names no source folder {folder.relative_to(tests)}/")
+    for path in sorted([*(tests / "ds").rglob("test_*.py"), *(tests / "protos").rglob("test_*.py")]):
+        source = ROOT / path.parent.relative_to(tests)
+        if path.parent == tests / "ds":
+            problems.append(f"{path.relative_to(ROOT)} belongs in the folder of the ds/ package it tests")
+        elif not any(path.stem == f"test_{m.stem}" or path.stem.startswith(f"test_{m.stem}_")
+                     for m in source.glob("*.py")):  # fmt: skip
+            problems.append(f"{path.relative_to(ROOT)} names no module of {source.relative_to(ROOT)}/")
+    assert not problems, "\n".join(problems)
+
+
 def test_no_import_circles() -> None:
     """One direction between any two of our modules (a package's ``__init__`` re-exporting its own
     submodules aside): a circle makes import order matter and hides which module is the lower one."""

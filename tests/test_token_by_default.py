@@ -18,7 +18,7 @@ from ds.learner.client import LearnerClient
 from ds.net.rpc import RetryPolicy
 from ds.net.security import Credentials
 from ds.replay.client import ReplayClient, ReplayRpcError
-from tests.ds.test_reconnect import SPEC
+from tests.ds.actor.test_actor_reconnect import SPEC
 from tests.role_runs import ENV, TINY, RoleRun, main_ds_command
 
 ONCE = RetryPolicy(attempts=1)

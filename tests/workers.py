@@ -31,9 +31,9 @@ import pytest
 # pytest_xdist_make_scheduler below groups by this table (tests/test_layout.py checks every entry names
 # a test). The repository's conftest.py registers these hooks.
 ALONE = (
-    "tests/ds/test_replay_files.py",
-    "tests/ds/test_replay_service.py",
-    "tests/ds/test_replay_sink.py",
+    "tests/ds/actor/test_sink.py",
+    "tests/ds/replay/test_files.py",
+    "tests/ds/replay/test_service.py",
     "tests/test_backpressure.py",
 )
 SERIAL: dict[str, tuple[str, ...]] = {

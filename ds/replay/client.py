@@ -1,6 +1,6 @@
 """The replay table over gRPC, the client's side: :class:`ReplayClient` is a table (the interface of
 :mod:`algorithm.replay.base`, with the same types and exceptions), so the replay contract tests run
-unchanged against it (tests/ds/test_replay_contract.py). ds/replay/service.py is the server's side;
+unchanged against it (tests/ds/replay/test_client_contract.py). ds/replay/service.py is the server's side;
 its docstring lists how every error maps to a gRPC status and back to the exception raised here.
 
     replay = ReplayClient("replay:50051", sensors, action_size, rnn_state_size, max_message_bytes=limit,

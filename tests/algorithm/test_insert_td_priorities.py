@@ -1,7 +1,7 @@
 """``sac_config.insert_td_priorities`` (issue 15, item 6): new data's priority is its |TD| under the
 learner's networks, scored right after it is stored, instead of the table's maximum priority (the
 original's ``use_add_with_td``). The same learner core does it in both modes; over gRPC the
-learner reads the new windows with the replay's ``Windows`` rpc (tests/ds/test_replay_contract.py
+learner reads the new windows with the replay's ``Windows`` rpc (tests/ds/replay/test_client_contract.py
 runs the table's ``windows_after`` contract against the server)."""
 
 from __future__ import annotations

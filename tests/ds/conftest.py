@@ -1,6 +1,7 @@
-"""Real gRPC replay servers on loopback (port 0: the OS picks), always stopped after the test; the evolver
-tests' ``setup`` (tests/ds/evolver_setup.py); the security tests' certificates and servers of every role
-(tests/ds/security_setup.py)."""
+"""Real gRPC replay servers on loopback (port 0: the OS picks), always stopped after the test: the
+``over_grpc`` fixture the actor, learner, replay and evolver tests share. The evolver tests' ``setup``
+is in tests/ds/evolver/conftest.py, the security tests' certificates and servers in
+tests/ds/net/conftest.py."""
 
 from __future__ import annotations
 
@@ -12,12 +13,8 @@ from typing import Any
 import pytest
 
 from algorithm.replay import PrioritizedTable
-from ds.net.security import Credentials
 from ds.replay.client import ReplayClient
 from ds.replay.service import serve_replay
-from tests.ds.evolver_setup import Setup
-from tests.ds.security_setup import Material, Served, serve
-from tests.pki import Pki
 
 ServeOverGrpc = Callable[..., ReplayClient]
 
@@ -69,32 +66,3 @@ def over_grpc(tmp_path: Path) -> Iterator[ServeOverGrpc]:
     yield serve
     for stop in stops:
         stop()
-
-
-@pytest.fixture
-def setup(tmp_path: Path) -> Iterator[Setup]:
-    """Evolvers on one state directory (``tmp_path / "evolver"``), every one stopped after the test."""
-    s = Setup(tmp_path / "evolver")
-    yield s
-    s.close()
-
-
-@pytest.fixture(scope="module")
-def material(tmp_path_factory: pytest.TempPathFactory) -> Material:
-    """A CA, a wrong CA, certificates per role and the token, made once per module."""
-    folder = tmp_path_factory.mktemp("pki")
-    return Material(Pki(folder), folder / "token")
-
-
-@pytest.fixture
-def servers(tmp_path: Path) -> Iterator[Callable[..., Served]]:
-    """``servers(role, credentials, health_port=None) -> Served``: real servers, every one stopped after the test."""
-    started: list[Served] = []
-
-    def start(role: str, credentials: Credentials, health_port: int | None = None) -> Served:
-        started.append(serve(role, credentials, tmp_path, health_port))
-        return started[-1]
-
-    yield start
-    for served in started:
-        served.stop()

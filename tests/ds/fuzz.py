@@ -1,5 +1,6 @@
-"""What the rpc fuzz tests (tests/ds/test_rpc_fuzz*.py) feed the servers: hypothesis strategies for
-tensors broken one way at a time and unknown fields at any depth, and the calls that must be refused."""
+"""What the rpc fuzz tests (tests/ds/<role>/test_service_fuzz.py) feed the servers: hypothesis
+strategies for tensors broken one way at a time and unknown fields at any depth, and the calls that
+must be refused."""
 
 from __future__ import annotations
 

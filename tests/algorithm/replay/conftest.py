@@ -1,6 +1,6 @@
 """The ``connect`` fixture: how a replay test reaches the table it built.
 
-Here it returns the table itself. tests/ds/test_replay_contract.py collects the interface-level
+Here it returns the table itself. tests/ds/replay/test_client_contract.py collects the interface-level
 tests of this folder again with ``connect`` overridden to start a gRPC server around the table on
 loopback and return a :class:`ds.replay.client.ReplayClient`, so that the network path passes the
 same contract tests as the in-process one (docs/architecture.md section 13). A test that only uses the public table

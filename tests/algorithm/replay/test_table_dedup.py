@@ -27,7 +27,7 @@ def table(capacity: int = 200, **kwargs: Any) -> PrioritizedTable:
 
 def refused_for_producers(error: BaseException) -> bool:
     """The refusal of a new producer past max_producers: in process :class:`ProducerLimitReached`,
-    over gRPC (tests/ds/test_replay_contract.py) an error with status RESOURCE_EXHAUSTED."""
+    over gRPC (tests/ds/replay/test_client_contract.py) an error with status RESOURCE_EXHAUSTED."""
     code = getattr(error, "code", None)
     return isinstance(error, ProducerLimitReached) or getattr(code, "name", None) == "RESOURCE_EXHAUSTED"
 

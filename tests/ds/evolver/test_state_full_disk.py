@@ -11,7 +11,7 @@ import pytest
 
 from ds.evolver.evolver import Evolver
 from ds.evolver.state import SAMPLES_DIR, STATE_FILE, PendingSample, Role
-from tests.ds.evolver_setup import evolver_config, weights_of
+from tests.ds.evolver.evolver_setup import evolver_config, weights_of
 from tests.small_disk import small_disk
 
 

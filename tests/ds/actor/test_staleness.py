@@ -6,8 +6,7 @@ from __future__ import annotations
 import pytest
 
 from ds.actor.staleness import Staleness
-
-from .test_learner_service import Clock
+from tests.ds.learner.test_service import Clock
 
 
 def test_a_step_is_as_stale_as_the_updates_the_learner_made_since_its_weights() -> None:

@@ -8,7 +8,8 @@ exactly what it stored before: the whole table (saved with its Save rpc) and its
 
 Requests are raw protos sent with the generated stubs, or raw bytes, past every check our clients
 make. One real server, on loopback, serves the whole module. The learner's and evolver's rpcs:
-tests/ds/test_rpc_fuzz.py; the payload strategies: tests/ds/fuzz.py.
+tests/ds/learner/test_service_fuzz.py and tests/ds/evolver/test_service_fuzz.py; the payload
+strategies: tests/ds/fuzz.py.
 """
 
 from __future__ import annotations

@@ -29,7 +29,7 @@ from ds.replay.service import serve_replay
 from envs.make import vector_env_factory
 
 pytestmark = pytest.mark.grpc
-ROOT = Path(__file__).resolve().parents[2]
+ROOT = Path(__file__).resolve().parents[3]
 SMALL = ["nn.hidden_units=[16,16]", "replay.batch_size=16", "replay.samples_per_insert=null", "actor.chunk_length=64"]
 
 

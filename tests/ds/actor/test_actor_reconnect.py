@@ -32,7 +32,7 @@ from ds.replay.service import serve_replay
 from envs.make import vector_env_factory
 
 pytestmark = pytest.mark.grpc
-ROOT = Path(__file__).resolve().parents[2]
+ROOT = Path(__file__).resolve().parents[3]
 CONFIG = load_config(
     ROOT / "envs/gym/pendulum",
     None,

@@ -27,8 +27,7 @@ from ds.replay.codec import chunk_to_proto, message_limit_bytes
 from ds.replay.service import SERVICE_NAME, serve_replay
 from protos import replay_pb2, replay_pb2_grpc
 from tests.algorithm.replay.chunks import IMAGE, VECTOR, make_chunk
-
-from .conftest import ServeOverGrpc
+from tests.ds.conftest import ServeOverGrpc
 
 pytestmark = pytest.mark.grpc
 

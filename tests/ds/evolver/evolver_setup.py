@@ -1,6 +1,6 @@
 """Helpers of the evolver tests on loopback: a config with sampled parameters, real learner servers that
 serve fixed weights (optionally slowly), and :class:`Setup`, the evolvers of one state directory with their
-servers and clients (the ``setup`` fixture of tests/ds/conftest.py stops them all)."""
+servers and clients (the ``setup`` fixture of tests/ds/evolver/conftest.py stops them all)."""
 
 from __future__ import annotations
 

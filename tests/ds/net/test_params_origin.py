@@ -4,7 +4,7 @@ refused, whatever version it claims, with a token and without; the real learner'
 taken; and once the actor registers with a restarted learner (a new key) it follows that one.
 
 Real ZeroMQ sockets and, for the actor, a real learner service and replay on loopback (the ones of
-tests/ds/test_reconnect.py)."""
+tests/ds/actor/test_actor_reconnect.py)."""
 
 from __future__ import annotations
 
@@ -20,9 +20,9 @@ import zmq
 from algorithm.sac import SAC
 from ds.net.params import ParamsError, ParamsPublisher, ParamsSubscriber, decode_params, encode_params
 from ds.net.stream_key import StreamKey
-from tests.ds.test_params import SPEC, counts, ctx, reaches, small_params, until
-from tests.ds.test_reconnect import CONFIG, Learner, Replay, free_port, running_actor, same_weights
-from tests.ds.test_reconnect import SPEC as PENDULUM
+from tests.ds.actor.test_actor_reconnect import CONFIG, Learner, Replay, free_port, running_actor, same_weights
+from tests.ds.actor.test_actor_reconnect import SPEC as PENDULUM
+from tests.ds.net.test_params import SPEC, counts, ctx, reaches, small_params, until
 
 __all__ = ["ctx"]  # the fixture
 FORGED = 10**12

@@ -1,7 +1,7 @@
 """The evolver on loopback: registration with sampled configs, PostReward that never waits for a round,
 CEM rounds over the elites' weights fetched from real learner servers, retirement, actor and replay
 assignment, leases, and clear status codes for bad input (restart from the saved state:
-test_evolver_state.py)."""
+test_state.py)."""
 
 from __future__ import annotations
 
@@ -27,7 +27,7 @@ from ds.learner.client import LearnerClient
 from ds.learner.service import ActorRegistry, LearnerServicer, ParamsStore, serve_learner
 from ds.net.params import decode_params, params_spec
 from protos import evolver_pb2, evolver_pb2_grpc
-from tests.ds.evolver_setup import LEASE_S, SPEC, Setup, evolver_config, register, until, weights_of
+from tests.ds.evolver.evolver_setup import LEASE_S, SPEC, Setup, evolver_config, register, until, weights_of
 
 pytestmark = pytest.mark.grpc
 

@@ -1,7 +1,7 @@
-"""What the security tests (tests/ds/test_security.py, test_security_files.py) share: the run's token and
+"""What the security tests (tests/ds/net/test_security.py, test_security_files.py) share: the run's token and
 certificates made at test time (tests/pki.py), real servers of each role on loopback holding given
 credentials, and raw calls of every rpc of a service, reporting the status code each got. The
-``material`` and ``servers`` fixtures are in tests/ds/conftest.py."""
+``material`` and ``servers`` fixtures are in tests/ds/net/conftest.py."""
 
 from __future__ import annotations
 

@@ -15,12 +15,11 @@ import pytest
 
 from algorithm.replay import ChunkIds, PrioritizedTable
 from algorithm.types import Chunk
-from ds.actor.actor import ReplaySink
+from ds.actor.sink import ReplaySink
 from ds.replay.client import ReplayClient
 from ds.replay.service import serve_replay
 from tests.algorithm.replay.chunks import VECTOR, make_chunk
-
-from .faults import FlakyCalls
+from tests.ds.actor.faults import FlakyCalls
 
 pytestmark = [pytest.mark.grpc, pytest.mark.fault]
 STRIDE = 16  # chunk i holds payload ids 16 i .. 16 i + T: no two chunks share one

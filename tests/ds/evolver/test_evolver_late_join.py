@@ -28,12 +28,11 @@ from ds.member.link import EvolverLink, Membership, WeightsSnapshot
 from ds.member.population import LearnerAddress, join_population
 from ds.net.params import ParamsPublisher, encode_params, params_spec
 from envs.make import make_vector_env
-from tests.ds.evolver_setup import LEASE_S, SPEC, Setup, evolver_config, register, until, weights_of
-
-from .conftest import ServeOverGrpc
+from tests.ds.conftest import ServeOverGrpc
+from tests.ds.evolver.evolver_setup import LEASE_S, SPEC, Setup, evolver_config, register, until, weights_of
 
 pytestmark = pytest.mark.grpc
-ROOT = Path(__file__).resolve().parents[2]
+ROOT = Path(__file__).resolve().parents[3]
 TINY_STD = 1e-6  # evolver_cem_std_max: a sample is the elites' mean within a few 1e-6
 JOINED = "joined after round 1: starting from a sample of the CEM distribution"
 

@@ -1,7 +1,7 @@
 """Security beyond the rpcs themselves (ds/net/security.py): the plaintext health-only port Kubernetes
 probes, the checks of the credential files (each error names its key and file), secrets kept out of
 reprs, and the warning for a server open beyond loopback. The token, TLS and the roles' rpcs:
-tests/ds/test_security.py."""
+tests/ds/net/test_security.py."""
 
 from __future__ import annotations
 
@@ -24,7 +24,7 @@ from ds.net.rpc import wait_until_serving
 from ds.net.security import Credentials, load_credentials
 from ds.replay.service import serve_replay
 from tests.algorithm.replay.chunks import VECTOR
-from tests.ds.security_setup import MODULES, SERVICES, TOKEN, Material, Served, codes, health_status, rpc_names
+from tests.ds.net.security_setup import MODULES, SERVICES, TOKEN, Material, Served, codes, health_status, rpc_names
 
 pytestmark = pytest.mark.grpc
 

@@ -1,7 +1,7 @@
 """Security of the three gRPC services on loopback (ds/net/security.py): the token on every rpc, TLS and
 mutual TLS with certificates made at test time (tests/pki.py), which role may call which rpc, and clients
 that accept only a server holding the role's certificate (a learner loads CEM samples from the evolver
-only). The health-only port, the credential files and loopback: tests/ds/test_security_files.py."""
+only). The health-only port, the credential files and loopback: tests/ds/net/test_security_files.py."""
 
 from __future__ import annotations
 
@@ -31,7 +31,7 @@ from ds.replay import service as replay_service
 from ds.replay.client import ReplayClient, ReplayRpcError
 from protos import evolver_pb2, evolver_pb2_grpc
 from tests.algorithm.replay.chunks import VECTOR, make_chunk
-from tests.ds.security_setup import (
+from tests.ds.net.security_setup import (
     GUARD_CODES,
     MODULES,
     ONCE,

@@ -16,7 +16,7 @@ from ds.actor.actor import DistributedActor
 from ds.learner.client import LearnerClient
 from ds.replay.client import ReplayClient
 from envs.make import vector_env_factory
-from tests.ds.test_reconnect import CONFIG, FAST_RETRY, SPEC, Learner, Replay, free_port
+from tests.ds.actor.test_actor_reconnect import CONFIG, FAST_RETRY, SPEC, Learner, Replay, free_port
 
 pytestmark = pytest.mark.grpc
 

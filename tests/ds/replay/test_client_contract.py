@@ -5,7 +5,7 @@ overridden: the test builds its table as before, and ``connect`` starts a real s
 127.0.0.1 and hands back a :class:`~ds.replay.client.ReplayClient`, through which the test then
 does everything (docs/architecture.md section 13). Not listed, because they reach inside the table or test its
 constructor rather than its interface: ``test_constructor_rejects_bad_arguments``, the
-thread-safety test of test_table_threads.py (its gRPC counterpart is in test_replay_service.py)
+thread-safety test of test_table_threads.py (its gRPC counterpart is in test_service.py)
 and the tests of the dedup ledger's bounds.
 """
 
@@ -62,8 +62,7 @@ from tests.algorithm.replay.test_table_windows import (  # noqa: F401
     test_windows_after_a_key_are_the_oldest_stored_steps_from_it_in_key_order,
     test_windows_never_span_two_chunks,
 )
-
-from .conftest import ServeOverGrpc
+from tests.ds.conftest import ServeOverGrpc
 
 pytestmark = pytest.mark.grpc
 

@@ -16,7 +16,7 @@ from hypothesis import strategies as st
 
 from ds.evolver.evolver import Evolver
 from ds.evolver.state import SAMPLES_DIR, STATE_FILE, EvolverInfo, EvolverStateError, Instruction, PendingSample, Role
-from tests.ds.evolver_setup import Setup, evolver_config, register, weights_of
+from tests.ds.evolver.evolver_setup import Setup, evolver_config, register, weights_of
 
 pytestmark = pytest.mark.grpc
 
@@ -52,7 +52,7 @@ def test_a_restarted_evolver_carries_on_where_it_stopped(setup: Setup) -> None:
 
     client.heartbeat(ids[0], 50, loaded_round=1)
     evolver.save()
-    # Left: only the new learner's, drawn from round 1's distribution (tests/ds/test_evolver_late_join.py).
+    # Left: only the new learner's, drawn from round 1's distribution (tests/ds/evolver/test_evolver_late_join.py).
     assert sorted(p.name for p in (setup.state_dir / SAMPLES_DIR).iterdir()) == ["learner_3.round_1.npz"]
 
 

@@ -19,12 +19,11 @@ import pytest
 
 from algorithm.replay import ChunkIds, Inserted, PrioritizedTable, RateLimiter, SampleTimeout
 from algorithm.types import Chunk
-from ds.actor.actor import ReplaySink
+from ds.actor.sink import ReplaySink
 from ds.replay.client import ReplayClient
 from ds.replay.service import serve_replay
 from tests.algorithm.replay.chunks import VECTOR, make_chunk
-
-from .conftest import ServeOverGrpc
+from tests.ds.conftest import ServeOverGrpc
 
 pytestmark = pytest.mark.grpc
 

@@ -32,11 +32,10 @@ from ds.replay.service import serve_replay
 from envs.make import make_vector_env
 from tests.algorithm.replay.chunks import VECTOR, make_chunk
 from tests.damage import flip_in_largest_record, tree_digest
-
-from .conftest import ServeOverGrpc
+from tests.ds.conftest import ServeOverGrpc
 
 pytestmark = pytest.mark.grpc
-ROOT = Path(__file__).resolve().parents[2]
+ROOT = Path(__file__).resolve().parents[3]
 
 
 def until(condition: Callable[[], bool], timeout_s: float = 20.0) -> None:
