@@ -15,7 +15,7 @@ The lock is taken on the folder's own descriptor, so no file is added to the fol
 that is refused stays byte for byte as it was), and it dies with its process (``kill -9``
 included), so a run whose process was killed is free to resume. The holder is named from
 ``/proc/locks`` where there is one. A population's learners hold the same lock on their own folders
-(ds/evolver/population.py).
+(ds/member/population.py).
 """
 
 from __future__ import annotations
