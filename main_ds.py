@@ -399,6 +399,7 @@ def local(args: argparse.Namespace, config: Config, run_dir: Path, creds: securi
     ``base_config.evolver_enabled``: N defaults to 2), an evolver, N replays, N learners and the actors.
     Without ``net_config.token_file`` (nor ``--no_token``) the run gets a fresh token in ``<run>/token``
     (mode 0600), handed to every child as an explicit one is: ``--override net.token_file=<run>/token``."""
+    from algorithm.run_progress import finished_at
     from ds.launch.local import learner_threads, run_local
     from ds.launch.local_summary import PlayableRun, resume_argv, summary
 
@@ -407,7 +408,7 @@ def local(args: argparse.Namespace, config: Config, run_dir: Path, creds: securi
     name = config.base_config.name
     playable = PlayableRun(args.env, name, run_dir, args.model_root, here.with_name("main.py"),
                            resume=resume_argv(here, args.command_line, name))  # fmt: skip
-    if learners is None and args.ckpt is None and (done := finished_at(config, run_dir)) is not None:
+    if learners is None and args.ckpt is None and (done := finished_at(config.base_config, run_dir)) is not None:
         # started again on a finished run: say so without starting the roles (the learner would only
         # find the same and stop; a population's learners each decide for themselves)
         log.info("already finished at %d env steps; nothing to train, no role started", done)
@@ -436,21 +437,6 @@ def local(args: argparse.Namespace, config: Config, run_dir: Path, creds: securi
     command = [sys.executable, str(here), args.env]
     return run_local(command, child_args(args, config) + token_flags, args.actors, extra, learners=learners,
                      credentials=creds, run=playable)  # fmt: skip
-
-
-def finished_at(config: Config, run_dir: Path) -> int | None:
-    """The env steps of a run whose latest checkpoint has spent the config's budget; None for a new
-    or unfinished run. A damaged latest checkpoint is a CheckpointError naming it (as the learner's)."""
-    from algorithm.checkpoint import list_checkpoints, load_for_resume, restoring
-    from algorithm.learner_core import RunCounters, budget_spent
-
-    model = RunDir(run_dir).model
-    if not list_checkpoints(model):
-        return None
-    path, state = load_for_resume(model)
-    with restoring(path):
-        counters = RunCounters.from_checkpoint(state["counters"], RunCounters())
-    return counters.env_steps if budget_spent(config.base_config, counters) else None
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -23,12 +23,15 @@ import logging
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
-from typing import Any, Protocol
+from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
 
 from algorithm.spaces import ActionSpec, EnvSpec
 from algorithm.types import ActingProgress, Chunk
+
+if TYPE_CHECKING:
+    from algorithm.config_schema import Config
 
 log = logging.getLogger("asac.actor")
 _LOG_EVERY_S = 30.0  # dropped chunks: the first is logged, then at most one line (with totals) per period
@@ -214,6 +217,10 @@ class StepStats:
     iteration_ended: bool = False
     nonfinite_steps: int = 0  # steps of the chunks dropped for NaN/inf values
 
+    def episode_metrics(self) -> list[dict[str, float]]:
+        """What each episode that ended writes to TensorBoard, the same in both modes."""
+        return [{"actor/episode_return": ret, "actor/episode_length": length} for ret, length in self.finished]
+
 
 class ActorLoop:
     """Steps ``env`` with ``policy`` and hands completed chunks to ``sink``.
@@ -254,6 +261,22 @@ class ActorLoop:
         self.nonfinite_chunks = 0
         self.nonfinite_steps = 0
         self._last_log = -float("inf")
+
+    @classmethod
+    def from_config(
+        cls, env: VectorEnvLike, policy: Policy, sink: Callable[[Chunk], Any], config: Config, seed: int | None
+    ) -> ActorLoop:
+        """The loop a run's config asks for (``actor_config`` and ``base_config.reset_on_iteration``),
+        the same in ``main.py`` and in a distributed actor."""
+        return cls(
+            env,
+            policy,
+            sink,
+            chunk_length=config.actor_config.chunk_length,
+            random_steps=config.actor_config.random_steps,
+            reset_on_iteration=config.base_config.reset_on_iteration,
+            seed=seed,
+        )
 
     def step(self) -> StepStats:
         n = self.env.num_envs

@@ -1,5 +1,6 @@
-"""The learner's lifecycle, written once for both modes: counters, the update step, evaluation
-cadence, summaries, checkpoints, resume, the update-to-data budget and the stop at ``max_step``.
+"""The learner's lifecycle, written once for both modes: the update step, evaluation cadence,
+summaries, checkpoints, resume, the update-to-data budget and the stop at ``max_step`` (the run's
+counters and its summary: algorithm/run_progress.py).
 
 Usage (``algorithm/trainer.py`` and ``ds/learner/learner.py`` are the two drivers)::
 
@@ -33,7 +34,7 @@ import logging
 import math
 import time
 from collections.abc import Callable
-from dataclasses import asdict, dataclass, fields
+from dataclasses import asdict
 from pathlib import Path
 from typing import Any, Protocol
 
@@ -49,7 +50,7 @@ from algorithm.checkpoint import (
     save_checkpoint,
 )
 from algorithm.config import config_to_yaml
-from algorithm.config_schema import BaseConfig, Config
+from algorithm.config_schema import Config
 from algorithm.evaluation import (
     AcceptsWeights,
     BackgroundEvaluation,
@@ -61,53 +62,13 @@ from algorithm.evaluation import (
     read_evaluations,
 )
 from algorithm.files import WriteFailures, atomic_write
-from algorithm.logging import MetricsWriter, ProgressLine, RateMeter, Timers
+from algorithm.logging import MetricsWriter, ProgressLine, RateMeter, Throttle, Timers
 from algorithm.run_dir import EVAL_SEED_OFFSET, RunDir
+from algorithm.run_progress import RunCounters, budget_spent
 from algorithm.sac import SAC, UpdateResult
 from algorithm.types import Batch
 
 log = logging.getLogger("asac.learner")
-
-
-@dataclass
-class RunCounters:
-    """What a checkpoint records about the run's progress (``counters``). ``owed_updates`` is the
-    in-process :class:`UpdateBudget`'s balance; ``replay_inserted_seen`` the replay server's own
-    count the distributed learner last saw (:class:`~ds.learner.learner.EnvSteps`); ``weights_round`` the
-    CEM round whose sample the weights descend from (0: none)."""
-
-    env_steps: int = 0
-    updates: int = 0
-    episodes: int = 0
-    iterations: int = 0
-    wall_seconds: float = 0.0
-    next_eval: int = 0
-    next_save: int = 0
-    evaluations: int = 0
-    last_eval_mean: float | None = None
-    last_eval_step: int = -1
-    owed_updates: float = 0.0
-    replay_inserted_seen: int = 0
-    weights_round: int = 0
-    scored_below: int = 0
-
-    @classmethod
-    def from_checkpoint(cls, saved: dict[str, Any], defaults: RunCounters) -> RunCounters:
-        """Counters written by any earlier version: keys it lacks keep ``defaults``; an unknown key
-        (a checkpoint of a newer version, or damaged) is a KeyError, which ``restoring`` names."""
-        known = {f.name for f in fields(cls)}
-        unknown = set(saved) - known
-        if unknown:
-            raise KeyError(f"unknown counters {sorted(unknown)}")
-        return cls(**{**asdict(defaults), **saved})
-
-
-def budget_spent(base: BaseConfig, counters: RunCounters) -> bool:
-    """Whether a run with these counters has spent its budget (``max_step`` env steps or
-    ``max_iter`` iterations; -1: unbounded): a finished run, which a restart leaves as it is."""
-    return (base.max_step >= 0 and counters.env_steps >= base.max_step) or (
-        base.max_iter >= 0 and counters.iterations >= base.max_iter
-    )
 
 
 class UpdateBudget:
@@ -213,6 +174,7 @@ class LearnerCore:
         )
         self._chunk_length = config.actor_config.chunk_length
         self.timers = Timers()
+        self._log_skipped = Throttle()
         self.update_rate = RateMeter()
         self.writer: MetricsWriter | None = None
         self.bar: ProgressLine | None = None
@@ -230,6 +192,14 @@ class LearnerCore:
         self._config_written = False
 
     # -- lifecycle --------------------------------------------------------------------------
+    def resume_then_open(self, restore: Callable[[int | None], object], ckpt_step: int | None) -> None:
+        """A run's start in either mode: the mode's ``restore`` from the latest checkpoint (``ckpt_step``:
+        that one, also on a new run, where it says there is none), then :meth:`open`. Restored before
+        anything is written: a run whose checkpoint cannot be read keeps its files."""
+        if list_checkpoints(self.paths.model) or ckpt_step is not None:
+            restore(ckpt_step)
+        self.open()
+
     def open(self) -> None:
         """Write the run's config and open its TensorBoard folder (after a restore that worked:
         a run whose checkpoint cannot be read keeps its files)."""
@@ -293,6 +263,9 @@ class LearnerCore:
         with_metrics = c.updates % cfg.sac_config.write_summary_per_step == 0
         with self.timers.phase("update"):
             result = self.sac.update(batch, with_metrics=with_metrics)
+        if result.skipped and self._log_skipped():
+            log.warning("update skipped: non-finite loss or gradient (%d skipped so far; %d in a row stop the run)",
+                        self.sac.nonfinite_skipped, cfg.sac_config.max_nonfinite_steps)  # fmt: skip
         if cfg.replay_config.alpha > 0 and not result.skipped:
             with self.timers.phase("priorities"):
                 sink.update_priorities(batch.keys, result.td_abs)

@@ -26,6 +26,11 @@ class RunDir:
     def log(self) -> Path:
         return self.root / "log"
 
+    def role_log(self, role: str) -> Path:
+        """A distributed role's TensorBoard folder, ``log/<role>``: ``learner``, ``replay``, ``evolver``,
+        ``actor_<index>`` (``main.py`` writes to :attr:`log` itself)."""
+        return self.log / role
+
     @property
     def model(self) -> Path:
         return self.root / "model"

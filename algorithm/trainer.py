@@ -23,15 +23,13 @@ import math
 import threading
 from collections import deque
 from collections.abc import Callable
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch
 
-from algorithm.actor import ActorLoop, VectorEnvLike
-from algorithm.checkpoint import list_checkpoints
+from algorithm.actor import ActorLoop, StepStats, VectorEnvLike
 from algorithm.config_schema import Config
 from algorithm.files import WriteFailures
 from algorithm.learner_core import LearnerCore, UpdateBudget, restore_env_rngs
@@ -40,21 +38,12 @@ from algorithm.policy import Policy
 from algorithm.replay import PrioritizedTable
 from algorithm.replay.persistence import load_replay_snapshot, snapshot_kept
 from algorithm.run_dir import EVAL_SEED_OFFSET, RunDir
+from algorithm.run_progress import RunSummary
 from algorithm.sac import SAC
 from algorithm.seeding import seed_everything
 
-__all__ = ["EVAL_SEED_OFFSET", "EmbeddedTrainer", "RunDir", "TrainSummary"]
+__all__ = ["EVAL_SEED_OFFSET", "EmbeddedTrainer", "RunDir", "RunSummary"]
 log = logging.getLogger("asac")
-
-
-@dataclass
-class TrainSummary:
-    env_steps: int
-    updates: int
-    episodes: int
-    wall_seconds: float
-    last_eval_mean: float | None
-    interrupted: bool
 
 
 class EmbeddedTrainer:
@@ -106,15 +95,7 @@ class EmbeddedTrainer:
         if sac_cfg.update_policy_variables_per_step > 1:
             self.acting_policy = Policy(spec, sac_cfg, config.nn_config, device=device, build=build)
             self.acting_policy.load_acting_state_dict(self.sac.acting_state_dict())
-        self.actor = ActorLoop(
-            self.env,
-            self.acting_policy,
-            self.table.insert,
-            chunk_length=config.actor_config.chunk_length,
-            random_steps=config.actor_config.random_steps,
-            reset_on_iteration=base.reset_on_iteration,
-            seed=seed,
-        )
+        self.actor = ActorLoop.from_config(self.env, self.acting_policy, self.table.insert, config, seed)
         self.core = LearnerCore(
             config, self.paths.root, self.sac, log_dir=self.paths.log, eval_env=eval_env, progress=progress,
             publish=self._publish, extra_state=self._extra_state,
@@ -127,10 +108,7 @@ class EmbeddedTrainer:
                                            kept=snapshot_kept)  # fmt: skip
         self._interrupted = False
 
-        # Restored before anything is written: a run whose checkpoint cannot be read keeps its files.
-        if list_checkpoints(self.paths.model) or ckpt_step is not None:  # --ckpt on a new run: say so
-            self.restore(ckpt_step)
-        self.core.open()
+        self.core.resume_then_open(self.restore, ckpt_step)
 
     # -- counters (the core's) --------------------------------------------------------------
     @property
@@ -149,7 +127,7 @@ class EmbeddedTrainer:
         return self.core.done()
 
     # -- the loop ---------------------------------------------------------------------------
-    def run(self, until_step: int | None = None, stop: threading.Event | None = None) -> TrainSummary:
+    def run(self, until_step: int | None = None, stop: threading.Event | None = None) -> RunSummary:
         """Train until max_step/max_iter, ``stop`` is set or Ctrl-C (then flush, save, close), or pause
         at ``until_step`` env steps with everything left open so a later ``run()`` continues."""
         core, c, table = self.core, self.core.counters, self.table
@@ -165,7 +143,7 @@ class EmbeddedTrainer:
                 with core.timers.phase("env"):
                     stats = self.actor.step()
                 c.env_steps += stats.env_steps
-                self._record_episodes(stats.finished)
+                self._record_episodes(stats)
                 c.iterations += stats.iteration_ended
                 self.budget.earn(stats.env_steps, table.rate_limiter.size)
                 if normalize and stats.chunks:  # new rows in replay: its exact running stats moved
@@ -182,17 +160,17 @@ class EmbeddedTrainer:
             self._interrupted = interrupted
             core.finish()
         c = core.counters
-        return TrainSummary(c.env_steps, c.updates, c.episodes, c.wall_seconds, c.last_eval_mean, interrupted)
+        return RunSummary.of(c, interrupted)
 
     def _publish(self) -> None:
         if self.acting_policy is not self.sac:
             self.acting_policy.load_acting_state_dict(self.sac.acting_state_dict())
 
-    def _record_episodes(self, finished: list[tuple[float, int]]) -> None:
-        for ret, length in finished:
+    def _record_episodes(self, stats: StepStats) -> None:
+        for episode in stats.episode_metrics():
             self.core.counters.episodes += 1
-            self.recent_returns.append(ret)
-            self.core.write({"actor/episode_return": ret, "actor/episode_length": length})
+            self.recent_returns.append(episode["actor/episode_return"])
+            self.core.write(episode)
 
     def _metrics(self) -> dict[str, float]:
         info = self.table.info()

@@ -55,6 +55,7 @@ from algorithm.config_schema import Config
 from algorithm.logging import MetricsWriter, RateMeter, Throttle
 from algorithm.policy import Policy
 from algorithm.replay import ReplayUnavailable
+from algorithm.run_dir import RunDir
 from ds.actor.sink import ReplaySink
 from ds.actor.staleness import Staleness
 from ds.learner import service as learner_service
@@ -185,16 +186,8 @@ class DistributedActor:
         self.sac.seed_acting(seed)  # every actor's policy is built from the same config: its own noise
         policy = self.sac if self.update_mode else RemotePolicy(self.learner, noise)
         env = self.make_env(self.config.base_config.n_agents, seed)
-        self.loop = loop = ActorLoop(
-            env,
-            policy,
-            self.sink,
-            chunk_length=self.config.actor_config.chunk_length,
-            random_steps=self.config.actor_config.random_steps,
-            reset_on_iteration=self.config.base_config.reset_on_iteration,
-            seed=seed,
-        )
-        writer = MetricsWriter(self.run_dir / "log" / f"actor_{index}")
+        self.loop = loop = ActorLoop.from_config(env, policy, self.sink, self.config, seed)
+        writer = MetricsWriter(RunDir(self.run_dir).role_log(f"actor_{index}"))
         writer.write({"actor/noise": noise}, 0)
         log.info("actor %s: index %d, noise %.3f, env seed %d, %d envs", reg.actor_id, index, noise, seed, env.num_envs)
         rate, last_metrics, iterations = RateMeter(), time.monotonic(), 0
@@ -212,9 +205,9 @@ class DistributedActor:
                     continue
                 self.env_steps += stats.env_steps
                 iterations += stats.iteration_ended
-                for ret, length in stats.finished:
+                for episode in stats.episode_metrics():
                     self.episodes += 1
-                    writer.write({"actor/episode_return": ret, "actor/episode_length": length}, self.env_steps)
+                    writer.write(episode, self.env_steps)
                 if max_iter >= 0 and iterations >= max_iter:
                     break
                 self._take_new_params()

@@ -12,6 +12,7 @@ from __future__ import annotations
 import logging
 
 from algorithm.logging import MetricsWriter
+from algorithm.run_dir import RunDir
 from ds.evolver.evolver import Evolver
 from ds.evolver.service import serve_evolver
 from ds.launch.role_context import RoleContext, listen
@@ -23,7 +24,7 @@ def run_evolver(role: RoleContext) -> int:
     """Keep the population (ds/evolver/evolver.py) on ``bind_host:evolver_port`` until stopped: its state lives
     in ``<run>/evolver/`` (a restarted evolver carries on from it), TensorBoard in ``<run>/log/evolver``."""
     cfg, net = role.config, role.config.net_config
-    metrics = MetricsWriter(role.run_dir / "log" / "evolver")
+    metrics = MetricsWriter(RunDir(role.run_dir).role_log("evolver"))
     try:
         evolver = Evolver(cfg, role.run_dir / "evolver", cfg.base_config.name, token=role.token,
                           credentials=role.credentials, metrics=metrics)  # fmt: skip

@@ -4,7 +4,7 @@ and the server with its health service. Learners, actors and replays call it thr
 
 Usage, the evolver's process::
 
-    evolver = Evolver(config, run_dir / "evolver", name, metrics=MetricsWriter(run_dir / "log" / "evolver"))
+    evolver = Evolver(config, run_dir / "evolver", name, metrics=MetricsWriter(RunDir(run_dir).role_log("evolver")))
     evolver.start()
     server, port, health = serve_evolver(evolver, "0.0.0.0:61000", credentials=creds)  # SERVING at once
     ...

@@ -37,18 +37,18 @@ import math
 import threading
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from algorithm.actor import VectorEnvLike
-from algorithm.checkpoint import list_checkpoints
 from algorithm.config_schema import Config
 from algorithm.evaluation import AcceptsWeights
 from algorithm.learner_core import LearnerCore
 from algorithm.logging import Throttle
 from algorithm.replay import ReplayTable, ReplayUnavailable
+from algorithm.run_dir import RunDir
+from algorithm.run_progress import RunSummary
 from algorithm.sac import SAC
 from algorithm.types import Batch
 from ds.learner.feeds import BatchPrefetcher, PriorityUpdater
@@ -75,16 +75,6 @@ class EnvSteps:
         self.total += inserted - self.seen
         self.seen = inserted
         return self.total
-
-
-@dataclass
-class LearnerSummary:
-    env_steps: int
-    updates: int
-    wall_seconds: float
-    last_eval_mean: float | None
-    interrupted: bool
-    retired: bool = False
 
 
 class _RemoteTrainingSink:
@@ -160,19 +150,14 @@ class Learner:
         self.sink = _RemoteTrainingSink(self)
         on_evaluation: Callable[[float, int], None] = (lambda mean, steps: None) if member is None else member.link.post
         self.core = LearnerCore(
-            config, Path(run_dir), sac, log_dir=Path(run_dir) / "log" / "learner", eval_env=eval_env,
+            config, Path(run_dir), sac, log_dir=RunDir(Path(run_dir)).role_log("learner"), eval_env=eval_env,
             progress=progress, publish=self.publish, on_evaluation=on_evaluation,
             newest_key=lambda: self.replay_next_key, eval_policy=eval_policy,
         )  # fmt: skip
         self.paths = self.core.paths
         self.env_steps = EnvSteps()
         self._log_replay = Throttle()
-        self._log_skipped = Throttle()
-        if list_checkpoints(self.paths.model) or ckpt_step is not None:  # --ckpt on a new run: say so
-            self.restore(ckpt_step)
-        if member is not None and self.core.counters.weights_round:
-            member.link.loaded(self.core.counters.weights_round)
-        self.core.open()
+        self.core.resume_then_open(self.restore, ckpt_step)
 
     @property
     def updates(self) -> int:
@@ -183,14 +168,14 @@ class Learner:
         return self.core.counters.evaluations
 
     # -- the loop ---------------------------------------------------------------------------
-    def run(self) -> LearnerSummary:
+    def run(self) -> RunSummary:
         core, c = self.core, self.core.counters
         if core.done():  # started again on a finished run: nothing to train, nothing to change
             result = "n/a" if c.last_eval_mean is None else f"{c.last_eval_mean:.1f}"
             log.info("already finished at %d env steps; last eval return %s", c.env_steps, result)
             if self.registry is not None:
                 self.registry.run_done.set()
-            return LearnerSummary(c.env_steps, c.updates, c.wall_seconds, c.last_eval_mean, False)
+            return RunSummary.of(c, False)
         last_info = last_publish = time.perf_counter()
         core.start()
         if self.member is not None:  # a learner that joined after a round starts from its sample
@@ -231,18 +216,14 @@ class Learner:
         retired = self.member is not None and self.member.link.retired
         interrupted = not core.done() and not retired
         core.finish()
-        return LearnerSummary(c.env_steps, c.updates, c.wall_seconds, c.last_eval_mean, interrupted, retired)
+        return RunSummary.of(c, interrupted, retired)
 
     def _prefetcher(self, replay: ReplayTable) -> BatchPrefetcher:
         batch_size, on_cuda = self.config.replay_config.batch_size, self.sac.device.type == "cuda"
         return BatchPrefetcher(replay, batch_size, self.prefetch_depth, pin_memory=on_cuda)
 
     def _train_on(self, batch: Batch) -> None:
-        result = self.core.train_on(batch, self.sink, self._metrics)
-        if result.skipped and self._log_skipped():
-            skipped, limit = self.sac.nonfinite_skipped, self.config.sac_config.max_nonfinite_steps
-            log.warning("update skipped: non-finite loss or gradient (%d skipped so far; %d in a row stop "
-                        "the learner)", skipped, limit)  # fmt: skip
+        self.core.train_on(batch, self.sink, self._metrics)
 
     def _train_on_what_is_owed(self) -> None:
         """At ``max_step``: the updates the data inserted so far still asks for (the replay's rate
@@ -382,6 +363,8 @@ class Learner:
         # What was restored, read back from the live objects (the fault tests compare it with the file).
         log.info("resumed from %s at %d env steps, %d updates (log_alpha %r, optimizer steps %s)", path,
                  c.env_steps, c.updates, self.sac.log_alpha.item(), optimizer_steps(self.sac))  # fmt: skip
+        if self.member is not None and c.weights_round:
+            self.member.link.loaded(c.weights_round)
 
 
 def optimizer_steps(sac: SAC) -> dict[str, int]:

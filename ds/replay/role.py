@@ -121,7 +121,7 @@ def _serve_replay(role: RoleContext, keeper: AssignmentKeeper | None, metrics_ev
         credentials=role.credentials, health_port=cfg.net_config.health_port, snapshot_dir=path.parent,
     ))  # fmt: skip
     log.info("replay serving on %s:%d (capacity %d steps)", cfg.net_config.bind_host, port, table.capacity)
-    writer = MetricsWriter(role.run_dir / "log" / "replay")
+    writer = MetricsWriter(RunDir(role.run_dir).role_log("replay"))
     snapshots = WriteFailures("replay snapshot", log, retry=f"trying again in {save_every_min:g} min",
                               kept=snapshot_kept)  # fmt: skip
     halt = keeper.tenure()[1] if keeper is not None else threading.Event()

@@ -294,3 +294,27 @@ def test_env_rngs_that_do_not_fit_are_logged_and_leave_the_envs_as_made(
     assert "evaluation envs' RNGs in" in caplog.text and "3 env RNG states for 2 envs" in caplog.text, caplog.text
     assert all(np.array_equal(a, b) for a, b in zip(env.reset(), as_made, strict=True))
     assert not restore_env_rngs(env, None, "evaluation", tmp_path / "model/400.pt")  # checkpoints before the fix
+
+
+def test_an_update_skipped_for_a_non_finite_batch_is_logged_as_in_the_learner_role(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """main.py says so as the distributed learner does (ds/learner tests): one line, then at most one
+    per 30 s; the weights stay finite and the run goes on."""
+    trainer = make_trainer(small_config("base.max_step=200", "eval.eval_per_step=0"), tmp_path / "run", False)
+    sample, drawn = trainer.table.sample, []
+
+    def poisoned(batch_size: int, timeout: float | None = None):  # noqa: ANN202
+        batch = sample(batch_size, timeout=timeout)
+        drawn.append(batch)
+        if len(drawn) in (3, 5):
+            batch.rewards = np.full_like(batch.rewards, np.nan)
+        return batch
+
+    trainer.table.sample = poisoned  # type: ignore[method-assign]
+    with caplog.at_level(logging.WARNING, logger="asac.learner"):
+        summary = trainer.run()
+    assert summary.env_steps == 200 and trainer.sac.nonfinite_skipped == 2
+    lines = [r.getMessage() for r in caplog.records if "update skipped" in r.getMessage()]
+    assert lines == ["update skipped: non-finite loss or gradient (1 skipped so far; 100 in a row stop the run)"]
+    assert all(bool(torch.isfinite(p).all()) for p in trainer.sac.models.parameters())
