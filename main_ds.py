@@ -42,12 +42,12 @@ from algorithm.config import (
     load_config,
     task_config_path,
 )
-from algorithm.config_port import CONFIG_LOGGER
 from algorithm.config_schema import MAX_EXPLORATION_NOISE, Config, NetConfig
 from algorithm.errors import CheckpointError, RoleError
 from algorithm.files import WriteFailures, atomic_write
 from algorithm.folder_lock import FolderInUse, hold_folder
 from algorithm.logging import LogFileHandler
+from algorithm.original_config import CONFIG_LOGGER
 from algorithm.random_params import draw_for_run
 from algorithm.run_dir import RunDir
 from algorithm.signals import LAUNCHER_PID_ENV, StopRequest, stop_on_signals, stop_with_launcher

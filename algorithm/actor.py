@@ -8,7 +8,7 @@ Usage (one process; ``ds/`` runs the same loop with a gRPC table and ZeroMQ para
         for ret, length in stats.finished: ...
 
 The loop never needs to know where chunks go or where parameters come from: ``policy`` is anything
-with :meth:`Policy.act`, ``sink`` any callable taking a :class:`~algorithm.types.Chunk`.
+with :meth:`ActionSource.act`, ``sink`` any callable taking a :class:`~algorithm.types.Chunk`.
 
 A chunk holding NaN or inf (an env that returned one as a reward or observation, or a policy that
 acted with one) never reaches the sink: it is dropped whole, counted (``nonfinite_chunks``,
@@ -47,7 +47,7 @@ def nonfinite_fields(chunk: Chunk) -> list[str]:
     return [name for name, a in fields.items() if a.dtype.kind == "f" and not np.isfinite(a).all()]
 
 
-class Policy(Protocol):
+class ActionSource(Protocol):
     """What acts: :class:`algorithm.sac.SAC` or anything shaped like it. A recurrent policy
     (``rnn_state_size > 0``) acts through ``act_recurrent`` and the loop carries its state."""
 
@@ -234,7 +234,7 @@ class ActorLoop:
     def __init__(
         self,
         env: VectorEnvLike,
-        policy: Policy,
+        policy: ActionSource,
         sink: Callable[[Chunk], Any],
         chunk_length: int,
         random_steps: int = 0,
@@ -264,7 +264,7 @@ class ActorLoop:
 
     @classmethod
     def from_config(
-        cls, env: VectorEnvLike, policy: Policy, sink: Callable[[Chunk], Any], config: Config, seed: int | None
+        cls, env: VectorEnvLike, policy: ActionSource, sink: Callable[[Chunk], Any], config: Config, seed: int | None
     ) -> ActorLoop:
         """The loop a run's config asks for (``actor_config`` and ``base_config.reset_on_iteration``),
         the same in ``main.py`` and in a distributed actor."""

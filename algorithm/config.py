@@ -12,7 +12,7 @@ Every leaf remembers which layer set it, so an unknown key, a wrong type or an o
 is reported as ``sac_config.learning_rate (envs/gym/pendulum/config.yaml [fast]): ...``.
 
 A task file (and an override) written for the original system is read through
-:mod:`algorithm.config_port` first: its moved keys land where ASAC keeps them, with a warning.
+:mod:`algorithm.original_config` first: its moved keys land where ASAC keeps them, with a warning.
 """
 
 from __future__ import annotations
@@ -27,8 +27,8 @@ from typing import Any
 import yaml
 from pydantic import BaseModel, ValidationError
 
-from algorithm.config_port import Port, looks_like_original
 from algorithm.config_schema import Config
+from algorithm.original_config import Port, looks_like_original
 from algorithm.random_params import ParamSpecError
 
 DEFAULT_CONFIG_PATH = Path(__file__).with_name("default_config.yaml")

@@ -18,13 +18,13 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from algorithm.actor import Policy, VectorEnvLike
+from algorithm.actor import ActionSource, VectorEnvLike
 from algorithm.files import atomic_write, open_regular
 
 CSV_FIELDS = ("env_steps", "updates", "wall_seconds", "return_mean", "return_std")
 
 
-class AcceptsWeights(Policy, Protocol):
+class AcceptsWeights(ActionSource, Protocol):
     """A policy that takes a learner's acting weights (``algorithm.policy.Policy``)."""
 
     def load_acting_state_dict(self, state: dict[str, Any]) -> None: ...
@@ -45,7 +45,7 @@ class EvalResult:
 
 
 def evaluate(
-    env: VectorEnvLike, policy: Policy, episodes: int, seed: int | None, deterministic: bool = True
+    env: VectorEnvLike, policy: ActionSource, episodes: int, seed: int | None, deterministic: bool = True
 ) -> EvalResult:
     """Run ``episodes`` episodes, spread evenly over ``env``'s sub-envs.
 

@@ -8,7 +8,7 @@ arithmetic with a ``numpy.random.Generator`` passed in, and state that is plain 
 
 Usage::
 
-    population = Population(config)                    # base_config.evolver_*, config.random_params
+    population = CemPopulation(config)                    # base_config.evolver_*, config.random_params
     learner_id, params = population.add_learner(rng)   # params: {"sac_config.n_step": 3, ...}
     learner_config = apply_params(config, params)      # the config that learner runs with
     population.post_return(learner_id, 123.4)          # after each of its evaluations
@@ -17,7 +17,7 @@ Usage::
         result = population.run_round({i: weights_of(i) for i in elites}, rng)
         for i, weights in result.samples_for.items(): send(i, weights)
         for i in result.retired: stop(i)
-    write_atomically(json.dumps(population.to_state()))  # Population.from_state(config, state)
+    write_atomically(json.dumps(population.to_state()))  # CemPopulation.from_state(config, state)
 
 CEM fits a distribution to the elite fraction of a population and samples the next generation from
 it (Rubinstein 1999, "The cross-entropy method for combinatorial and continuous optimization";
@@ -62,7 +62,7 @@ def elite_count(n: int, best_fraction: float) -> int:
 def elite_indices(mean_returns: Sequence[float] | np.ndarray, best_fraction: float) -> list[int]:
     """Indices of the ``elite_count`` highest mean returns, best first.
 
-    Ties go to the lower index (a stable sort), so for :class:`Population`, whose learners are in
+    Ties go to the lower index (a stable sort), so for :class:`CemPopulation`, whose learners are in
     id order, to the older learner; NaN ranks below every number.
     """
     r = np.asarray(mean_returns, dtype=np.float64)
@@ -173,7 +173,7 @@ class RoundResult:
     std: dict[str, np.ndarray]
 
 
-class Population:
+class CemPopulation:
     """The evolver's bookkeeping: learners, their returns and params, elite counts per ``in`` value.
 
     The settings come from ``config.base_config.evolver_*`` and the specs from
@@ -318,7 +318,7 @@ class Population:
         }
 
     @classmethod
-    def from_state(cls, config: Config, state: Mapping[str, Any]) -> Population:
+    def from_state(cls, config: Config, state: Mapping[str, Any]) -> CemPopulation:
         """The population :meth:`to_state` saved, under ``config``'s settings and specs.
 
         Counts follow values, not positions: a value still in the config's ``in`` list keeps its

@@ -52,26 +52,28 @@ class Policy:
     def __init__(
         self,
         spec: EnvSpec,
-        sac: SacConfig,
-        nn: NNConfig,
+        sac_config: SacConfig,
+        nn_config: NNConfig,
         device: str | torch.device = "cpu",
         build: ModelBuilder = build_models,
     ) -> None:
         self.spec = spec
-        self.sac = sac
+        self.sac = sac_config
         self.device = torch.device(device)
         act = spec.action
         self._branches = branch_matrix(act.discrete_branches, self.device) if act.discrete_branches else None
         self._mask_index = spec.action_mask_index
 
-        if sac.seed is None:
+        if sac_config.seed is None:
             init_seed, act_seed, learn_seed = (int(s) for s in torch.randint(0, 2**62, (3,)))
         else:
-            init_seed, act_seed, learn_seed = (int(s) for s in np.random.SeedSequence(sac.seed).generate_state(3))
+            init_seed, act_seed, learn_seed = (
+                int(s) for s in np.random.SeedSequence(sac_config.seed).generate_state(3)
+            )
         self._learn_seed = learn_seed
         with torch.random.fork_rng(devices=[]):
             torch.manual_seed(init_seed)
-            self.models = build(spec, sac, nn).to(self.device)
+            self.models = build(spec, sac_config, nn_config).to(self.device)
         self._act_rng = torch.Generator(device=self.device)
         self._colored: ColoredNoise | None = None
         self._seed_acting_generators(act_seed)
@@ -95,7 +97,7 @@ class Policy:
         self.rnn_state_size = rep.rnn_state_size if isinstance(rep, RecurrentRepresentation) else 0
         # act() in NumPy where that computes what torch would (nn/numpy_acting.py), else None.
         self._numpy_actor = None
-        if sac.numpy_acting:
+        if sac_config.numpy_acting:
             discrete = bool(act.discrete_branches)
             self._numpy_actor = numpy_actor_for(self.models, self.device.type, bool(self.rnn_state_size), discrete)
         # Extra exploration of one distributed actor, min(noise_increasing_rate * i, noise_max)

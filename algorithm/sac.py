@@ -82,25 +82,25 @@ class SAC(SacCheckpoint, SacLosses, Policy):
     def __init__(
         self,
         spec: EnvSpec,
-        sac: SacConfig,
-        nn: NNConfig,
-        replay: ReplayConfig,
+        sac_config: SacConfig,
+        nn_config: NNConfig,
+        replay_config: ReplayConfig,
         device: str | torch.device = "cpu",
         compile: bool = False,
         build: Callable[[EnvSpec, SacConfig, NNConfig], SacModels] = build_models,
     ) -> None:
-        check_config_for_task(sac, spec)
-        super().__init__(spec, sac, nn, device, build)
-        self.beta = float(replay.beta)
-        self.beta_increment = float(replay.beta_increment_per_sampling)
+        check_config_for_task(sac_config, spec)
+        super().__init__(spec, sac_config, nn_config, device, build)
+        self.beta = float(replay_config.beta)
+        self.beta_increment = float(replay_config.beta_increment_per_sampling)
         act = spec.action
         self.target_entropy = -float(act.continuous_dim)
         # Discrete: a fraction of each branch's maximum entropy log|A_b| (Christodoulou 2019 used 0.98),
         # annealed from discrete_target_entropy_start when that is set (_move_loss_schedules).
         self._max_discrete_entropy = [math.log(n) for n in act.discrete_branches]
         self.discrete_target_entropy = self._discrete_target_entropy(0)
-        self.munchausen_weight = torch.tensor(munchausen_scale_at(sac, 0), device=self.device)  # moved in place
-        self._observation_targets = observation_targets(spec.sensors, nn.critic_only, sac.use_extra_data)
+        self.munchausen_weight = torch.tensor(munchausen_scale_at(sac_config, 0), device=self.device)  # moved in place
+        self._observation_targets = observation_targets(spec.sensors, nn_config.critic_only, sac_config.use_extra_data)
         self.target_representation = copy.deepcopy(self.models.representation).requires_grad_(False)
         self.target_q = copy.deepcopy(self.models.q).requires_grad_(False)
         self._learn_rng = torch.Generator(device=self.device)
@@ -110,12 +110,12 @@ class SAC(SacCheckpoint, SacLosses, Policy):
 
         # One temperature for the continuous part, one per discrete branch (none when greedy).
         self.log_alpha = torch.nn.Parameter(
-            torch.tensor(float(sac.init_log_alpha), device=self.device), requires_grad=sac.use_auto_alpha
+            torch.tensor(float(sac_config.init_log_alpha), device=self.device), requires_grad=sac_config.use_auto_alpha
         )
         n_discrete_alphas = len(act.discrete_branches) if self.models.discrete_policy is not None else 0
         self.log_alpha_discrete = torch.nn.Parameter(
-            torch.full((n_discrete_alphas,), float(sac.init_log_alpha), device=self.device),
-            requires_grad=sac.use_auto_alpha,
+            torch.full((n_discrete_alphas,), float(sac_config.init_log_alpha), device=self.device),
+            requires_grad=sac_config.use_auto_alpha,
         )
         self._critic_params: list[Tensor] = [
             *self.models.representation.parameters(),
@@ -128,7 +128,7 @@ class SAC(SacCheckpoint, SacLosses, Policy):
                                           (self.log_alpha_discrete, n_discrete_alphas > 0)) if used]  # fmt: skip
         self.critic_optimizer = self._adam(self._critic_params)
         self.policy_optimizer = self._adam(self._policy_params) if self._policy_params else None
-        self.alpha_optimizer = self._adam(alpha_params) if sac.use_auto_alpha and alpha_params else None
+        self.alpha_optimizer = self._adam(alpha_params) if sac_config.use_auto_alpha and alpha_params else None
         auxiliary = [m for m in (self.models.curiosity, self.models.rnd, self.models.prediction) if m is not None]
         self._auxiliary_params: list[Tensor] = [p for m in auxiliary for p in m.parameters() if p.requires_grad]
         self.auxiliary_optimizer = self._adam(self._auxiliary_params) if self._auxiliary_params else None
@@ -140,14 +140,14 @@ class SAC(SacCheckpoint, SacLosses, Policy):
         # torch.compile of the loss computation (forward and, through AOTAutograd, backward);
         # its first update compiles for ~20 s on CPU. See bench/learner.py for what it gains.
         self._compute_losses = torch.compile(self._losses) if compile else self._losses
-        # Hidden layers in bfloat16 (sac.compute_dtype): 2.2x faster matmuls on this project's AVX512-BF16
+        # Hidden layers in bfloat16 (sac_config.compute_dtype): 2.2x faster matmuls on this project's AVX512-BF16
         # CPUs, 1.4x faster updates (bench/learner.py); output layers stay float32 (nn.layers.in_float32).
-        self._low_precision = uses_bfloat16(sac.compute_dtype, self.device)
+        self._low_precision = uses_bfloat16(sac_config.compute_dtype, self.device)
         # On a GPU the forward and backward pass is recorded once as a CUDA graph and replayed
         # (algorithm/update_graph.py); None where it is not (the CPU, configs it cannot record).
         trained = [p for opt in self._optimizers() for group in opt.param_groups for p in group["params"]]
         self.update_graph = graph_for(
-            sac, self.device, compile, bool(self.rnn_state_size), self.models.prediction is not None, trained
+            sac_config, self.device, compile, bool(self.rnn_state_size), self.models.prediction is not None, trained
         )
         self.updates = 0  # applied (not skipped) updates
         self.nonfinite_skipped = 0

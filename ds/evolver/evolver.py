@@ -12,7 +12,7 @@ Usage (``ds/evolver/service.py`` serves it over gRPC; protos/evolver.proto docum
     job = evolver.assign(Role.ACTOR, "a0")                                   # ds/evolver/assign.py
     evolver.stop()                           # joins the thread and saves
 
-The math is :class:`algorithm.evolution.Population`'s; leases, stale returns and assignments are the
+The math is :class:`algorithm.evolution.CemPopulation`'s; leases, stale returns and assignments are the
 registry's (ds/evolver/registry.py). What this class adds:
 
 - **Rounds on one thread.** Every ``check_every_s`` the thread moves queued returns into the
@@ -21,7 +21,7 @@ registry's (ds/evolver/registry.py). What this class adds:
   for the round and put back after). The thread fetches the elites' full weights with the
   learners' ``GetWeights`` rpc, outside every lock; an elite that does not answer (or sends weights
   that do not decode) sits the round out, logged, and the elites are ranked again without it. With
-  fewer than two learners left the round waits ``retry_round_s``. Then ``Population.run_round``
+  fewer than two learners left the round waits ``retry_round_s``. Then ``CemPopulation.run_round``
   fits the Gaussian and draws a sample for every other learner, under the population lock only.
 - **Late learners.** The last round's Gaussian is kept (and saved): a learner that registers as new
   after a round gets a draw of it as its pending sample (``sample_weights``, as in a round), saved
@@ -61,7 +61,7 @@ import numpy as np
 import yaml
 
 from algorithm.config_schema import Config
-from algorithm.evolution import Population, RoundResult, cem_due, sample_weights
+from algorithm.evolution import CemPopulation, RoundResult, cem_due, sample_weights
 from algorithm.files import WriteFailures
 from algorithm.logging import MetricsWriter, Throttle
 from ds.evolver.registry import LearnerRegistry, Return, check_address, check_host, check_port
@@ -144,7 +144,7 @@ class Evolver:
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self.registry = LearnerRegistry(config, experiment, lease_s, clock, token)
-        self.population = Population(config)
+        self.population = CemPopulation(config)
         self._rng = np.random.default_rng(config.sac_config.seed if seed is None else seed)
         self._started_wall = self._last_round_wall = wall_clock()
         self._cem: CemDistribution | None = None  # the last round's Gaussian, for learners that join later
@@ -424,7 +424,7 @@ class Evolver:
                 f"evolver state {where} belongs to experiment {state.get('experiment')!r}, not {self.experiment!r}"
             )
         try:
-            self.population = Population.from_state(self.config, state["population"])
+            self.population = CemPopulation.from_state(self.config, state["population"])
             if state["rng"].get("bit_generator") != "PCG64":
                 raise ValueError(f"rng is {state['rng'].get('bit_generator')!r}, expected 'PCG64'")
             self._rng.bit_generator.state = state["rng"]

@@ -31,7 +31,7 @@ import numpy as np
 
 from algorithm.config import config_to_yaml
 from algorithm.config_schema import Config
-from algorithm.evolution import Population, RoundResult
+from algorithm.evolution import CemPopulation, RoundResult
 from algorithm.random_params import apply_params
 from ds.evolver.assign import Assignments
 from ds.evolver.state import (
@@ -248,7 +248,7 @@ class LearnerRegistry:
         with self._lock:
             return self.learners[learner_id].address
 
-    def apply_round(self, result: RoundResult, population: Population) -> None:
+    def apply_round(self, result: RoundResult, population: CemPopulation) -> None:
         """Record a round the population ran: samples to announce once saved, retirements (their
         assignments end), the mirrors of rounds and elite counts."""
         with self._lock:

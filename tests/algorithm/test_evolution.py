@@ -1,4 +1,4 @@
-"""The evolver's math: CEM fit and samples, random_params sampling and validation, Population bookkeeping.
+"""The evolver's math: CEM fit and samples, random_params sampling and validation, CemPopulation bookkeeping.
 
 Statistical checks use fixed seeds, so they are deterministic; their tolerances are set so that a
 correct implementation fails with probability well below 1e-3 over seeds.
@@ -19,7 +19,7 @@ from scipy import stats
 from algorithm.config import ConfigError, load_config
 from algorithm.config_schema import Config
 from algorithm.evolution import (
-    Population,
+    CemPopulation,
     cem_distribution,
     cem_due,
     elite_count,
@@ -292,7 +292,7 @@ wide:
     assert resolved.config.random_params["nn_config"]["hidden_units"] == {"in": [[64, 64], [256, 256]]}
     assert resolved.sources["random_params.sac_config.gamma"].endswith("[wide]")
     assert resolved.sources["random_params.sac_config.tau"].endswith("[default]")
-    population = Population(resolved.config)
+    population = CemPopulation(resolved.config)
     learner_id, params = population.add_learner(np.random.default_rng(0))
     learner = population.learner_config(learner_id)
     assert learner.sac_config.n_step == params["sac_config.n_step"] in (1, 3, 5)
@@ -315,21 +315,21 @@ def test_evolver_keys_are_validated(tmp_path: Path, base_text: str, fragment: st
     assert fragment in str(err.value)
 
 
-# --- Population ------------------------------------------------------------------------------
+# --- CemPopulation ------------------------------------------------------------------------------
 
 
 def weights_of(learner_id: int) -> dict[str, np.ndarray]:
     return {"w": np.full((3, 2), float(learner_id), np.float32), "step": np.array([learner_id], np.int64)}
 
 
-def population_with(n: int, rng: np.random.Generator, **base: Any) -> Population:
-    population = Population(make_config({"sac_config": {"n_step": {"in": [1, 3, 5]}}}, **base))
+def population_with(n: int, rng: np.random.Generator, **base: Any) -> CemPopulation:
+    population = CemPopulation(make_config({"sac_config": {"n_step": {"in": [1, 3, 5]}}}, **base))
     for _ in range(n):
         population.add_learner(rng)
     return population
 
 
-def post(population: Population, returns: dict[int, list[float]]) -> None:
+def post(population: CemPopulation, returns: dict[int, list[float]]) -> None:
     for learner_id, values in returns.items():
         for value in values:
             population.post_return(learner_id, value)
@@ -427,7 +427,7 @@ def test_state_round_trips_and_the_copy_continues_identically() -> None:
     post(population, {0: [0.3], 5: [7.0 / 3.0]})
 
     state = population.to_state()
-    restored = Population.from_state(population.config, json.loads(json.dumps(state)))
+    restored = CemPopulation.from_state(population.config, json.loads(json.dumps(state)))
     assert restored.to_state() == state
     assert json.loads(json.dumps(state)) == state
 
@@ -452,9 +452,9 @@ def test_restored_counts_follow_values_when_the_choices_change() -> None:
     population.counts["sac_config.n_step"] = [4, 5, 6]
     state = population.to_state()
     changed = make_config({"sac_config": {"n_step": {"in": [5, 2, 1]}}})
-    assert Population.from_state(changed, state).counts == {"sac_config.n_step": [6, 0, 4]}
+    assert CemPopulation.from_state(changed, state).counts == {"sac_config.n_step": [6, 0, 4]}
     with pytest.raises(ValueError, match="version"):
-        Population.from_state(changed, {**state, "version": 0})
+        CemPopulation.from_state(changed, {**state, "version": 0})
 
 
 def test_reset_config_options_are_drawn_like_any_key_and_must_be_configured_first() -> None:

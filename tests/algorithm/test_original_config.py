@@ -1,8 +1,8 @@
-"""Configs written for the original system load the ASAC way (algorithm/config_port.py): moved keys
+"""Configs written for the original system load the ASAC way (algorithm/original_config.py): moved keys
 land on their new paths with one warning each, keys that cannot be carried over stop the load naming
 key, file and what to write instead, and a file read as the original's gets its defaults where it is
 silent and a warning for each key counting something else here. The original's gym and bullet task files
-of each era (as /work/original_facts.md lists them) are written out and loaded section by section."""
+of each era are written out and loaded section by section."""
 
 from __future__ import annotations
 
@@ -15,8 +15,8 @@ import pytest
 import yaml
 
 from algorithm.config import ConfigError, load_config
-from algorithm.config_port import CONVERTED, DROPPED, MOVED, REFUSED, REFUSED_VALUES, RESTATED, UNSET
 from algorithm.config_schema import Config
+from algorithm.original_config import CONVERTED, DROPPED, MOVED, REFUSED, REFUSED_VALUES, RESTATED, UNSET
 
 ROOT = Path(__file__).resolve().parents[2]
 
