@@ -4,7 +4,7 @@ factory, and playing a checkpoint (``--run``). The entry points stay thin: each 
 flags and composes its mode.
 
 Bad input ends the process with one line ``error: ...`` on stderr and exit code 2 (the entry points
-catch :class:`UsageError`, :class:`~algorithm.config.ConfigError` and
+catch :class:`UsageError`, :class:`~algorithm.config.load.ConfigError` and
 :class:`~algorithm.errors.CheckpointError`), before anything starts.
 
 Nothing here imports torch at module level: the flags, the task, the config and the run folder are
@@ -29,8 +29,8 @@ from typing import TYPE_CHECKING, NoReturn
 import gymnasium
 import numpy as np
 
-from algorithm.config import ConfigError, apply_overrides, config_from_file
-from algorithm.config_schema import BaseConfig, Config
+from algorithm.config.load import ConfigError, apply_overrides, config_from_file
+from algorithm.config.schema import BaseConfig, Config
 from algorithm.folder_lock import FolderInUse
 from algorithm.logging import LogFileHandler
 from algorithm.run_dir import RunDir

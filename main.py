@@ -35,10 +35,10 @@ from typing import Any
 
 import gymnasium
 
-from algorithm.config import ConfigError, apply_overrides, config_from_file, load_config
+from algorithm.config.load import ConfigError, apply_overrides, config_from_file, load_config
+from algorithm.config.random_params import draw_for_run
 from algorithm.errors import CheckpointError
 from algorithm.folder_lock import FolderInUse, hold_folder
-from algorithm.random_params import draw_for_run
 from algorithm.run_dir import RunDir, python_command, shown_path
 from algorithm.signals import stop_on_signals
 from cli import (

@@ -33,7 +33,7 @@ import time
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from algorithm.config import (
+from algorithm.config.load import (
     DISTRIBUTED_TASK_FILE,
     ConfigError,
     apply_overrides,
@@ -42,13 +42,13 @@ from algorithm.config import (
     load_config,
     task_config_path,
 )
-from algorithm.config_schema import MAX_EXPLORATION_NOISE, Config, NetConfig
+from algorithm.config.original import CONFIG_LOGGER
+from algorithm.config.random_params import draw_for_run
+from algorithm.config.schema import MAX_EXPLORATION_NOISE, Config, NetConfig
 from algorithm.errors import CheckpointError, RoleError
 from algorithm.files import WriteFailures, atomic_write
 from algorithm.folder_lock import FolderInUse, hold_folder
 from algorithm.logging import LogFileHandler
-from algorithm.original_config import CONFIG_LOGGER
-from algorithm.random_params import draw_for_run
 from algorithm.run_dir import RunDir
 from algorithm.signals import LAUNCHER_PID_ENV, StopRequest, stop_on_signals, stop_with_launcher
 from cli import (

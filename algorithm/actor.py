@@ -31,7 +31,7 @@ from algorithm.spaces import ActionSpec, EnvSpec
 from algorithm.types import ActingProgress, Chunk
 
 if TYPE_CHECKING:
-    from algorithm.config_schema import Config
+    from algorithm.config.schema import Config
 
 log = logging.getLogger("asac.actor")
 _LOG_EVERY_S = 30.0  # dropped chunks: the first is logged, then at most one line (with totals) per period

@@ -4,7 +4,7 @@ names the field and what was expected)."""
 
 from __future__ import annotations
 
-from algorithm.config_schema import SacConfig
+from algorithm.config.schema import SacConfig
 from algorithm.spaces import EnvSpec
 from algorithm.types import Batch
 

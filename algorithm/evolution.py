@@ -25,7 +25,7 @@ de Boer et al. 2005, "A tutorial on the cross-entropy method"). CEM-RL (Pourchot
 arXiv:1810.01222) applies it to the weights of off-policy agents that keep training between
 rounds, as the learners here do. The per-key choice of ``{in: [...]}`` values is a
 Dirichlet-categorical model: a uniform Dirichlet prior updated by how often each value was elite
-(the drawing itself, for any config model, is algorithm/random_params.py's).
+(the drawing itself, for any config model, is algorithm/config/random_params.py's).
 """
 
 from __future__ import annotations
@@ -38,10 +38,10 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from algorithm.random_params import apply_params, parse_random_params, sample_params
+from algorithm.config.random_params import apply_params, parse_random_params, sample_params
 
 if TYPE_CHECKING:
-    from algorithm.config_schema import Config
+    from algorithm.config.schema import Config
 
 STATE_VERSION = 1
 

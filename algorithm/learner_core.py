@@ -49,8 +49,8 @@ from algorithm.checkpoint import (
     restoring,
     save_checkpoint,
 )
-from algorithm.config import config_to_yaml
-from algorithm.config_schema import Config
+from algorithm.config.load import config_to_yaml
+from algorithm.config.schema import Config
 from algorithm.evaluation import (
     AcceptsWeights,
     BackgroundEvaluation,

@@ -20,7 +20,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from algorithm.config_schema import NNConfig, SacConfig
+from algorithm.config.schema import NNConfig, SacConfig
 from algorithm.losses import PolicySample, branch_matrix
 from algorithm.nn.builder import build_models
 from algorithm.nn.colored_noise import ColoredNoise, inverse_cdf_choice

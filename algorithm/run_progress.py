@@ -8,7 +8,7 @@ from pathlib import Path
 from typing import Any
 
 from algorithm.checkpoint import list_checkpoints, load_for_resume, restoring
-from algorithm.config_schema import BaseConfig
+from algorithm.config.schema import BaseConfig
 from algorithm.run_dir import RunDir
 
 

@@ -35,7 +35,7 @@ import torch
 from torch import Tensor
 
 from algorithm.batch_checks import check_batch, check_config_for_task
-from algorithm.config_schema import NNConfig, ReplayConfig, SacConfig
+from algorithm.config.schema import NNConfig, ReplayConfig, SacConfig
 from algorithm.losses import Metrics, importance_weights
 from algorithm.nn.builder import build_models
 from algorithm.nn.layers import uses_bfloat16

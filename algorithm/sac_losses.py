@@ -23,7 +23,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from algorithm.config_schema import SacConfig
+from algorithm.config.schema import SacConfig
 from algorithm.losses import (
     Metrics,
     PolicySample,

@@ -3,7 +3,7 @@ so a resumed run goes on where it was)."""
 
 from __future__ import annotations
 
-from algorithm.config_schema import SacConfig
+from algorithm.config.schema import SacConfig
 
 
 def linear_anneal(start: float, final: float, updates: int, over: int) -> float:

@@ -30,7 +30,7 @@ import numpy as np
 import torch
 
 from algorithm.actor import ActorLoop, StepStats, VectorEnvLike
-from algorithm.config_schema import Config
+from algorithm.config.schema import Config
 from algorithm.files import WriteFailures
 from algorithm.learner_core import LearnerCore, UpdateBudget, restore_env_rngs
 from algorithm.nn.user import model_builder

@@ -29,7 +29,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from algorithm.config_schema import SacConfig
+from algorithm.config.schema import SacConfig
 
 log = logging.getLogger("asac.update_graph")
 

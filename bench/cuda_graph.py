@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from algorithm.config_schema import NNConfig, ReplayConfig, SacConfig
+from algorithm.config.schema import NNConfig, ReplayConfig, SacConfig
 from algorithm.sac import SAC
 from algorithm.spaces import ActionSpec, EnvSpec, SensorSpec
 from bench.learner import ACT, HIDDEN, OBS, make_batch

@@ -44,8 +44,8 @@ import numpy as np
 import torch
 
 from algorithm.actor import ActorLoop
-from algorithm.config import load_config
-from algorithm.config_schema import Config
+from algorithm.config.load import load_config
+from algorithm.config.schema import Config
 from algorithm.replay import PrioritizedTable
 from algorithm.sac import SAC
 from bench.grpc_replay import CHUNK, PREFILL, random_chunk, replay_process

@@ -35,7 +35,7 @@ from pathlib import Path
 import numpy as np
 
 from algorithm.checkpoint import checkpoint_path, list_checkpoints, load_checkpoint
-from algorithm.config import Config, ConfigError, config_from_file
+from algorithm.config.load import Config, ConfigError, config_from_file
 from algorithm.evaluation import evaluate
 from algorithm.policy import Policy
 from algorithm.run_dir import RunDir

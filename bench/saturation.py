@@ -22,7 +22,7 @@ import numpy as np
 import torch
 
 from algorithm.checkpoint import load_for_resume
-from algorithm.config import config_from_file
+from algorithm.config.load import config_from_file
 from algorithm.policy import Policy
 from algorithm.run_dir import RunDir
 from bench.systems import MUJOCO_TASKS, SB3Policy

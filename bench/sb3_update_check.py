@@ -33,7 +33,7 @@ import gymnasium as gym
 import numpy as np
 import torch
 
-from algorithm.config import load_config
+from algorithm.config.load import load_config
 from algorithm.nn.layers import EnsembleLinear
 from algorithm.sac import SAC
 from algorithm.spaces import env_spec

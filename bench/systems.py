@@ -21,8 +21,8 @@ from pathlib import Path
 
 import numpy as np
 
-from algorithm.config import load_config
-from algorithm.config_schema import Config
+from algorithm.config.load import load_config
+from algorithm.config.schema import Config
 from algorithm.evaluation import evaluate, read_evaluations
 from algorithm.trainer import EmbeddedTrainer
 from algorithm.types import ActingProgress

@@ -34,7 +34,7 @@ import time  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 from algorithm.checkpoint import list_checkpoints  # noqa: E402
-from algorithm.config import config_from_file, load_config  # noqa: E402
+from algorithm.config.load import config_from_file, load_config  # noqa: E402
 from algorithm.evaluation import evaluate, read_evaluations  # noqa: E402
 from algorithm.run_dir import RunDir  # noqa: E402
 from algorithm.trainer import EmbeddedTrainer  # noqa: E402

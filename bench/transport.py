@@ -127,7 +127,7 @@ def consumed_updates_per_s(seconds: float) -> float:
     """Updates/s of the HalfCheetah default's update (its batch, dtype and net), torch's default threads."""
     import torch
 
-    from algorithm.config import load_config
+    from algorithm.config.load import load_config
     from algorithm.sac import SAC
     from algorithm.spaces import ActionSpec, EnvSpec
     from bench.learner import make_batch

@@ -23,7 +23,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from algorithm.config import load_config
+from algorithm.config.load import load_config
 from algorithm.sac import SAC, UpdateResult
 from algorithm.trainer import EmbeddedTrainer
 from cli import copy_model_file, env_factory, task_dir

@@ -32,8 +32,8 @@ import cli
 import main
 import main_ds
 from algorithm.checkpoint import load_checkpoint, save_checkpoint
-from algorithm.config import ConfigError, config_from_yaml, config_to_yaml, load_config
-from algorithm.config_schema import Config
+from algorithm.config.load import ConfigError, config_from_yaml, config_to_yaml, load_config
+from algorithm.config.schema import Config
 from tests.damage import flip_in_largest_record, tree_digest, truncate
 
 ROOT = Path(__file__).resolve().parents[1]

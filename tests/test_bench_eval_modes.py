@@ -32,7 +32,7 @@ def eval_modes(*args: str) -> subprocess.CompletedProcess[str]:
 
 
 def scored_in_process(run: Path, step: int, seed: int = 12345) -> tuple[float, float]:
-    from algorithm.config import config_from_file
+    from algorithm.config.load import config_from_file
     from algorithm.evaluation import evaluate
     from algorithm.run_dir import RunDir
     from bench.eval_modes import checkpoint_policy
@@ -112,7 +112,7 @@ def test_critic_greedy_acts_by_the_critics_lower_value_and_adds_its_column(run: 
     import numpy as np
     import torch
 
-    from algorithm.config import config_from_file
+    from algorithm.config.load import config_from_file
     from algorithm.evaluation import evaluate
     from algorithm.run_dir import RunDir
     from bench.eval_modes import CriticGreedy, checkpoint_policy

@@ -18,8 +18,8 @@ import yaml
 from hypothesis import given
 from hypothesis import strategies as st
 
-from algorithm.config import ConfigError, load_config
-from algorithm.config_schema import Config
+from algorithm.config.load import ConfigError, load_config
+from algorithm.config.schema import Config
 from cli import UsageError, cli_overrides, task_dir
 from ds.evolver import service as evolver_service
 from ds.launch.k8s import PodName, paired_hosts, parse_pod_name, stable_host

@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 import yaml
 
-from algorithm.config import load_config
+from algorithm.config.load import load_config
 from algorithm.evaluation import read_evaluations
 from algorithm.trainer import EmbeddedTrainer
 from envs.make import vector_env_factory

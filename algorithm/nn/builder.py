@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import math
 
-from algorithm.config_schema import NNConfig, SacConfig
+from algorithm.config.schema import NNConfig, SacConfig
 from algorithm.nn.encoders import MultiSensorRepresentation
 from algorithm.nn.exploration import Curiosity, RandomNetworkDistillation
 from algorithm.nn.models import (

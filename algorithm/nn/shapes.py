@@ -6,7 +6,7 @@ from __future__ import annotations
 from typing import TYPE_CHECKING, Literal
 
 if TYPE_CHECKING:
-    from algorithm.config_schema import NNConfig, SacConfig
+    from algorithm.config.schema import NNConfig, SacConfig
 
 RnnType = Literal["gru", "lstm"]
 

@@ -21,7 +21,7 @@ from collections.abc import Callable
 from pathlib import Path
 from types import ModuleType
 
-from algorithm.config_schema import NNConfig, SacConfig
+from algorithm.config.schema import NNConfig, SacConfig
 from algorithm.nn.builder import build_models
 from algorithm.nn.models import Representation, SacModels
 from algorithm.nn.recurrent import RecurrentRepresentation

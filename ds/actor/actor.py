@@ -51,7 +51,7 @@ import numpy as np
 import torch
 
 from algorithm.actor import ActorLoop, VectorEnvLike
-from algorithm.config_schema import Config
+from algorithm.config.schema import Config
 from algorithm.logging import MetricsWriter, RateMeter, Throttle
 from algorithm.policy import Policy
 from algorithm.replay import ReplayUnavailable

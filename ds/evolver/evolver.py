@@ -60,7 +60,7 @@ import grpc
 import numpy as np
 import yaml
 
-from algorithm.config_schema import Config
+from algorithm.config.schema import Config
 from algorithm.evolution import CemPopulation, RoundResult, cem_due, sample_weights
 from algorithm.files import WriteFailures
 from algorithm.logging import MetricsWriter, Throttle

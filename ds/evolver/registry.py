@@ -29,10 +29,10 @@ from typing import Any
 
 import numpy as np
 
-from algorithm.config import config_to_yaml
-from algorithm.config_schema import Config
+from algorithm.config.load import config_to_yaml
+from algorithm.config.random_params import apply_params
+from algorithm.config.schema import Config
 from algorithm.evolution import CemPopulation, RoundResult
-from algorithm.random_params import apply_params
 from ds.evolver.assign import Assignments
 from ds.evolver.state import (
     Assignment,

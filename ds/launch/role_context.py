@@ -37,8 +37,8 @@ from typing import TYPE_CHECKING, TypeVar
 import zmq
 
 from algorithm.actor import VectorEnvLike
-from algorithm.config import ConfigError
-from algorithm.config_schema import Config
+from algorithm.config.load import ConfigError
+from algorithm.config.schema import Config
 from algorithm.errors import RoleError
 from algorithm.nn.shapes import default_recurrent_state_size
 from algorithm.spaces import EnvSpec

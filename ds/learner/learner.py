@@ -42,7 +42,7 @@ from pathlib import Path
 import numpy as np
 
 from algorithm.actor import VectorEnvLike
-from algorithm.config_schema import Config
+from algorithm.config.schema import Config
 from algorithm.evaluation import AcceptsWeights
 from algorithm.learner_core import LearnerCore
 from algorithm.logging import Throttle

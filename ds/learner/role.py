@@ -14,7 +14,7 @@ import logging
 import shutil
 from dataclasses import replace
 
-from algorithm.config import config_to_yaml
+from algorithm.config.load import config_to_yaml
 from algorithm.files import WriteFailures, atomic_write
 from algorithm.run_dir import EVAL_SEED_OFFSET, RunDir
 from algorithm.sac import SAC

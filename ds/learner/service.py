@@ -45,7 +45,7 @@ import numpy as np
 import torch
 from grpc_health.v1 import health, health_pb2_grpc
 
-from algorithm.config_schema import MAX_EXPLORATION_NOISE
+from algorithm.config.schema import MAX_EXPLORATION_NOISE
 from algorithm.policy import Policy
 from algorithm.spaces import EnvSpec
 from ds.net import rpc, security

@@ -37,8 +37,8 @@ from pathlib import Path
 
 import grpc
 
-from algorithm.config import apply_overrides, config_from_yaml
-from algorithm.config_schema import Config
+from algorithm.config.load import apply_overrides, config_from_yaml
+from algorithm.config.schema import Config
 from algorithm.files import WriteFailures, atomic_write
 from algorithm.folder_lock import FolderLock, try_hold
 from algorithm.logging import Throttle

@@ -52,8 +52,8 @@ from typing import Any
 
 import grpc
 
-from algorithm.config import ConfigError
-from algorithm.config_schema import NetConfig
+from algorithm.config.load import ConfigError
+from algorithm.config.schema import NetConfig
 
 log = logging.getLogger("asac.security")
 

@@ -18,7 +18,7 @@ from dataclasses import replace
 
 from grpc_health.v1 import health
 
-from algorithm.config_schema import Config
+from algorithm.config.schema import Config
 from algorithm.files import WriteFailures
 from algorithm.logging import MetricsWriter
 from algorithm.replay import PrioritizedTable

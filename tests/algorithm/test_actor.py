@@ -118,7 +118,7 @@ def test_reset_on_iteration_truncates_the_other_envs() -> None:
 def test_by_default_each_env_runs_its_own_episodes() -> None:
     # Issue 15, defect 5: reset_on_iteration defaulted to true, so with several envs every episode
     # was cut when env 0's ended: on an early-terminating task the data skewed toward episode starts.
-    from algorithm.config import load_config
+    from algorithm.config.load import load_config
 
     base = load_config(None, None, []).config.base_config
     assert not base.reset_on_iteration

@@ -9,7 +9,7 @@ import pytest
 import yaml
 from pydantic import BaseModel
 
-from algorithm.config import (
+from algorithm.config.load import (
     DEFAULT_CONFIG_PATH,
     ConfigError,
     apply_overrides,
@@ -18,7 +18,7 @@ from algorithm.config import (
     load_config,
     parse_yaml,
 )
-from algorithm.config_schema import Config
+from algorithm.config.schema import Config
 
 ROOT = Path(__file__).resolve().parents[2]
 

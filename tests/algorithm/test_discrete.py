@@ -13,7 +13,7 @@ import torch
 from scipy import stats
 
 from algorithm.actor import uniform_random_actions
-from algorithm.config_schema import NNConfig, ReplayConfig, SacConfig
+from algorithm.config.schema import NNConfig, ReplayConfig, SacConfig
 from algorithm.losses import PolicySample, alpha_loss, branch_matrix, expected_log_prob, policy_loss, soft_value
 from algorithm.nn.models import DiscretePolicy, masked_branch_log_softmax, masked_branch_one_hot_argmax
 from algorithm.sac import SAC

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from algorithm.config_schema import NNConfig, SacConfig
+from algorithm.config.schema import NNConfig, SacConfig
 from algorithm.evaluation import evaluate
 from algorithm.policy import Policy
 from envs.make import make_vector_env

@@ -16,8 +16,9 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from algorithm.config import ConfigError, load_config
-from algorithm.config_schema import Config
+from algorithm.config.load import ConfigError, load_config
+from algorithm.config.random_params import ParamSpecError, apply_params, parse_random_params, sample_params
+from algorithm.config.schema import Config
 from algorithm.evolution import (
     CemPopulation,
     cem_distribution,
@@ -26,7 +27,6 @@ from algorithm.evolution import (
     elite_indices,
     sample_weights,
 )
-from algorithm.random_params import ParamSpecError, apply_params, parse_random_params, sample_params
 
 
 def make_config(random_params: dict[str, Any] | None = None, **base: Any) -> Config:

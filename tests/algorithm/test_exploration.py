@@ -13,7 +13,7 @@ import pytest
 import torch
 
 from algorithm.actor import ActorLoop
-from algorithm.config_schema import NNConfig, ReplayConfig, SacConfig
+from algorithm.config.schema import NNConfig, ReplayConfig, SacConfig
 from algorithm.sac import SAC
 from algorithm.spaces import ActionSpec, EnvSpec, SensorSpec
 from algorithm.types import ActingProgress

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 from pydantic import ValidationError
 
-from algorithm.config_schema import Config
+from algorithm.config.schema import Config
 from algorithm.learner_core import LearnerCore
 from algorithm.replay import PrioritizedTable
 from algorithm.sac import SAC

@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 import torch
 
-from algorithm.config_schema import Config, SacConfig
-from algorithm.random_params import apply_params, draw_for_run
+from algorithm.config.random_params import apply_params, draw_for_run
+from algorithm.config.schema import Config, SacConfig
 from algorithm.sac import SAC
 from algorithm.schedules import learning_rate_at, linear_anneal
 from tests.algorithm.test_sac import make_batch, make_sac

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 import torch
 
-from algorithm.config import load_config
+from algorithm.config.load import load_config
 from algorithm.losses import munchausen_bonus
 from algorithm.types import Batch
 from tests.algorithm.test_discrete import make_batch, make_sac, masked_spec

@@ -1,4 +1,4 @@
-"""Configs written for the original system load the ASAC way (algorithm/original_config.py): moved keys
+"""Configs written for the original system load the ASAC way (algorithm/config/original.py): moved keys
 land on their new paths with one warning each, keys that cannot be carried over stop the load naming
 key, file and what to write instead, and a file read as the original's gets its defaults where it is
 silent and a warning for each key counting something else here. The original's gym and bullet task files
@@ -14,9 +14,9 @@ from typing import Any
 import pytest
 import yaml
 
-from algorithm.config import ConfigError, load_config
-from algorithm.config_schema import Config
-from algorithm.original_config import CONVERTED, DROPPED, MOVED, REFUSED, REFUSED_VALUES, RESTATED, UNSET
+from algorithm.config.load import ConfigError, load_config
+from algorithm.config.original import CONVERTED, DROPPED, MOVED, REFUSED, REFUSED_VALUES, RESTATED, UNSET
+from algorithm.config.schema import Config
 
 ROOT = Path(__file__).resolve().parents[2]
 

@@ -7,7 +7,7 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
-from algorithm.config_schema import NNConfig, ReplayConfig, SacConfig
+from algorithm.config.schema import NNConfig, ReplayConfig, SacConfig
 from algorithm.nn.builder import build_models
 from algorithm.nn.models import Representation
 from algorithm.nn.prediction import gated_gradients, observation_targets

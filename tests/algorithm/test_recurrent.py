@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 import torch
 
-from algorithm.config import load_config
-from algorithm.config_schema import NNConfig, ReplayConfig, SacConfig
+from algorithm.config.load import load_config
+from algorithm.config.schema import NNConfig, ReplayConfig, SacConfig
 from algorithm.nn.models import VectorRepresentation
 from algorithm.nn.recurrent import RecurrentRepresentation
 from algorithm.sac import SAC

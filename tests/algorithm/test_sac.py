@@ -13,7 +13,7 @@ import pytest
 import torch
 from torch import Tensor, nn
 
-from algorithm.config_schema import NNConfig, ReplayConfig, SacConfig
+from algorithm.config.schema import NNConfig, ReplayConfig, SacConfig
 from algorithm.losses import PolicySample, alpha_loss, critic_loss, importance_weights, policy_loss
 from algorithm.nn.layers import uses_bfloat16
 from algorithm.nn.models import QEnsemble, Representation, TanhGaussianPolicy

@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 import torch
 
-from algorithm.config import load_config
-from algorithm.config_schema import NNConfig, ReplayConfig, SacConfig
+from algorithm.config.load import load_config
+from algorithm.config.schema import NNConfig, ReplayConfig, SacConfig
 from algorithm.sac import SAC
 from algorithm.spaces import ActionSpec, EnvSpec, SensorSpec
 from algorithm.trainer import EmbeddedTrainer

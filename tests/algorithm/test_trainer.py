@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 import torch
 
-from algorithm.config import load_config
-from algorithm.config_schema import Config
+from algorithm.config.load import load_config
+from algorithm.config.schema import Config
 from algorithm.evaluation import CSV_FIELDS, read_evaluations
 from algorithm.learner_core import restore_env_rngs
 from algorithm.trainer import EmbeddedTrainer

@@ -17,7 +17,7 @@ import pytest
 import torch
 from torch import Tensor
 
-from algorithm.config_schema import NNConfig, ReplayConfig, SacConfig
+from algorithm.config.schema import NNConfig, ReplayConfig, SacConfig
 from algorithm.sac import SAC
 from algorithm.spaces import ActionSpec, EnvSpec, SensorSpec
 from algorithm.update_graph import MAX_FAILED_RECORDINGS, UpdateGraph, why_not_graphed

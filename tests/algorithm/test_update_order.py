@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import torch
 
-from algorithm.config_schema import SacConfig
+from algorithm.config.schema import SacConfig
 from algorithm.update_graph import why_not_graphed
 from tests.algorithm.test_discrete import make_batch as discrete_batch
 from tests.algorithm.test_discrete import make_sac as make_discrete_sac

@@ -11,7 +11,7 @@ import math
 import torch
 from torch import Tensor, nn
 
-from algorithm.config_schema import NNConfig
+from algorithm.config.schema import NNConfig
 from algorithm.nn.models import Representation
 from algorithm.spaces import EnvSpec
 

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import torch
 
-from algorithm.config_schema import NNConfig, ReplayConfig, SacConfig
+from algorithm.config.schema import NNConfig, ReplayConfig, SacConfig
 from algorithm.nn.colored_noise import ColoredNoise, colored_sequences, inverse_cdf_choice
 from algorithm.sac import SAC
 from algorithm.spaces import ActionSpec, EnvSpec, SensorSpec

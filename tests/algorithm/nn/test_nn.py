@@ -12,7 +12,7 @@ import pytest
 import torch
 from torch.distributions import Normal, TanhTransform, TransformedDistribution
 
-from algorithm.config_schema import NNConfig, ReplayConfig, SacConfig
+from algorithm.config.schema import NNConfig, ReplayConfig, SacConfig
 from algorithm.nn.builder import build_models
 from algorithm.nn.layers import EnsembleLinear, activation, relu_mlp
 from algorithm.nn.models import (

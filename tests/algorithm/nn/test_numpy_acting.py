@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import torch
 
-from algorithm.config_schema import NNConfig, ReplayConfig, SacConfig
+from algorithm.config.schema import NNConfig, ReplayConfig, SacConfig
 from algorithm.nn.models import stored_action_log_prob
 from algorithm.nn.numpy_acting import NumpyGaussianActor
 from algorithm.sac import SAC

@@ -17,7 +17,7 @@ import grpc
 import pytest
 import torch
 
-from algorithm.config import load_config
+from algorithm.config.load import load_config
 from algorithm.replay import PrioritizedTable
 from algorithm.sac import SAC
 from ds.actor import actor as actor_module

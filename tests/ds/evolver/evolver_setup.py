@@ -12,7 +12,7 @@ from typing import Any
 
 import numpy as np
 
-from algorithm.config_schema import Config
+from algorithm.config.schema import Config
 from algorithm.spaces import ActionSpec, EnvSpec, SensorSpec
 from ds.evolver.client import EvolverClient
 from ds.evolver.evolver import Evolver

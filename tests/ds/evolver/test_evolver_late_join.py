@@ -15,8 +15,8 @@ import numpy as np
 import pytest
 import torch
 
-from algorithm.config import load_config
-from algorithm.config_schema import Config
+from algorithm.config.load import load_config
+from algorithm.config.schema import Config
 from algorithm.replay import PrioritizedTable
 from algorithm.sac import SAC
 from ds.evolver.client import EvolverClient

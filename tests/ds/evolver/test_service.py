@@ -14,7 +14,7 @@ import grpc
 import numpy as np
 import pytest
 
-from algorithm.config import config_from_yaml
+from algorithm.config.load import config_from_yaml
 from ds.evolver.client import EvolverRequestRejected
 from ds.evolver.state import (
     Instruction,

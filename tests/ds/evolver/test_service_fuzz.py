@@ -26,7 +26,7 @@ from google.protobuf.message import Message
 from hypothesis import given
 from hypothesis import strategies as st
 
-from algorithm.config_schema import Config
+from algorithm.config.schema import Config
 from ds.evolver.evolver import Evolver
 from ds.evolver.service import serve_evolver
 from protos import evolver_pb2, evolver_pb2_grpc

@@ -18,7 +18,7 @@ import pytest
 import torch
 
 from algorithm.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
-from algorithm.config import load_config
+from algorithm.config.load import load_config
 from algorithm.evaluation import read_evaluations
 from algorithm.replay import PrioritizedTable
 from algorithm.sac import SAC

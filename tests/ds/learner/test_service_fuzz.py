@@ -27,7 +27,7 @@ from google.protobuf.message import Message
 from hypothesis import given
 from hypothesis import strategies as st
 
-from algorithm.config_schema import Config
+from algorithm.config.schema import Config
 from algorithm.sac import SAC
 from algorithm.spaces import ActionSpec, EnvSpec, SensorSpec
 from ds.learner.service import ActorRegistry, LearnerServicer, ParamsStore, PublishedPolicy, serve_learner

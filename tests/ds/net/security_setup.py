@@ -16,7 +16,7 @@ import grpc
 import numpy as np
 from grpc_health.v1 import health_pb2, health_pb2_grpc
 
-from algorithm.config_schema import Config, NetConfig
+from algorithm.config.schema import Config, NetConfig
 from algorithm.replay import PrioritizedTable
 from algorithm.spaces import ActionSpec, EnvSpec
 from ds.evolver import service as evolver_service

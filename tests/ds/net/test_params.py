@@ -18,7 +18,7 @@ from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
 import ds.net.params
-from algorithm.config_schema import NNConfig, ReplayConfig, SacConfig
+from algorithm.config.schema import NNConfig, ReplayConfig, SacConfig
 from algorithm.sac import SAC
 from algorithm.spaces import ActionSpec, EnvSpec, SensorSpec
 from ds.net.params import (

@@ -15,8 +15,8 @@ import pytest
 from cryptography.hazmat.primitives import serialization
 from grpc_health.v1 import health_pb2
 
-from algorithm.config import ConfigError
-from algorithm.config_schema import NetConfig
+from algorithm.config.load import ConfigError
+from algorithm.config.schema import NetConfig
 from algorithm.replay import PrioritizedTable
 from ds.launch.local import free_port
 from ds.net import security

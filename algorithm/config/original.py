@@ -4,7 +4,7 @@ The original's default layouts (its ``algorithm/default_config.yaml`` and the di
 ``ds/default_config.yaml``, eras E1-E5: TF ``sac.py`` files, TF ``nn.py`` files, PyTorch, ``seq_encoder``,
 the later ``env_name``/``n_envs`` layout) mostly match ASAC's key for key; the keys that do not are all in
 the tables below, and :class:`Port` applies them to each layer of a task file (and to each ``--override``)
-before :mod:`algorithm.config` merges and validates it:
+before :mod:`algorithm.config.load` merges and validates it:
 
 - ``MOVED``: same meaning, another place; the value is read there, with one WARNING per key and file
   (``<file> [default]: base_config.noise_max is actor_config.noise_max now; read as that``);
@@ -42,7 +42,7 @@ from typing import Any
 
 CONFIG_LOGGER = "asac.config"  # what a task file's keys became; main_ds.py quiets it in local's children
 log = logging.getLogger(CONFIG_LOGGER)
-ENVS_DIR = Path(__file__).resolve().parents[1] / "envs"
+ENVS_DIR = Path(__file__).resolve().parents[2] / "envs"
 
 # old path -> (new path, what it is there; "" when the name says it)
 MOVED: dict[str, tuple[str, str]] = {
@@ -306,7 +306,7 @@ class Port:
         """``layer`` (one section of a task file) with the original's keys read the ASAC way; ``source``
         names the section (``path [default]``), ``file`` the file (notes come once per key in it)."""
         if not isinstance(layer, dict):
-            return layer  # algorithm.config reports the shape
+            return layer  # algorithm.config.load reports the shape
         out = self._port(layer, source, file)
         if original:
             for path, (differs, difference) in RESTATED.items():

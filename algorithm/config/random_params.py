@@ -13,7 +13,7 @@ Usage::
     run_config = apply_params(config, values)                     # concrete values, random_params emptied
     run_config, values = draw_for_run(config, seed)               # main.py: one draw from the seed
 
-Only pydantic's ``BaseModel`` is assumed of the config (``algorithm/config_schema.py`` validates its
+Only pydantic's ``BaseModel`` is assumed of the config (``algorithm/config/schema.py`` validates its
 ``random_params`` with :func:`parse_random_params`, and the evolver's CEM in
 ``algorithm/evolution.py`` weights the ``in`` choices by elite counts), so neither imports the other.
 """

@@ -2,7 +2,7 @@
 
 Section and key names follow the original Advanced-Soft-Actor-Critic so its users feel at home; new
 sections (``nn_config``, ``actor_config``, ``eval_config``) hold keys for parts it did not have.
-Every model forbids unknown keys; :mod:`algorithm.config` layers YAML files onto these models and
+Every model forbids unknown keys; :mod:`algorithm.config.load` layers YAML files onto these models and
 turns validation errors into messages that name the key and the file.
 """
 
@@ -12,7 +12,7 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
-from algorithm.random_params import parse_random_params
+from algorithm.config.random_params import parse_random_params
 
 # The largest extra exploration noise (a std added before the tanh) acting accepts (algorithm/policy.py,
 # the learner's GetAction, main_ds.py --noise). Far past it tanh saturates every action anyway; near
@@ -468,8 +468,9 @@ class Config(Section):
     random_params: dict[str, dict[str, dict[str, Any]]] = Field(
         default_factory=dict,
         description="Hyper-parameters the evolver samples per learner, as {section: {key: spec}} with spec "
-        "{in: [...]}, {truncated: [lo, hi]}, {std: s} or {std: s, truncated: [lo, hi]} (algorithm/random_params.py); "
-        "main.py draws them once for a new run, from its seed, and records the values in the run's config.yaml.",
+        "{in: [...]}, {truncated: [lo, hi]}, {std: s} or {std: s, truncated: [lo, hi]} "
+        "(algorithm/config/random_params.py); main.py draws them once for a new run, from its seed, and records "
+        "the values in the run's config.yaml.",
     )
 
     @field_validator("random_params", mode="before")

@@ -2,7 +2,7 @@
 
 Layers, each overriding the previous (docs/architecture.md section 11):
 
-1. ``algorithm/default_config.yaml`` (the schema defaults, written out);
+1. ``algorithm/config/default_config.yaml`` (the schema defaults, written out);
 2. the ``default`` section of the task's ``envs/<task>/config.yaml``;
 3. the section named by ``-c NAME`` in the same file;
 4. ``--override section.key=value`` from the command line (``sac.n_step=5`` works for
@@ -12,7 +12,7 @@ Every leaf remembers which layer set it, so an unknown key, a wrong type or an o
 is reported as ``sac_config.learning_rate (envs/gym/pendulum/config.yaml [fast]): ...``.
 
 A task file (and an override) written for the original system is read through
-:mod:`algorithm.original_config` first: its moved keys land where ASAC keeps them, with a warning.
+:mod:`algorithm.config.original` first: its moved keys land where ASAC keeps them, with a warning.
 """
 
 from __future__ import annotations
@@ -27,9 +27,9 @@ from typing import Any
 import yaml
 from pydantic import BaseModel, ValidationError
 
-from algorithm.config_schema import Config
-from algorithm.original_config import Port, looks_like_original
-from algorithm.random_params import ParamSpecError
+from algorithm.config.original import Port, looks_like_original
+from algorithm.config.random_params import ParamSpecError
+from algorithm.config.schema import Config
 
 DEFAULT_CONFIG_PATH = Path(__file__).with_name("default_config.yaml")
 
