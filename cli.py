@@ -38,7 +38,7 @@ from envs.make import VectorEnv, make_env, vector_env_factory
 
 if TYPE_CHECKING:
     from algorithm.nn.user import ModelBuilder
-    from algorithm.policy import Policy
+    from algorithm.sac.policy import Policy
 
 ROOT = Path(__file__).resolve().parent
 ENVS_DIR = ROOT / "envs"
@@ -380,7 +380,7 @@ def setup_logging(run_dir: Path | None, in_file: bool) -> None:
 def play(args: argparse.Namespace) -> int:
     from algorithm.checkpoint import list_checkpoints, load_for_resume
     from algorithm.evaluation import evaluate
-    from algorithm.policy import Policy
+    from algorithm.sac.policy import Policy
     from algorithm.seeding import seed_everything
 
     check_device(args.device)
@@ -428,7 +428,7 @@ def _load_policy(sac: Policy, state: dict, ckpt: Path) -> None:
 def _play_rendered(
     config: Config, state: dict, run_dir: Path, step: str, episodes: int, limit: int | None, device: str
 ) -> int:
-    from algorithm.policy import Policy
+    from algorithm.sac.policy import Policy
 
     base = config.base_config
     headless = not os.environ.get("DISPLAY")

@@ -48,7 +48,7 @@ def nonfinite_fields(chunk: Chunk) -> list[str]:
 
 
 class ActionSource(Protocol):
-    """What acts: :class:`algorithm.sac.SAC` or anything shaped like it. A recurrent policy
+    """What acts: :class:`algorithm.sac.learner.SAC` or anything shaped like it. A recurrent policy
     (``rnn_state_size > 0``) acts through ``act_recurrent`` and the loop carries its state."""
 
     rnn_state_size: int

@@ -25,7 +25,7 @@ CSV_FIELDS = ("env_steps", "updates", "wall_seconds", "return_mean", "return_std
 
 
 class AcceptsWeights(ActionSource, Protocol):
-    """A policy that takes a learner's acting weights (``algorithm.policy.Policy``)."""
+    """A policy that takes a learner's acting weights (``algorithm.sac.policy.Policy``)."""
 
     def load_acting_state_dict(self, state: dict[str, Any]) -> None: ...
 

@@ -65,7 +65,7 @@ from algorithm.files import WriteFailures, atomic_write
 from algorithm.logging import MetricsWriter, ProgressLine, RateMeter, Throttle, Timers
 from algorithm.run_dir import EVAL_SEED_OFFSET, RunDir
 from algorithm.run_progress import RunCounters, budget_spent
-from algorithm.sac import SAC, UpdateResult
+from algorithm.sac.learner import SAC, UpdateResult
 from algorithm.types import Batch
 
 log = logging.getLogger("asac.learner")

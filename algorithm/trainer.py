@@ -34,12 +34,12 @@ from algorithm.config.schema import Config
 from algorithm.files import WriteFailures
 from algorithm.learner_core import LearnerCore, UpdateBudget, restore_env_rngs
 from algorithm.nn.user import model_builder
-from algorithm.policy import Policy
 from algorithm.replay import PrioritizedTable
 from algorithm.replay.persistence import load_replay_snapshot, snapshot_kept
 from algorithm.run_dir import EVAL_SEED_OFFSET, RunDir
 from algorithm.run_progress import RunSummary
-from algorithm.sac import SAC
+from algorithm.sac.learner import SAC
+from algorithm.sac.policy import Policy
 from algorithm.seeding import seed_everything
 
 __all__ = ["EVAL_SEED_OFFSET", "EmbeddedTrainer", "RunDir", "RunSummary"]

@@ -19,7 +19,7 @@ import numpy as np
 import torch
 
 from algorithm.config.schema import NNConfig, ReplayConfig, SacConfig
-from algorithm.sac import SAC
+from algorithm.sac.learner import SAC
 from algorithm.spaces import ActionSpec, EnvSpec, SensorSpec
 from bench.learner import ACT, HIDDEN, OBS, make_batch
 from bench.rows import append_row

@@ -47,7 +47,7 @@ from algorithm.actor import ActorLoop
 from algorithm.config.load import load_config
 from algorithm.config.schema import Config
 from algorithm.replay import PrioritizedTable
-from algorithm.sac import SAC
+from algorithm.sac.learner import SAC
 from bench.grpc_replay import CHUNK, PREFILL, random_chunk, replay_process
 from ds.actor.actor import ReplaySink
 from ds.learner.learner import Learner

@@ -34,7 +34,7 @@ import torch.nn.functional as F  # noqa: E402
 from torch import Tensor, nn  # noqa: E402
 
 from algorithm.config.schema import NNConfig, ReplayConfig, SacConfig  # noqa: E402
-from algorithm.sac import SAC  # noqa: E402
+from algorithm.sac.learner import SAC  # noqa: E402
 from algorithm.spaces import ActionSpec, EnvSpec, SensorSpec  # noqa: E402
 from algorithm.types import Batch  # noqa: E402
 

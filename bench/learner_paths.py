@@ -23,7 +23,7 @@ import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
 from algorithm.config.schema import NNConfig, ReplayConfig, SacConfig  # noqa: E402
-from algorithm.sac import SAC  # noqa: E402
+from algorithm.sac.learner import SAC  # noqa: E402
 from algorithm.spaces import ActionSpec, EnvSpec, SensorSpec  # noqa: E402
 from algorithm.types import Batch  # noqa: E402
 

@@ -23,8 +23,8 @@ import torch
 
 from algorithm.checkpoint import load_for_resume
 from algorithm.config.load import config_from_file
-from algorithm.policy import Policy
 from algorithm.run_dir import RunDir
+from algorithm.sac.policy import Policy
 from bench.systems import MUJOCO_TASKS, SB3Policy
 from cli import _load_policy, env_factory, run_model_builder
 from envs.make import VectorEnv, make_vector_env

@@ -35,7 +35,7 @@ import torch
 
 from algorithm.config.load import load_config
 from algorithm.nn.layers import EnsembleLinear
-from algorithm.sac import SAC
+from algorithm.sac.learner import SAC
 from algorithm.spaces import env_spec
 from algorithm.types import Batch
 from bench.systems import MUJOCO_TASKS, sb3_model

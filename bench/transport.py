@@ -128,7 +128,7 @@ def consumed_updates_per_s(seconds: float) -> float:
     import torch
 
     from algorithm.config.load import load_config
-    from algorithm.sac import SAC
+    from algorithm.sac.learner import SAC
     from algorithm.spaces import ActionSpec, EnvSpec
     from bench.learner import make_batch
 

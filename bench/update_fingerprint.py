@@ -24,7 +24,7 @@ import numpy as np
 import torch
 
 from algorithm.config.load import load_config
-from algorithm.sac import SAC, UpdateResult
+from algorithm.sac.learner import SAC, UpdateResult
 from algorithm.trainer import EmbeddedTrainer
 from cli import copy_model_file, env_factory, task_dir
 from tests.test_features import ENTRIES, SMALL

@@ -17,7 +17,7 @@ from typing import Any
 import pytest
 
 from algorithm.replay import PrioritizedTable, RateLimiter, SampleTimeout
-from algorithm.sac import SAC
+from algorithm.sac.learner import SAC
 from ds.actor.actor import DistributedActor
 from ds.learner.client import LearnerClient, Registration
 from ds.replay.client import LAST_INSERTS_WAIT_S, ReplayClient

@@ -7,7 +7,7 @@ from typing import Any
 
 import pytest
 
-from algorithm import sac_losses
+from algorithm.sac import losses
 from bench.update_fingerprint import fingerprint
 
 
@@ -19,11 +19,11 @@ def test_the_same_run_gives_the_same_fingerprint_and_another_update_another(
     assert fingerprint(name) == first
     assert fingerprint(name, ["sac.learning_rate=0.0007"]) != first
 
-    original = sac_losses.critic_loss
+    original = losses.critic_loss
 
     def a_hair_larger(*args: Any, **kwargs: Any) -> Any:  # the same critic loss, scaled by 1 + 1e-6
         loss, td_abs, metrics = original(*args, **kwargs)
         return loss * (1 + 1e-6), td_abs, metrics
 
-    monkeypatch.setattr(sac_losses, "critic_loss", a_hair_larger)
+    monkeypatch.setattr(losses, "critic_loss", a_hair_larger)
     assert fingerprint(name) != first

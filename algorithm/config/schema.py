@@ -14,7 +14,7 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator, model_valida
 
 from algorithm.config.random_params import parse_random_params
 
-# The largest extra exploration noise (a std added before the tanh) acting accepts (algorithm/policy.py,
+# The largest extra exploration noise (a std added before the tanh) acting accepts (algorithm/sac/policy.py,
 # the learner's GetAction, main_ds.py --noise). Far past it tanh saturates every action anyway; near
 # 1e37 the float32 std overflows and log-probs become NaN.
 MAX_EXPLORATION_NOISE = 1e6
@@ -296,7 +296,7 @@ class SacConfig(Section):
     cuda_graph: bool = Field(
         True,
         description="On a CUDA device, record each update's forward and backward pass once as a CUDA graph and "
-        "replay it (algorithm/update_graph.py): the same result without launching ~230 kernels from Python per "
+        "replay it (algorithm/sac/update_graph.py): the same result without launching ~230 kernels from Python per "
         "update. Recurrent, V-trace, prediction-model and normalized-RND configs run eagerly; no effect on the CPU.",
     )
     numpy_acting: bool = Field(

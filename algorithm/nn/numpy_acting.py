@@ -12,7 +12,7 @@ and its log-probability) and leaves the env's speed alone.
 :class:`~algorithm.nn.models.TanhGaussianPolicy` whose trunk is ``Linear -> activation`` layers and
 whose head is a plain ``Linear``, on the CPU. :func:`numpy_actor_for` returns None for anything else
 (images, recurrent or user-defined models, noisy layers, discrete branches, RND action choice), and
-:class:`~algorithm.sac.SAC` then acts with torch as before.
+:class:`~algorithm.sac.learner.SAC` then acts with torch as before.
 
 The arrays are views of the torch parameters (``Tensor.numpy()`` shares memory), so optimizer steps
 and ``load_state_dict`` (both in place) are seen without copying. The caller draws the noise

@@ -7,7 +7,7 @@ also the privileged ``critic_only`` sensors, which the representation may not se
 the policy's part). Their losses train the models; each loss's gradient reaches the
 representation only when its cosine with the Q loss's gradient there is positive (the gradient
 similarity test of Du et al. 2018, arXiv:1812.02224), so an auxiliary task never pulls the
-representation against the critic. :meth:`algorithm.sac.SAC.update` applies the gate.
+representation against the critic. :meth:`algorithm.sac.learner.SAC.update` applies the gate.
 """
 
 from __future__ import annotations

@@ -53,9 +53,9 @@ import torch
 from algorithm.actor import ActorLoop, VectorEnvLike
 from algorithm.config.schema import Config
 from algorithm.logging import MetricsWriter, RateMeter, Throttle
-from algorithm.policy import Policy
 from algorithm.replay import ReplayUnavailable
 from algorithm.run_dir import RunDir
+from algorithm.sac.policy import Policy
 from ds.actor.sink import ReplaySink
 from ds.actor.staleness import Staleness
 from ds.learner import service as learner_service

@@ -51,8 +51,8 @@ from ds.replay.codec import message_limit_bytes
 
 if TYPE_CHECKING:  # torch: imported by the roles that build models, never by the replay or the evolver
     from algorithm.nn.user import ModelBuilder
-    from algorithm.policy import Policy
-    from algorithm.sac import SAC
+    from algorithm.sac.learner import SAC
+    from algorithm.sac.policy import Policy
 
 _T = TypeVar("_T")
 
@@ -124,13 +124,13 @@ class RoleContext:
 
     def policy(self, spec: EnvSpec, device: str = "cpu") -> Policy:
         """The acting side alone (actors, the learner's GetAction copy): no optimizers, no targets."""
-        from algorithm.policy import Policy
+        from algorithm.sac.policy import Policy
 
         cfg = self.config
         return Policy(spec, cfg.sac_config, cfg.nn_config, device=device, build=self.models)
 
     def sac(self, spec: EnvSpec, device: str = "cpu") -> SAC:
-        from algorithm.sac import SAC
+        from algorithm.sac.learner import SAC
 
         cfg = self.config
         return SAC(spec, cfg.sac_config, cfg.nn_config, cfg.replay_config, device=device, build=self.models)

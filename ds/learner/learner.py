@@ -49,7 +49,7 @@ from algorithm.logging import Throttle
 from algorithm.replay import ReplayTable, ReplayUnavailable
 from algorithm.run_dir import RunDir
 from algorithm.run_progress import RunSummary
-from algorithm.sac import SAC
+from algorithm.sac.learner import SAC
 from algorithm.types import Batch
 from ds.learner.feeds import BatchPrefetcher, PriorityUpdater
 from ds.learner.service import ActorRegistry, ParamsStore, PublishedPolicy

@@ -17,7 +17,7 @@ from dataclasses import replace
 from algorithm.config.load import config_to_yaml
 from algorithm.files import WriteFailures, atomic_write
 from algorithm.run_dir import EVAL_SEED_OFFSET, RunDir
-from algorithm.sac import SAC
+from algorithm.sac.learner import SAC
 from algorithm.seeding import seed_everything
 from ds.evolver.client import EvolverClient
 from ds.launch.role_context import RoleContext, RoleError, fixed_port, listen, process_name

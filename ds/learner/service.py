@@ -46,7 +46,7 @@ import torch
 from grpc_health.v1 import health, health_pb2_grpc
 
 from algorithm.config.schema import MAX_EXPLORATION_NOISE
-from algorithm.policy import Policy
+from algorithm.sac.policy import Policy
 from algorithm.spaces import EnvSpec
 from ds.net import rpc, security
 from ds.net.rpc import GRPC_DEFAULT_MESSAGE_BYTES

@@ -12,7 +12,7 @@ from torch.distributions import Normal, TransformedDistribution
 from torch.distributions.transforms import TanhTransform
 
 from algorithm.config.schema import NNConfig, ReplayConfig, SacConfig
-from algorithm.sac import SAC
+from algorithm.sac.learner import SAC
 from algorithm.spaces import ActionSpec, EnvSpec, SensorSpec
 
 OBS = SensorSpec("obs", (3,))

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 import torch
 
-from algorithm.losses import entropy_penalty
+from algorithm.sac.equations import entropy_penalty
 from tests.algorithm.test_discrete import make_batch, make_sac, masked_spec
 from tests.algorithm.test_sac import make_sac as make_continuous_sac
 

@@ -7,7 +7,7 @@ import numpy as np
 
 from algorithm.config.schema import NNConfig, SacConfig
 from algorithm.evaluation import evaluate
-from algorithm.policy import Policy
+from algorithm.sac.policy import Policy
 from envs.make import make_vector_env
 
 NN = NNConfig(hidden_units=[16, 16])

@@ -14,7 +14,7 @@ import torch
 
 from algorithm.actor import ActorLoop
 from algorithm.config.schema import NNConfig, ReplayConfig, SacConfig
-from algorithm.sac import SAC
+from algorithm.sac.learner import SAC
 from algorithm.spaces import ActionSpec, EnvSpec, SensorSpec
 from algorithm.types import ActingProgress
 from envs.make import vector_env_factory

@@ -15,7 +15,7 @@ from pydantic import ValidationError
 from algorithm.config.schema import Config
 from algorithm.learner_core import LearnerCore
 from algorithm.replay import PrioritizedTable
-from algorithm.sac import SAC
+from algorithm.sac.learner import SAC
 from algorithm.spaces import ActionSpec, EnvSpec, SensorSpec
 from algorithm.types import Chunk
 

@@ -11,8 +11,8 @@ import torch
 
 from algorithm.config.random_params import apply_params, draw_for_run
 from algorithm.config.schema import Config, SacConfig
-from algorithm.sac import SAC
-from algorithm.schedules import learning_rate_at, linear_anneal
+from algorithm.sac.learner import SAC
+from algorithm.sac.schedules import learning_rate_at, linear_anneal
 from tests.algorithm.test_sac import make_batch, make_sac
 
 

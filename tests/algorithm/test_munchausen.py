@@ -14,7 +14,7 @@ import pytest
 import torch
 
 from algorithm.config.load import load_config
-from algorithm.losses import munchausen_bonus
+from algorithm.sac.equations import munchausen_bonus
 from algorithm.types import Batch
 from tests.algorithm.test_discrete import make_batch, make_sac, masked_spec
 from tests.algorithm.test_entropy_penalty import three_step_windows

@@ -10,8 +10,8 @@ import pytest
 import torch
 
 from algorithm.config.schema import NNConfig, ReplayConfig, SacConfig
-from algorithm.policy import Policy
-from algorithm.sac import SAC
+from algorithm.sac.learner import SAC
+from algorithm.sac.policy import Policy
 from algorithm.spaces import ActionSpec, EnvSpec, SensorSpec
 
 SPEC = EnvSpec((SensorSpec("obs", (3,)),), ActionSpec((), 2, (-1.0,) * 2, (1.0,) * 2))

@@ -11,7 +11,7 @@ from algorithm.config.schema import NNConfig, ReplayConfig, SacConfig
 from algorithm.nn.builder import build_models
 from algorithm.nn.models import Representation
 from algorithm.nn.prediction import gated_gradients, observation_targets
-from algorithm.sac import SAC
+from algorithm.sac.learner import SAC
 from algorithm.spaces import ActionSpec, EnvSpec, SensorSpec
 from tests.algorithm.test_sac import make_batch
 

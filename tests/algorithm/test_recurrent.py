@@ -14,7 +14,7 @@ from algorithm.config.load import load_config
 from algorithm.config.schema import NNConfig, ReplayConfig, SacConfig
 from algorithm.nn.models import VectorRepresentation
 from algorithm.nn.recurrent import RecurrentRepresentation
-from algorithm.sac import SAC
+from algorithm.sac.learner import SAC
 from algorithm.spaces import ActionSpec, EnvSpec, SensorSpec
 from algorithm.trainer import EmbeddedTrainer
 from algorithm.types import Batch

@@ -13,7 +13,7 @@ import pytest
 import torch
 from torch import Tensor
 
-from algorithm.returns import bootstrap_index, gather_positions, n_step_target, valid_steps, vtrace_target
+from algorithm.sac.returns import bootstrap_index, gather_positions, n_step_target, valid_steps, vtrace_target
 
 GAMMA = 0.9
 V = 10.0  # soft value of whatever observation the target bootstraps from

@@ -14,10 +14,10 @@ import torch
 from torch import Tensor, nn
 
 from algorithm.config.schema import NNConfig, ReplayConfig, SacConfig
-from algorithm.losses import PolicySample, alpha_loss, critic_loss, importance_weights, policy_loss
 from algorithm.nn.layers import uses_bfloat16
 from algorithm.nn.models import QEnsemble, Representation, TanhGaussianPolicy
-from algorithm.sac import SAC
+from algorithm.sac.equations import PolicySample, alpha_loss, critic_loss, importance_weights, policy_loss
+from algorithm.sac.learner import SAC
 from algorithm.spaces import ActionSpec, EnvSpec, SensorSpec
 from algorithm.types import Batch
 

@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from algorithm.nn.models import squashed_gaussian_log_prob
-from algorithm.sac import SAC
+from algorithm.sac.learner import SAC
 from tests.algorithm.test_sac import make_batch, make_sac
 
 

@@ -12,7 +12,7 @@ import torch
 
 from algorithm.config.load import load_config
 from algorithm.config.schema import NNConfig, ReplayConfig, SacConfig
-from algorithm.sac import SAC
+from algorithm.sac.learner import SAC
 from algorithm.spaces import ActionSpec, EnvSpec, SensorSpec
 from algorithm.trainer import EmbeddedTrainer
 from envs.make import vector_env_factory

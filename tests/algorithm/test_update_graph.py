@@ -1,4 +1,4 @@
-"""Updates replayed from a recorded pass (algorithm/update_graph.py) compute what eager updates compute.
+"""Updates replayed from a recorded pass (algorithm/sac/update_graph.py) compute what eager updates compute.
 
 Without a GPU the recorder is a stand-in that replays by running the pass again and copying its results
 into the recorded tensors, as a CUDA graph's replay rewrites them: that checks the plumbing (batches
@@ -18,9 +18,9 @@ import torch
 from torch import Tensor
 
 from algorithm.config.schema import NNConfig, ReplayConfig, SacConfig
-from algorithm.sac import SAC
+from algorithm.sac.learner import SAC
+from algorithm.sac.update_graph import MAX_FAILED_RECORDINGS, UpdateGraph, why_not_graphed
 from algorithm.spaces import ActionSpec, EnvSpec, SensorSpec
-from algorithm.update_graph import MAX_FAILED_RECORDINGS, UpdateGraph, why_not_graphed
 from tests.algorithm.test_sac import SPEC, assert_same_state, make_batch
 
 DISCRETE = EnvSpec((SensorSpec("obs", (3,)),), ActionSpec((2,), 0, (), ()))

@@ -11,7 +11,7 @@ import pytest
 import torch
 
 from algorithm.config.schema import SacConfig
-from algorithm.update_graph import why_not_graphed
+from algorithm.sac.update_graph import why_not_graphed
 from tests.algorithm.test_discrete import make_batch as discrete_batch
 from tests.algorithm.test_discrete import make_sac as make_discrete_sac
 from tests.algorithm.test_discrete import masked_spec

@@ -11,7 +11,7 @@ import torch
 
 from algorithm.config.schema import NNConfig, ReplayConfig, SacConfig
 from algorithm.nn.models import TanhGaussianPolicy
-from algorithm.sac import SAC
+from algorithm.sac.learner import SAC
 from algorithm.spaces import ActionSpec, EnvSpec, SensorSpec
 from algorithm.types import Batch
 

@@ -11,7 +11,7 @@ import torch
 
 from algorithm.config.schema import NNConfig, ReplayConfig, SacConfig
 from algorithm.nn.colored_noise import ColoredNoise, colored_sequences, inverse_cdf_choice
-from algorithm.sac import SAC
+from algorithm.sac.learner import SAC
 from algorithm.spaces import ActionSpec, EnvSpec, SensorSpec
 
 OBS = SensorSpec("obs", (3,))

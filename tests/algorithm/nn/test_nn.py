@@ -22,7 +22,7 @@ from algorithm.nn.models import (
     squashed_gaussian_log_prob,
 )
 from algorithm.nn.user import model_builder, recurrent_state_size
-from algorithm.sac import SAC
+from algorithm.sac.learner import SAC
 from algorithm.spaces import ActionSpec, EnvSpec, SensorSpec
 
 

@@ -13,7 +13,7 @@ import torch
 from algorithm.config.schema import NNConfig, ReplayConfig, SacConfig
 from algorithm.nn.models import stored_action_log_prob
 from algorithm.nn.numpy_acting import NumpyGaussianActor
-from algorithm.sac import SAC
+from algorithm.sac.learner import SAC
 from algorithm.spaces import ActionSpec, EnvSpec, SensorSpec
 from tests.algorithm.test_sac import make_batch
 

@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from algorithm.sac import SAC
+from algorithm.sac.learner import SAC
 from ds.actor.actor import DistributedActor
 from ds.learner.client import LearnerClient
 from ds.replay.client import ReplayClient

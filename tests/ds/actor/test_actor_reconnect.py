@@ -19,7 +19,7 @@ import torch
 
 from algorithm.config.load import load_config
 from algorithm.replay import PrioritizedTable
-from algorithm.sac import SAC
+from algorithm.sac.learner import SAC
 from ds.actor import actor as actor_module
 from ds.actor.actor import DistributedActor
 from ds.learner.client import LearnerClient

@@ -18,7 +18,7 @@ import torch
 from algorithm.config.load import load_config
 from algorithm.config.schema import Config
 from algorithm.replay import PrioritizedTable
-from algorithm.sac import SAC
+from algorithm.sac.learner import SAC
 from ds.evolver.client import EvolverClient
 from ds.evolver.evolver import Evolver
 from ds.evolver.state import STATE_FILE, EvolverStateError, Instruction, save_state

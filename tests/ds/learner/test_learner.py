@@ -21,7 +21,7 @@ from algorithm.checkpoint import CheckpointError, load_checkpoint, save_checkpoi
 from algorithm.config.load import load_config
 from algorithm.evaluation import read_evaluations
 from algorithm.replay import PrioritizedTable
-from algorithm.sac import SAC
+from algorithm.sac.learner import SAC
 from ds.learner.feeds import BatchPrefetcher, PriorityUpdater, merge_priorities
 from ds.learner.learner import EnvSteps, Learner
 from ds.learner.service import ParamsStore

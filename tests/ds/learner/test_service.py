@@ -17,7 +17,7 @@ import torch
 from algorithm.config.load import load_config
 from algorithm.config.schema import Config
 from algorithm.replay import PrioritizedTable
-from algorithm.sac import SAC
+from algorithm.sac.learner import SAC
 from ds.actor.actor import DistributedActor, actor_noise
 from ds.learner.client import LearnerClient, LeaseExpired, RemotePolicy
 from ds.learner.service import SERVICE_NAME, ActorRegistry, LearnerServicer, ParamsStore, PublishedPolicy, serve_learner

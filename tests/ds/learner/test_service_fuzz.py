@@ -28,7 +28,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from algorithm.config.schema import Config
-from algorithm.sac import SAC
+from algorithm.sac.learner import SAC
 from algorithm.spaces import ActionSpec, EnvSpec, SensorSpec
 from ds.learner.service import ActorRegistry, LearnerServicer, ParamsStore, PublishedPolicy, serve_learner
 from ds.net.wire import to_tensor

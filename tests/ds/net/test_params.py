@@ -19,7 +19,7 @@ from hypothesis.extra import numpy as hnp
 
 import ds.net.params
 from algorithm.config.schema import NNConfig, ReplayConfig, SacConfig
-from algorithm.sac import SAC
+from algorithm.sac.learner import SAC
 from algorithm.spaces import ActionSpec, EnvSpec, SensorSpec
 from ds.net.params import (
     DTYPES,

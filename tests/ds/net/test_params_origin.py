@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 import zmq
 
-from algorithm.sac import SAC
+from algorithm.sac.learner import SAC
 from ds.net.params import ParamsError, ParamsPublisher, ParamsSubscriber, decode_params, encode_params
 from ds.net.stream_key import StreamKey
 from tests.ds.actor.test_actor_reconnect import CONFIG, Learner, Replay, free_port, running_actor, same_weights

@@ -1,7 +1,7 @@
 """The learner's state as a checkpoint holds it: :class:`SacCheckpoint` is the mixin of
-:class:`algorithm.sac.SAC` that names its optimizers, saves and restores everything a bit-identical
+:class:`algorithm.sac.learner.SAC` that names its optimizers, saves and restores everything a bit-identical
 resume needs (:meth:`~SacCheckpoint.state_dict`), and takes an evolver's weights in place of its own
-(:meth:`~SacCheckpoint.load_model_weights`). :class:`~algorithm.sac.SAC` owns the attributes it reads.
+(:meth:`~SacCheckpoint.load_model_weights`). :class:`~algorithm.sac.learner.SAC` owns the attributes it reads.
 """
 
 from __future__ import annotations
@@ -17,7 +17,7 @@ from algorithm.nn.models import SacModels
 
 
 class SacCheckpoint:
-    """Checkpoint state and optimizers of :class:`algorithm.sac.SAC` (which provides these attributes)."""
+    """Checkpoint state and optimizers of :class:`algorithm.sac.learner.SAC` (which provides these attributes)."""
 
     models: SacModels
     target_representation: torch.nn.Module
@@ -34,8 +34,8 @@ class SacCheckpoint:
     _consecutive_nonfinite: int
     _learn_rng: torch.Generator
 
-    _acting_rng_state: Callable[[], dict[str, Any]]  # algorithm.policy.Policy's
-    _load_acting_rng_state: Callable[[Mapping[str, Any]], None]  # algorithm.policy.Policy's
+    _acting_rng_state: Callable[[], dict[str, Any]]  # algorithm.sac.policy.Policy's
+    _load_acting_rng_state: Callable[[Mapping[str, Any]], None]  # algorithm.sac.policy.Policy's
 
     def _named_optimizers(self) -> dict[str, torch.optim.Optimizer]:
         named: dict[str, torch.optim.Optimizer] = {"critic": self.critic_optimizer}

@@ -1,6 +1,6 @@
 """The acting side of Soft Actor-Critic: :class:`Policy` holds the models and the acting randomness,
 and acts; it builds no optimizer and no target network. Actors, evaluation, ``--run`` and the
-learner's GetAction copy use it; :class:`algorithm.sac.SAC` extends it with the learner's side.
+learner's GetAction copy use it; :class:`algorithm.sac.learner.SAC` extends it with the learner's side.
 
 Usage, in an actor::
 
@@ -21,7 +21,6 @@ import torch
 from torch import Tensor
 
 from algorithm.config.schema import NNConfig, SacConfig
-from algorithm.losses import PolicySample, branch_matrix
 from algorithm.nn.builder import build_models
 from algorithm.nn.colored_noise import ColoredNoise, inverse_cdf_choice
 from algorithm.nn.models import masked_branch_one_hot_argmax, stored_action_log_prob
@@ -29,6 +28,7 @@ from algorithm.nn.noisy import NoisyLayer, reset_noise, set_noise
 from algorithm.nn.numpy_acting import numpy_actor_for
 from algorithm.nn.recurrent import RecurrentRepresentation
 from algorithm.nn.user import ModelBuilder
+from algorithm.sac.equations import PolicySample, branch_matrix
 from algorithm.spaces import EnvSpec
 from algorithm.types import ActingProgress
 
@@ -350,7 +350,7 @@ class Policy:
 
     def load_state_dict(self, state: Mapping[str, Any]) -> None:
         """Restore the models and the acting generators from :meth:`state_dict` or from a learner's
-        :meth:`algorithm.sac.SAC.state_dict` (a checkpoint's ``"sac"``: its learner parts are not read)."""
+        :meth:`algorithm.sac.learner.SAC.state_dict` (a checkpoint's ``"sac"``: its learner parts are not read)."""
         if "models" not in state:
             raise KeyError("policy state dict lacks 'models'")
         self.models.load_state_dict(state["models"])

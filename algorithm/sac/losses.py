@@ -11,8 +11,8 @@ method of its own, called from there:
 - clipped critic updates (``clip_epsilon``): :meth:`_clip_reference`;
 - prediction models (transition, reward, observation): :meth:`_prediction_terms`.
 
-The equations themselves are pure functions in :mod:`algorithm.losses` and :mod:`algorithm.returns`.
-:class:`SacLosses` is a mixin of :class:`algorithm.sac.SAC`, which owns the models it reads.
+The equations themselves are pure functions in :mod:`algorithm.sac.equations` and :mod:`algorithm.sac.returns`.
+:class:`SacLosses` is a mixin of :class:`algorithm.sac.learner.SAC`, which owns the models it reads.
 """
 
 from __future__ import annotations
@@ -24,7 +24,10 @@ import torch
 from torch import Tensor
 
 from algorithm.config.schema import SacConfig
-from algorithm.losses import (
+from algorithm.nn.models import MASKED_LOG_PROB, SacModels
+from algorithm.nn.prediction import prediction_losses
+from algorithm.nn.recurrent import RecurrentRepresentation
+from algorithm.sac.equations import (
     Metrics,
     PolicySample,
     alpha_loss,
@@ -35,10 +38,7 @@ from algorithm.losses import (
     policy_loss,
     soft_value,
 )
-from algorithm.nn.models import MASKED_LOG_PROB, SacModels
-from algorithm.nn.prediction import prediction_losses
-from algorithm.nn.recurrent import RecurrentRepresentation
-from algorithm.returns import (
+from algorithm.sac.returns import (
     StepWindows,
     bootstrap_index,
     gather_positions,
@@ -129,7 +129,7 @@ class Window:
 
 
 class SacLosses:
-    """The loss computation of :class:`algorithm.sac.SAC` (which provides these attributes)."""
+    """The loss computation of :class:`algorithm.sac.learner.SAC` (which provides these attributes)."""
 
     spec: EnvSpec
     sac: SacConfig
@@ -147,7 +147,7 @@ class SacLosses:
     _mask_index: int | None
     _observation_targets: list[int]
     _learn_rng: torch.Generator
-    _policy: Callable[[Tensor, Tensor, Tensor | None], PolicySample]  # algorithm.policy.Policy's
+    _policy: Callable[[Tensor, Tensor, Tensor | None], PolicySample]  # algorithm.sac.policy.Policy's
 
     def _losses(
         self,
@@ -172,7 +172,7 @@ class SacLosses:
         (only ``noise[:, 1]`` without V-trace, the value at the bootstrap observation).
 
         With ``train_every_step`` each stored step of a window is trained as the sampled one is
-        (:class:`~algorithm.returns.StepWindows`): ``noise`` is ``[B, T, n_step + 2, A]``, one draw per
+        (:class:`~algorithm.sac.returns.StepWindows`): ``noise`` is ``[B, T, n_step + 2, A]``, one draw per
         trained step, the losses are means over every trained step, and ``td_abs`` is the sampled
         step's (its priority)."""
         sac = self.sac
@@ -358,7 +358,7 @@ class SacLosses:
 
     def _munchausen_terms(self, window: Window, noise: Tensor, alpha_d: Tensor, metrics: Metrics) -> Tensor:
         """``munchausen_scale``: the Munchausen term of every window step ``[B, L]`` from the current
-        policy's log-probabilities of the stored actions (:func:`algorithm.losses.munchausen_bonus`);
+        policy's log-probabilities of the stored actions (:func:`algorithm.sac.equations.munchausen_bonus`);
         steps past the target's end are never read (``n_step_target``)."""
         assert self._branches is not None
         with torch.no_grad():

@@ -1,4 +1,4 @@
-"""Recording the forward and backward pass of :meth:`algorithm.sac.SAC.update` once as a CUDA graph and
+"""Recording the forward and backward pass of :meth:`algorithm.sac.learner.SAC.update` once as a CUDA graph and
 replaying it for every batch (``sac_config.cuda_graph``).
 
 On a GPU an update of MuJoCo-sized networks is bound by launching its ~230 kernels one by one from Python,

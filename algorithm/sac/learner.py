@@ -1,10 +1,10 @@
-"""Soft Actor-Critic, the learner's side: :class:`SAC` extends the acting :class:`~algorithm.policy.Policy`
+"""Soft Actor-Critic, the learner's side: :class:`SAC` extends the acting :class:`~algorithm.sac.policy.Policy`
 with the target networks, the optimizers and the update step; the checkpoint state is
-:mod:`algorithm.sac_checkpoint`'s.
+:mod:`algorithm.sac.checkpoint_state`'s.
 
-What an update computes is in :mod:`algorithm.sac_losses` (plain SAC first, each feature in its own
-method); the losses are pure functions in :mod:`algorithm.losses`, targets over windows in
-:mod:`algorithm.returns`. Actions may be continuous, discrete (several branches, optional action
+What an update computes is in :mod:`algorithm.sac.losses` (plain SAC first, each feature in its own
+method); the losses are pure functions in :mod:`algorithm.sac.equations`, targets over windows in
+:mod:`algorithm.sac.returns`. Actions may be continuous, discrete (several branches, optional action
 masks, ``discrete_dqn_like``) or both (docs/architecture.md sections 3 and 5).
 
 Usage, in a learner loop::
@@ -17,8 +17,8 @@ Usage, in a learner loop::
             table.update_priorities(batch.keys, result.td_abs)
         writer.write(result.metrics)
 
-and, being a :class:`~algorithm.policy.Policy`, ``actions, behaviour_logp = sac.act(obs)`` acts
-(actors that do not train build the :class:`~algorithm.policy.Policy` alone).
+and, being a :class:`~algorithm.sac.policy.Policy`, ``actions, behaviour_logp = sac.act(obs)`` acts
+(actors that do not train build the :class:`~algorithm.sac.policy.Policy` alone).
 """
 
 from __future__ import annotations
@@ -34,21 +34,21 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from algorithm.batch_checks import check_batch, check_config_for_task
 from algorithm.config.schema import NNConfig, ReplayConfig, SacConfig
-from algorithm.losses import Metrics, importance_weights
 from algorithm.nn.builder import build_models
 from algorithm.nn.layers import uses_bfloat16
 from algorithm.nn.models import SacModels
 from algorithm.nn.noisy import reset_noise
 from algorithm.nn.prediction import gated_gradients, observation_targets
-from algorithm.policy import Policy
-from algorithm.sac_checkpoint import SacCheckpoint
-from algorithm.sac_losses import Losses, SacLosses
-from algorithm.schedules import discrete_target_entropy_ratio, learning_rate_at, munchausen_scale_at
+from algorithm.sac.batch_checks import check_batch, check_config_for_task
+from algorithm.sac.checkpoint_state import SacCheckpoint
+from algorithm.sac.equations import Metrics, importance_weights
+from algorithm.sac.losses import Losses, SacLosses
+from algorithm.sac.policy import Policy
+from algorithm.sac.schedules import discrete_target_entropy_ratio, learning_rate_at, munchausen_scale_at
+from algorithm.sac.update_graph import graph_for
 from algorithm.spaces import EnvSpec
 from algorithm.types import Batch
-from algorithm.update_graph import graph_for
 
 
 @dataclass
@@ -65,7 +65,7 @@ class UpdateResult:
 
 
 class SAC(SacCheckpoint, SacLosses, Policy):
-    """One learner: the :class:`~algorithm.policy.Policy` (models, acting) plus target copies,
+    """One learner: the :class:`~algorithm.sac.policy.Policy` (models, acting) plus target copies,
     optimizers, ``log_alpha``, PER ``beta`` and counters.
 
     Three Adam optimizers with separate parameters: critic (Q heads + representation), policy,
@@ -74,7 +74,7 @@ class SAC(SacCheckpoint, SacLosses, Policy):
     ``compile=True`` wraps the loss computation in ``torch.compile``; on CPU it did not pay
     (5-10% slower than eager in bench/learner.py), so it is off by default.
 
-    Randomness: as the :class:`~algorithm.policy.Policy`'s, plus two ``torch.Generator`` objects
+    Randomness: as the :class:`~algorithm.sac.policy.Policy`'s, plus two ``torch.Generator`` objects
     for the noise and head subsets of :meth:`update` and for :meth:`td_errors`, seeded from the
     third seed the policy drew; all are in :meth:`state_dict`.
     """
@@ -144,7 +144,7 @@ class SAC(SacCheckpoint, SacLosses, Policy):
         # CPUs, 1.4x faster updates (bench/learner.py); output layers stay float32 (nn.layers.in_float32).
         self._low_precision = uses_bfloat16(sac_config.compute_dtype, self.device)
         # On a GPU the forward and backward pass is recorded once as a CUDA graph and replayed
-        # (algorithm/update_graph.py); None where it is not (the CPU, configs it cannot record).
+        # (algorithm/sac/update_graph.py); None where it is not (the CPU, configs it cannot record).
         trained = [p for opt in self._optimizers() for group in opt.param_groups for p in group["params"]]
         self.update_graph = graph_for(
             sac_config, self.device, compile, bool(self.rnn_state_size), self.models.prediction is not None, trained
