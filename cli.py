@@ -31,9 +31,9 @@ import numpy as np
 
 from algorithm.config.load import ConfigError, apply_overrides, config_from_file
 from algorithm.config.schema import BaseConfig, Config
-from algorithm.folder_lock import FolderInUse
-from algorithm.logging import LogFileHandler
-from algorithm.run_dir import RunDir
+from algorithm.run.folder import RunDir
+from algorithm.run.folder_lock import FolderInUse
+from algorithm.run.logging import LogFileHandler
 from envs.make import VectorEnv, make_env, vector_env_factory
 
 if TYPE_CHECKING:
@@ -378,8 +378,8 @@ def setup_logging(run_dir: Path | None, in_file: bool) -> None:
 
 
 def play(args: argparse.Namespace) -> int:
-    from algorithm.checkpoint import list_checkpoints, load_for_resume
-    from algorithm.evaluation import evaluate
+    from algorithm.run.checkpoint import list_checkpoints, load_for_resume
+    from algorithm.run.evaluation import evaluate
     from algorithm.sac.policy import Policy
     from algorithm.seeding import seed_everything
 
@@ -419,7 +419,7 @@ def play(args: argparse.Namespace) -> int:
 
 
 def _load_policy(sac: Policy, state: dict, ckpt: Path) -> None:
-    from algorithm.checkpoint import restoring
+    from algorithm.run.checkpoint import restoring
 
     with restoring(ckpt):
         sac.load_state_dict(state["sac"])

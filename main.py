@@ -20,7 +20,7 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 # actor with 64 envs acted 3.5x slower with a second core busy: 516 vs 149 us).
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
-from algorithm.signals import exit_quietly_on_sigint
+from algorithm.run.signals import exit_quietly_on_sigint
 
 exit_quietly_on_sigint()  # a Ctrl-C while still importing: exit 130, no traceback
 
@@ -38,9 +38,9 @@ import gymnasium
 from algorithm.config.load import ConfigError, apply_overrides, config_from_file, load_config
 from algorithm.config.random_params import draw_for_run
 from algorithm.errors import CheckpointError
-from algorithm.folder_lock import FolderInUse, hold_folder
-from algorithm.run_dir import RunDir, python_command, shown_path
-from algorithm.signals import stop_on_signals
+from algorithm.run.folder import RunDir, python_command, shown_path
+from algorithm.run.folder_lock import FolderInUse, hold_folder
+from algorithm.run.signals import stop_on_signals
 from cli import (
     ArgumentParser,
     UsageError,
@@ -84,7 +84,7 @@ def train(args: argparse.Namespace) -> int:
     config = resolved.config
     check_env(config)
     # torch comes with the trainer, imported once the flags, the task and the config are known to be good
-    from algorithm.trainer import EmbeddedTrainer
+    from algorithm.run.trainer import EmbeddedTrainer
 
     name_template = args.name or config.base_config.name
     stop = stop_on_signals()  # Ctrl-C and SIGTERM: finish the step, save, exit 130 / 143
@@ -168,7 +168,7 @@ def report_finished(
 ) -> None:
     """The end of a finished run (or of re-running one): its last evaluation, its folder, how to play it."""
     if last_eval is None:  # checkpoints from before the counters kept it
-        from algorithm.learner_core import last_evaluation
+        from algorithm.run.learner_core import last_evaluation
 
         row = last_evaluation(RunDir(run_dir).evaluations)
         last_eval = None if row is None else row[1]

@@ -19,7 +19,7 @@ from ds.net.grpc_env import read_replies_on_calling_thread
 if __name__ == "__main__":  # a role process, not a test importing the parser
     read_replies_on_calling_thread()  # before grpc is imported (ds/net/grpc_env.py)
 
-from algorithm.signals import exit_quietly_on_sigint
+from algorithm.run.signals import exit_quietly_on_sigint
 
 exit_quietly_on_sigint()  # a Ctrl-C while still importing: exit 130, no traceback
 
@@ -46,11 +46,11 @@ from algorithm.config.original import CONFIG_LOGGER
 from algorithm.config.random_params import draw_for_run
 from algorithm.config.schema import MAX_EXPLORATION_NOISE, Config, NetConfig
 from algorithm.errors import CheckpointError, RoleError
-from algorithm.files import WriteFailures, atomic_write
-from algorithm.folder_lock import FolderInUse, hold_folder
-from algorithm.logging import LogFileHandler
-from algorithm.run_dir import RunDir
-from algorithm.signals import LAUNCHER_PID_ENV, StopRequest, stop_on_signals, stop_with_launcher
+from algorithm.run.files import WriteFailures, atomic_write
+from algorithm.run.folder import RunDir
+from algorithm.run.folder_lock import FolderInUse, hold_folder
+from algorithm.run.logging import LogFileHandler
+from algorithm.run.signals import LAUNCHER_PID_ENV, StopRequest, stop_on_signals, stop_with_launcher
 from cli import (
     ArgumentParser,
     UsageError,
@@ -399,7 +399,7 @@ def local(args: argparse.Namespace, config: Config, run_dir: Path, creds: securi
     ``base_config.evolver_enabled``: N defaults to 2), an evolver, N replays, N learners and the actors.
     Without ``net_config.token_file`` (nor ``--no_token``) the run gets a fresh token in ``<run>/token``
     (mode 0600), handed to every child as an explicit one is: ``--override net.token_file=<run>/token``."""
-    from algorithm.run_progress import finished_at
+    from algorithm.run.progress import finished_at
     from ds.launch.local import learner_threads, run_local
     from ds.launch.local_summary import PlayableRun, resume_argv, summary
 

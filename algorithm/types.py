@@ -80,7 +80,7 @@ class Batch:
 class ActingProgress:
     """What one acting loop has done so far, for exploration that depends on it (RND's action choice
     ends per ``sac_config.rnd_choice_steps`` and ``rnd_choice_until_return``). The loop owns it and
-    updates it before each step (:class:`~algorithm.actor.ActorLoop`); the policy reads it."""
+    updates it before each step (:class:`~algorithm.run.actor.ActorLoop`); the policy reads it."""
 
     env_steps: int = 0  # over all envs of this loop, random warm-up included
     best_episode_return: float = -math.inf  # the highest return of an episode this loop finished

@@ -43,10 +43,10 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from algorithm.actor import ActorLoop
 from algorithm.config.load import load_config
 from algorithm.config.schema import Config
 from algorithm.replay import PrioritizedTable
+from algorithm.run.actor import ActorLoop
 from algorithm.sac.learner import SAC
 from bench.grpc_replay import CHUNK, PREFILL, random_chunk, replay_process
 from ds.actor.actor import ReplaySink

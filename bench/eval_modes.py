@@ -34,10 +34,10 @@ from pathlib import Path
 
 import numpy as np
 
-from algorithm.checkpoint import checkpoint_path, list_checkpoints, load_checkpoint
 from algorithm.config.load import Config, ConfigError, config_from_file
-from algorithm.evaluation import evaluate
-from algorithm.run_dir import RunDir
+from algorithm.run.checkpoint import checkpoint_path, list_checkpoints, load_checkpoint
+from algorithm.run.evaluation import evaluate
+from algorithm.run.folder import RunDir
 from algorithm.sac.policy import Policy
 from cli import _load_policy, env_factory, run_model_builder
 from envs.make import VectorEnv

@@ -109,7 +109,7 @@ def summarize(evaluations: list[dict[str, float]], threshold: float) -> dict[str
 
 def run(task: str, mode: str, seed: int, steps: int, every: int, threshold: float, actors: int,
         overrides: list[str], timeout_s: float, commit: str) -> dict[str, object]:  # fmt: skip
-    from algorithm.evaluation import read_evaluations
+    from algorithm.run.evaluation import read_evaluations
 
     env = {**os.environ, "OMP_NUM_THREADS": "1", "OMP_WAIT_POLICY": "PASSIVE", "MUJOCO_GL": "egl"}
     cmd = command(task, mode, seed, steps, every, actors, overrides)

@@ -21,9 +21,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from algorithm.checkpoint import load_for_resume
 from algorithm.config.load import config_from_file
-from algorithm.run_dir import RunDir
+from algorithm.run.checkpoint import load_for_resume
+from algorithm.run.folder import RunDir
 from algorithm.sac.policy import Policy
 from bench.systems import MUJOCO_TASKS, SB3Policy
 from cli import _load_policy, env_factory, run_model_builder

@@ -27,8 +27,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from algorithm.run_dir import RunDir
-from algorithm.signals import stop_on_signals
+from algorithm.run.folder import RunDir
+from algorithm.run.signals import stop_on_signals
 from bench.children import Children
 from bench.systems import EVAL_EPISODES, MUJOCO_TASKS, ROOT, RunResult, RunStopped, run_ours, run_sb3
 

@@ -1,6 +1,6 @@
 """The two systems the bench compares, run the same way: ASAC (its trainer, in process) and
 Stable-Baselines3 SAC (an optional peer: pip install -e '.[bench]'), with the same hyper-parameters
-and warm-up, evaluated by the same code (algorithm/evaluation.py) on the same seeded envs.
+and warm-up, evaluated by the same code (algorithm/run/evaluation.py) on the same seeded envs.
 
     result = run_ours("hopper", seed=0, steps=100_000, overrides=[], every=5000)   # a RunResult
     result = run_sb3("hopper", seed=0, steps=100_000, every=5000)
@@ -23,8 +23,8 @@ import numpy as np
 
 from algorithm.config.load import load_config
 from algorithm.config.schema import Config
-from algorithm.evaluation import evaluate, read_evaluations
-from algorithm.trainer import EmbeddedTrainer
+from algorithm.run.evaluation import evaluate, read_evaluations
+from algorithm.run.trainer import EmbeddedTrainer
 from algorithm.types import ActingProgress
 from envs.make import make_vector_env, vector_env_factory
 

@@ -33,11 +33,11 @@ import tempfile  # noqa: E402
 import time  # noqa: E402
 from pathlib import Path  # noqa: E402
 
-from algorithm.checkpoint import list_checkpoints  # noqa: E402
 from algorithm.config.load import config_from_file, load_config  # noqa: E402
-from algorithm.evaluation import evaluate, read_evaluations  # noqa: E402
-from algorithm.run_dir import RunDir  # noqa: E402
-from algorithm.trainer import EmbeddedTrainer  # noqa: E402
+from algorithm.run.checkpoint import list_checkpoints  # noqa: E402
+from algorithm.run.evaluation import evaluate, read_evaluations  # noqa: E402
+from algorithm.run.folder import RunDir  # noqa: E402
+from algorithm.run.trainer import EmbeddedTrainer  # noqa: E402
 from bench.eval_modes import checkpoint_policy  # noqa: E402
 from bench.rows import append_row  # noqa: E402
 from envs.make import vector_env_factory  # noqa: E402

@@ -24,8 +24,8 @@ import numpy as np
 import torch
 
 from algorithm.config.load import load_config
+from algorithm.run.trainer import EmbeddedTrainer
 from algorithm.sac.learner import SAC, UpdateResult
-from algorithm.trainer import EmbeddedTrainer
 from cli import copy_model_file, env_factory, task_dir
 from tests.test_features import ENTRIES, SMALL
 

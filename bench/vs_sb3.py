@@ -58,7 +58,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from algorithm.evaluation import evaluate
+from algorithm.run.evaluation import evaluate
 from bench.children import default_runs
 from bench.suite import RESULTS, SUITE_OVERRIDES, SUITE_TASKS, mujoco, suite
 from bench.systems import MUJOCO_TASKS, SB3Policy, our_config, our_trainer, run_ours, run_sb3, sb3_model

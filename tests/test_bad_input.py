@@ -31,9 +31,9 @@ from hypothesis import strategies as st
 import cli
 import main
 import main_ds
-from algorithm.checkpoint import load_checkpoint, save_checkpoint
 from algorithm.config.load import ConfigError, config_from_yaml, config_to_yaml, load_config
 from algorithm.config.schema import Config
+from algorithm.run.checkpoint import load_checkpoint, save_checkpoint
 from tests.damage import flip_in_largest_record, tree_digest, truncate
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -33,8 +33,8 @@ def eval_modes(*args: str) -> subprocess.CompletedProcess[str]:
 
 def scored_in_process(run: Path, step: int, seed: int = 12345) -> tuple[float, float]:
     from algorithm.config.load import config_from_file
-    from algorithm.evaluation import evaluate
-    from algorithm.run_dir import RunDir
+    from algorithm.run.evaluation import evaluate
+    from algorithm.run.folder import RunDir
     from bench.eval_modes import checkpoint_policy
 
     paths = RunDir(run)
@@ -113,8 +113,8 @@ def test_critic_greedy_acts_by_the_critics_lower_value_and_adds_its_column(run: 
     import torch
 
     from algorithm.config.load import config_from_file
-    from algorithm.evaluation import evaluate
-    from algorithm.run_dir import RunDir
+    from algorithm.run.evaluation import evaluate
+    from algorithm.run.folder import RunDir
     from bench.eval_modes import CriticGreedy, checkpoint_policy
 
     paths = RunDir(run)

@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from algorithm.run_dir import RunDir
+from algorithm.run.folder import RunDir
 from bench.suite import curve_mean, ratio_interval, report, run_folder
 from bench.systems import RunResult, RunStopped, run_ours
 

@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 import torch
 
-from algorithm.checkpoint import list_checkpoints, load_checkpoint
+from algorithm.run.checkpoint import list_checkpoints, load_checkpoint
 from envs.make import make_vector_env
 from tests import fault_envs
 from tests.ds.actor.test_actor_reconnect import Learner, Replay

@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from algorithm.evaluation import read_evaluations
+from algorithm.run.evaluation import read_evaluations
 from envs.make import make_vector_env
 from tests.algorithm.replay.chunks import make_chunk
 from tests.role_runs import ENV, RoleRun, flags, scalars

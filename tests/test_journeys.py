@@ -24,7 +24,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from algorithm.evaluation import read_evaluations
+from algorithm.run.evaluation import read_evaluations
 from tests.role_runs import as_a_shell_starts_it, scalars
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -8,8 +8,8 @@ from pathlib import Path
 import pytest
 
 from algorithm.config.load import load_config
-from algorithm.evaluation import read_evaluations
-from algorithm.trainer import EmbeddedTrainer
+from algorithm.run.evaluation import read_evaluations
+from algorithm.run.trainer import EmbeddedTrainer
 from envs.make import vector_env_factory
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -23,7 +23,7 @@ import pytest
 import torch
 import yaml
 
-from algorithm.evaluation import read_evaluations
+from algorithm.run.evaluation import read_evaluations
 from ds.launch.local import learner_threads
 from tests.role_runs import (
     ENV,

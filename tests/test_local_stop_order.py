@@ -15,7 +15,7 @@ from pathlib import Path
 
 import pytest
 
-from algorithm.run_dir import python_command
+from algorithm.run.folder import python_command
 from ds.actor.role import AsksForIndex
 from ds.launch.local import plan
 from ds.launch.local_summary import resume_argv

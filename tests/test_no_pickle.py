@@ -4,7 +4,7 @@ failing with file:line for each; and tests that the scan finds each of them when
 
 What it refuses: importing pickle and its kin (cPickle, _pickle, cloudpickle, dill, joblib, shelve,
 marshal, jsonpickle, multiprocessing.connection, which pickles over sockets); ``torch.load`` without
-``weights_only=True`` (checkpoints load weights only: algorithm/checkpoint.py); ``np.load`` with
+``weights_only=True`` (checkpoints load weights only: algorithm/run/checkpoint.py); ``np.load`` with
 ``allow_pickle`` anything but False; ``yaml.load`` with anything but a SafeLoader (or a class of the
 same module built on one), and ``yaml.unsafe_load`` / ``full_load``; ``eval`` and ``exec``. It reads
 the syntax tree, so a word in a comment or docstring does not count.

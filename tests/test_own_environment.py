@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 import yaml
 
-from algorithm.evaluation import read_evaluations
+from algorithm.run.evaluation import read_evaluations
 from tests.role_runs import ENV
 
 ROOT = Path(__file__).resolve().parents[1]

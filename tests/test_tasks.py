@@ -11,8 +11,8 @@ import pytest
 import yaml
 
 from algorithm.config.load import load_config
-from algorithm.evaluation import read_evaluations
-from algorithm.trainer import EmbeddedTrainer
+from algorithm.run.evaluation import read_evaluations
+from algorithm.run.trainer import EmbeddedTrainer
 from envs.make import vector_env_factory
 from tests.role_runs import ENV
 

@@ -10,7 +10,7 @@ with the learner, which gives it an id, an index and a lease; derives its env se
 exploration noise ``min(noise_increasing_rate * index, noise_max)`` (or ``--noise``) from the index;
 takes the latest weights with ``GetParams`` and then keeps the newest broadcast version between
 steps (``update_policy_mode: true``), or asks the learner for every action (``false``); and runs
-:class:`~algorithm.actor.ActorLoop` with a :class:`~ds.actor.sink.ReplaySink`, which never drops a
+:class:`~algorithm.run.actor.ActorLoop` with a :class:`~ds.actor.sink.ReplaySink`, which never drops a
 chunk while the run goes on: the replay's rate limiter holding inserts back (the learner is behind)
 and an unreachable replay hold the actor back (it stops stepping; its backlog stays within
 ``ReplaySink.max_backlog`` chunks), counted and logged. A heartbeat thread renews its lease every
@@ -50,11 +50,11 @@ import grpc
 import numpy as np
 import torch
 
-from algorithm.actor import ActorLoop, VectorEnvLike
 from algorithm.config.schema import Config
-from algorithm.logging import MetricsWriter, RateMeter, Throttle
 from algorithm.replay import ReplayUnavailable
-from algorithm.run_dir import RunDir
+from algorithm.run.actor import ActorLoop, VectorEnvLike
+from algorithm.run.folder import RunDir
+from algorithm.run.logging import MetricsWriter, RateMeter, Throttle
 from algorithm.sac.policy import Policy
 from ds.actor.sink import ReplaySink
 from ds.actor.staleness import Staleness

@@ -1,7 +1,7 @@
 """The actor's sink (:class:`ReplaySink`): hands the actor loop's chunks to the replay, and holds the
 actor back while the replay holds inserts back.
 
-Usage (``ds/actor/actor.py`` wires it into :class:`~algorithm.actor.ActorLoop`)::
+Usage (``ds/actor/actor.py`` wires it into :class:`~algorithm.run.actor.ActorLoop`)::
 
     sink = ReplaySink(replay_client, stopping=lambda: stop.is_set(), between=check_heartbeats)
     loop = ActorLoop(env, policy, sink, chunk_length=64)
@@ -25,8 +25,8 @@ from collections.abc import Callable
 
 import grpc
 
-from algorithm.logging import Throttle
 from algorithm.replay import ChunkIds, InsertTimeout
+from algorithm.run.logging import Throttle
 from algorithm.types import Chunk
 from ds.replay.client import PendingInsert, ReplayClient, ReplayRpcError
 from ds.replay.codec import chunk_payload_bytes

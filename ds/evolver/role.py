@@ -11,8 +11,8 @@ from __future__ import annotations
 
 import logging
 
-from algorithm.logging import MetricsWriter
-from algorithm.run_dir import RunDir
+from algorithm.run.folder import RunDir
+from algorithm.run.logging import MetricsWriter
 from ds.evolver.evolver import Evolver
 from ds.evolver.service import serve_evolver
 from ds.launch.role_context import RoleContext, listen

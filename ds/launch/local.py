@@ -49,8 +49,8 @@ from dataclasses import dataclass
 
 import grpc
 
-from algorithm.logging import Throttle
-from algorithm.signals import LAUNCHER_PID_ENV, StopRequest, stop_on_signals
+from algorithm.run.logging import Throttle
+from algorithm.run.signals import LAUNCHER_PID_ENV, StopRequest, stop_on_signals
 from ds.evolver.client import EvolverClient
 from ds.evolver.state import LearnerInfo
 from ds.launch.local_summary import PlayableRun, summary

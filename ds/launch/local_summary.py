@@ -19,9 +19,9 @@ import shlex
 from dataclasses import dataclass
 from pathlib import Path
 
-from algorithm.checkpoint import list_checkpoints
-from algorithm.learner_core import last_evaluation
-from algorithm.run_dir import RunDir, python_command, shown_path
+from algorithm.run.checkpoint import list_checkpoints
+from algorithm.run.folder import RunDir, python_command, shown_path
+from algorithm.run.learner_core import last_evaluation
 
 DEFAULT_MODEL_ROOT = "models"  # main.py's --model_root default: the play command leaves it out
 

@@ -36,11 +36,11 @@ from typing import TYPE_CHECKING, TypeVar
 
 import zmq
 
-from algorithm.actor import VectorEnvLike
 from algorithm.config.load import ConfigError
 from algorithm.config.schema import Config
 from algorithm.errors import RoleError
 from algorithm.nn.shapes import default_recurrent_state_size
+from algorithm.run.actor import VectorEnvLike
 from algorithm.spaces import EnvSpec
 from ds.evolver import service as evolver_service
 from ds.evolver.client import EvolverClient

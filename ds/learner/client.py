@@ -155,7 +155,7 @@ class LearnerClient(RpcClient):
 
 
 class RemotePolicy:
-    """The :class:`~algorithm.actor.ActionSource` of an actor with ``update_policy_mode: false``: every
+    """The :class:`~algorithm.run.actor.ActionSource` of an actor with ``update_policy_mode: false``: every
     action comes from the learner (``GetAction``), with this actor's exploration noise."""
 
     def __init__(self, learner: LearnerClient, noise: float = 0.0) -> None:

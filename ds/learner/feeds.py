@@ -27,8 +27,8 @@ import time
 
 import numpy as np
 
-from algorithm.logging import Throttle
 from algorithm.replay import ReplayTable, ReplayUnavailable, SampleTimeout
+from algorithm.run.logging import Throttle
 from algorithm.types import Batch
 
 log = logging.getLogger("asac.learner")

@@ -15,7 +15,7 @@ Inside, three threads keep the update loop busy without ever dropping data (ds/l
   bounded queue (a full queue blocks the learner, counted).
 
 The learner counts env steps by the replay's ``inserted_steps`` (actors may come and go). Its
-lifecycle is the single-process trainer's, written once in algorithm/learner_core.py: it evaluates
+lifecycle is the single-process trainer's, written once in algorithm/run/learner_core.py: it evaluates
 every ``eval_per_step`` env steps on its own envs (``evaluations.csv``, ``eval/*``; with ``eval_policy``,
 a copy of the acting weights, on a thread of its own while training goes on), checkpoints in
 the same format (``model/<env_steps>.pt``), resumes from the latest checkpoint when started again on
@@ -41,14 +41,14 @@ from pathlib import Path
 
 import numpy as np
 
-from algorithm.actor import VectorEnvLike
 from algorithm.config.schema import Config
-from algorithm.evaluation import AcceptsWeights
-from algorithm.learner_core import LearnerCore
-from algorithm.logging import Throttle
 from algorithm.replay import ReplayTable, ReplayUnavailable
-from algorithm.run_dir import RunDir
-from algorithm.run_progress import RunSummary
+from algorithm.run.actor import VectorEnvLike
+from algorithm.run.evaluation import AcceptsWeights
+from algorithm.run.folder import RunDir
+from algorithm.run.learner_core import LearnerCore
+from algorithm.run.logging import Throttle
+from algorithm.run.progress import RunSummary
 from algorithm.sac.learner import SAC
 from algorithm.types import Batch
 from ds.learner.feeds import BatchPrefetcher, PriorityUpdater
@@ -356,7 +356,7 @@ class Learner:
 
     def restore(self, step: int | None = None) -> None:
         """Resume from checkpoint ``step`` (default: the latest); a damaged or foreign file is a
-        :class:`~algorithm.checkpoint.CheckpointError` naming it, never a fallback to an older one."""
+        :class:`~algorithm.run.checkpoint.CheckpointError` naming it, never a fallback to an older one."""
         path, _ = self.core.restore(step)
         c = self.core.counters
         self.env_steps = EnvSteps(c.env_steps, c.replay_inserted_seen)

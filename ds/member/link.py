@@ -26,8 +26,8 @@ from dataclasses import dataclass
 import grpc
 import torch
 
-from algorithm.logging import Throttle
 from algorithm.replay import ReplayTable
+from algorithm.run.logging import Throttle
 from ds.evolver.client import EvolverClient, Sample
 from ds.evolver.state import Instruction, LearnerRetired, UnknownLearner
 from ds.member.population import Joined, register, unreachable

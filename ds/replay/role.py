@@ -19,11 +19,11 @@ from dataclasses import replace
 from grpc_health.v1 import health
 
 from algorithm.config.schema import Config
-from algorithm.files import WriteFailures
-from algorithm.logging import MetricsWriter
 from algorithm.replay import PrioritizedTable
 from algorithm.replay.persistence import load_replay_snapshot, snapshot_kept
-from algorithm.run_dir import RunDir
+from algorithm.run.files import WriteFailures
+from algorithm.run.folder import RunDir
+from algorithm.run.logging import MetricsWriter
 from algorithm.seeding import seed_python_and_numpy
 from ds.evolver.client import EvolverClient
 from ds.evolver.state import Assignment

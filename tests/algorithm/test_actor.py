@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from algorithm.actor import ActorLoop, uniform_random_actions
+from algorithm.run.actor import ActorLoop, uniform_random_actions
 from algorithm.types import Chunk
 from envs.make import make_vector_env
 

@@ -14,7 +14,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from algorithm import checkpoint as ck
+from algorithm.run import checkpoint as ck
 
 pytestmark = pytest.mark.fault
 ROOT = Path(__file__).resolve().parents[2]
@@ -28,7 +28,7 @@ CHILD = f"""
 import io, os, sys, time
 from pathlib import Path
 import torch
-from algorithm import checkpoint as ck, files
+from algorithm.run import checkpoint as ck, files
 
 model, pause = Path(sys.argv[1]), sys.argv[2]
 

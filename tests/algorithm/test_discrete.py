@@ -12,9 +12,9 @@ import pytest
 import torch
 from scipy import stats
 
-from algorithm.actor import uniform_random_actions
 from algorithm.config.schema import NNConfig, ReplayConfig, SacConfig
 from algorithm.nn.models import DiscretePolicy, masked_branch_log_softmax, masked_branch_one_hot_argmax
+from algorithm.run.actor import uniform_random_actions
 from algorithm.sac.equations import PolicySample, alpha_loss, branch_matrix, expected_log_prob, policy_loss, soft_value
 from algorithm.sac.learner import SAC
 from algorithm.spaces import ActionSpec, EnvSpec, SensorSpec

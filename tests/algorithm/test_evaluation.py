@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 
 from algorithm.config.schema import NNConfig, SacConfig
-from algorithm.evaluation import evaluate
+from algorithm.run.evaluation import evaluate
 from algorithm.sac.policy import Policy
 from envs.make import make_vector_env
 

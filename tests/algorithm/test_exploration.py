@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 import torch
 
-from algorithm.actor import ActorLoop
 from algorithm.config.schema import NNConfig, ReplayConfig, SacConfig
+from algorithm.run.actor import ActorLoop
 from algorithm.sac.learner import SAC
 from algorithm.spaces import ActionSpec, EnvSpec, SensorSpec
 from algorithm.types import ActingProgress

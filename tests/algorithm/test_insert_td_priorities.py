@@ -13,8 +13,8 @@ import pytest
 from pydantic import ValidationError
 
 from algorithm.config.schema import Config
-from algorithm.learner_core import LearnerCore
 from algorithm.replay import PrioritizedTable
+from algorithm.run.learner_core import LearnerCore
 from algorithm.sac.learner import SAC
 from algorithm.spaces import ActionSpec, EnvSpec, SensorSpec
 from algorithm.types import Chunk

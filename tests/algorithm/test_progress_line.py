@@ -6,7 +6,7 @@ from __future__ import annotations
 import io
 import time
 
-from algorithm.logging import ProgressLine
+from algorithm.run.logging import ProgressLine
 
 
 def lines_for(total: int, steps: list[int]) -> list[str]:

@@ -14,9 +14,9 @@ from algorithm.config.load import load_config
 from algorithm.config.schema import NNConfig, ReplayConfig, SacConfig
 from algorithm.nn.models import VectorRepresentation
 from algorithm.nn.recurrent import RecurrentRepresentation
+from algorithm.run.trainer import EmbeddedTrainer
 from algorithm.sac.learner import SAC
 from algorithm.spaces import ActionSpec, EnvSpec, SensorSpec
-from algorithm.trainer import EmbeddedTrainer
 from algorithm.types import Batch
 from envs.make import vector_env_factory
 

@@ -12,9 +12,9 @@ import torch
 
 from algorithm.config.load import load_config
 from algorithm.config.schema import NNConfig, ReplayConfig, SacConfig
+from algorithm.run.trainer import EmbeddedTrainer
 from algorithm.sac.learner import SAC
 from algorithm.spaces import ActionSpec, EnvSpec, SensorSpec
-from algorithm.trainer import EmbeddedTrainer
 from envs.make import vector_env_factory
 
 ROOT = Path(__file__).resolve().parents[2]

@@ -13,9 +13,9 @@ import torch
 
 from algorithm.config.load import load_config
 from algorithm.config.schema import Config
-from algorithm.evaluation import CSV_FIELDS, read_evaluations
-from algorithm.learner_core import restore_env_rngs
-from algorithm.trainer import EmbeddedTrainer
+from algorithm.run.evaluation import CSV_FIELDS, read_evaluations
+from algorithm.run.learner_core import restore_env_rngs
+from algorithm.run.trainer import EmbeddedTrainer
 from envs.make import make_vector_env, vector_env_factory
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -247,7 +247,7 @@ def test_updates_owed_at_a_checkpoint_are_dropped_when_its_replay_did_not_come_b
 
 
 def test_sample_age_counts_env_steps_since_storage_without_bootstrap_rows() -> None:
-    from algorithm.learner_core import sample_age
+    from algorithm.run.learner_core import sample_age
 
     # Chunks of 4 steps take 5 rows; keys 0..99 sampled uniformly when the next key is 100.
     age = sample_age(np.arange(100, dtype=np.uint64), 100, chunk_length=4)

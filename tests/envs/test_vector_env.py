@@ -328,7 +328,7 @@ def test_every_reset_passes_the_configured_reset_options() -> None:
 
 
 def test_rng_states_put_into_a_new_vector_env_continue_the_stream_and_bad_ones_change_nothing() -> None:
-    # What a checkpoint keeps of its envs (algorithm/learner_core.py, algorithm/trainer.py): a new
+    # What a checkpoint keeps of its envs (algorithm/run/learner_core.py, algorithm/run/trainer.py): a new
     # vector env given them resets as the first would have next, not as a fresh one does.
     first = make_vector_env("Pendulum-v1", 3, seed=5)
     never_reset = first.rng_states()

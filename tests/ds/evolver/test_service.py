@@ -292,7 +292,7 @@ def test_learner_get_weights_serves_the_hook_or_is_unimplemented(setup: Setup) -
 def test_metrics_reach_tensorboard(setup: Setup, tmp_path: Path) -> None:
     from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
-    from algorithm.logging import MetricsWriter
+    from algorithm.run.logging import MetricsWriter
 
     fakes = [setup.learner(v) for v in (0.0, 1.0)]
     metrics = MetricsWriter(tmp_path / "log" / "evolver")

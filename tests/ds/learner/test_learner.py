@@ -17,10 +17,10 @@ import numpy as np
 import pytest
 import torch
 
-from algorithm.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
 from algorithm.config.load import load_config
-from algorithm.evaluation import read_evaluations
 from algorithm.replay import PrioritizedTable
+from algorithm.run.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
+from algorithm.run.evaluation import read_evaluations
 from algorithm.sac.learner import SAC
 from ds.learner.feeds import BatchPrefetcher, PriorityUpdater, merge_priorities
 from ds.learner.learner import EnvSteps, Learner

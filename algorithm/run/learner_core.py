@@ -1,8 +1,8 @@
 """The learner's lifecycle, written once for both modes: the update step, evaluation cadence,
 summaries, checkpoints, resume, the update-to-data budget and the stop at ``max_step`` (the run's
-counters and its summary: algorithm/run_progress.py).
+counters and its summary: algorithm/run/progress.py).
 
-Usage (``algorithm/trainer.py`` and ``ds/learner/learner.py`` are the two drivers)::
+Usage (``algorithm/run/trainer.py`` and ``ds/learner/learner.py`` are the two drivers)::
 
     core = LearnerCore(config, run_dir, sac, eval_env=env, log_dir=run_dir / "log")
     state = core.restore()                      # None on a new run; else the checkpoint (extras inside)
@@ -13,7 +13,7 @@ Usage (``algorithm/trainer.py`` and ``ds/learner/learner.py`` are the two driver
     core.finish()                               # final evaluation when done, checkpoint, close
 
 The two modes differ only in where batches come from and where priorities and weights go (as
-Acme's learner takes a data iterator): :class:`~algorithm.trainer.EmbeddedTrainer` steps its actor
+Acme's learner takes a data iterator): :class:`~algorithm.run.trainer.EmbeddedTrainer` steps its actor
 loop and trains on its in-process table as :class:`UpdateBudget` says; the distributed
 :class:`~ds.learner.learner.Learner` trains on what a prefetcher brings from the replay server, whose rate
 limiter applies the same ratio to actors it cannot otherwise slow down.
@@ -23,7 +23,7 @@ Checkpoints have one format for both (``model/<env_steps>.pt``: ``sac``, ``count
 its last evaluation.
 
 A checkpoint, an ``evaluations.csv`` row or the run's ``config.yaml`` that cannot be written (a full
-disk, an I/O error) never stops training: it is logged once (:class:`~algorithm.files.WriteFailures`),
+disk, an I/O error) never stops training: it is logged once (:class:`~algorithm.run.files.WriteFailures`),
 the files before it stay as they were, and it is tried again at the next checkpoint (the rows at
 the next evaluation, all of them, in order); a final checkpoint that fails is logged as such.
 """
@@ -40,8 +40,10 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from algorithm.actor import VectorEnvLike
-from algorithm.checkpoint import (
+from algorithm.config.load import config_to_yaml
+from algorithm.config.schema import Config
+from algorithm.run.actor import VectorEnvLike
+from algorithm.run.checkpoint import (
     capture_rng,
     list_checkpoints,
     load_for_resume,
@@ -49,9 +51,7 @@ from algorithm.checkpoint import (
     restoring,
     save_checkpoint,
 )
-from algorithm.config.load import config_to_yaml
-from algorithm.config.schema import Config
-from algorithm.evaluation import (
+from algorithm.run.evaluation import (
     AcceptsWeights,
     BackgroundEvaluation,
     EvalResult,
@@ -61,10 +61,10 @@ from algorithm.evaluation import (
     evaluation_row,
     read_evaluations,
 )
-from algorithm.files import WriteFailures, atomic_write
-from algorithm.logging import MetricsWriter, ProgressLine, RateMeter, Throttle, Timers
-from algorithm.run_dir import EVAL_SEED_OFFSET, RunDir
-from algorithm.run_progress import RunCounters, budget_spent
+from algorithm.run.files import WriteFailures, atomic_write
+from algorithm.run.folder import EVAL_SEED_OFFSET, RunDir
+from algorithm.run.logging import MetricsWriter, ProgressLine, RateMeter, Throttle, Timers
+from algorithm.run.progress import RunCounters, budget_spent
 from algorithm.sac.learner import SAC, UpdateResult
 from algorithm.types import Batch
 
@@ -432,7 +432,7 @@ class LearnerCore:
     def restore(self, step: int | None = None) -> tuple[Path, dict[str, Any]]:
         """Resume from checkpoint ``step`` (default: the latest): SAC state, counters, global RNGs.
         Returns the path and the whole state for the mode's extras. A damaged or foreign file is a
-        :class:`~algorithm.checkpoint.CheckpointError` naming it, never a fallback to an older one."""
+        :class:`~algorithm.run.checkpoint.CheckpointError` naming it, never a fallback to an older one."""
         path, state = load_for_resume(self.paths.model, step)
         with restoring(path):
             self.sac.load_state_dict(state["sac"])

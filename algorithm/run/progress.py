@@ -7,9 +7,9 @@ from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 from typing import Any
 
-from algorithm.checkpoint import list_checkpoints, load_for_resume, restoring
 from algorithm.config.schema import BaseConfig
-from algorithm.run_dir import RunDir
+from algorithm.run.checkpoint import list_checkpoints, load_for_resume, restoring
+from algorithm.run.folder import RunDir
 
 
 @dataclass

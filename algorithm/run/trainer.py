@@ -6,8 +6,8 @@ Usage (``main.py`` does exactly this)::
     summary = trainer.run(stop=event)   # until max_step / max_iter, ``stop`` set or Ctrl-C: then saves
 
 The lifecycle (counters, evaluation, summaries, checkpoints, resume, budget) is the learner core's
-(algorithm/learner_core.py); this module adds what is in-process: the actor loop stepping the envs,
-the table it inserts into, and the :class:`~algorithm.learner_core.UpdateBudget` that pays, right
+(algorithm/run/learner_core.py); this module adds what is in-process: the actor loop stepping the envs,
+the table it inserts into, and the :class:`~algorithm.run.learner_core.UpdateBudget` that pays, right
 after each env step, the updates that step earned.
 
 On a stop (``stop`` set, Ctrl-C, or the budget spent) open chunks are flushed into the table, and
@@ -29,15 +29,15 @@ from typing import Any
 import numpy as np
 import torch
 
-from algorithm.actor import ActorLoop, StepStats, VectorEnvLike
 from algorithm.config.schema import Config
-from algorithm.files import WriteFailures
-from algorithm.learner_core import LearnerCore, UpdateBudget, restore_env_rngs
 from algorithm.nn.user import model_builder
 from algorithm.replay import PrioritizedTable
 from algorithm.replay.persistence import load_replay_snapshot, snapshot_kept
-from algorithm.run_dir import EVAL_SEED_OFFSET, RunDir
-from algorithm.run_progress import RunSummary
+from algorithm.run.actor import ActorLoop, StepStats, VectorEnvLike
+from algorithm.run.files import WriteFailures
+from algorithm.run.folder import EVAL_SEED_OFFSET, RunDir
+from algorithm.run.learner_core import LearnerCore, UpdateBudget, restore_env_rngs
+from algorithm.run.progress import RunSummary
 from algorithm.sac.learner import SAC
 from algorithm.sac.policy import Policy
 from algorithm.seeding import seed_everything
