@@ -2,7 +2,7 @@
 
 The comparison itself needs SB3 (the optional peer, ``pip install -e '.[bench]'``) and is skipped without
 it; the gap it reports and its rounding floor are checked without SB3 (the density option itself:
-tests/algorithm/test_tanh_log_det_epsilon.py)."""
+tests/algorithm/sac/test_tanh_log_det_epsilon.py)."""
 
 from __future__ import annotations
 

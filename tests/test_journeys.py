@@ -41,7 +41,7 @@ COMMON = ["gym/pendulum", "--no_progress", "--override", "sac.seed=0", "--overri
 # had learned. Evaluations are scored on the same starts as the uninterrupted run's (the eval envs'
 # RNGs are in the checkpoint): before that, the evaluation after each resume reused the first
 # evaluation's ten starts, and this test's run ended at -245 to -260 in four repeats and -328 once in
-# CI (uninterrupted: -112); with them -113 and -126 (tests/algorithm/test_trainer.py pins it).
+# CI (uninterrupted: -112); with them -113 and -126 (tests/algorithm/run/test_trainer.py pins it).
 RETURN_BAND = 200.0
 
 

@@ -152,13 +152,28 @@ def module_imports(path: Path) -> set[str]:
     return {n for n in names if n.split(".")[0] in OURS}
 
 
+# Test files of tests/algorithm/ named after a feature (a config switch) that spans several modules of the
+# package whose folder holds them, so no one module's name fits.
+ALGORITHM_FEATURE_TESTS = (
+    "algorithm/sac/test_discrete.py",  # discrete and mixed actions: policy, equations, losses, learner
+    "algorithm/sac/test_exploration.py",  # curiosity and RND: nn/exploration.py's models, trained by the learner
+    "algorithm/sac/test_munchausen.py",  # munchausen_scale: equations, schedules, losses
+    "algorithm/sac/test_recurrent.py",  # use_rnn: the sequence pass, burn-in, stored and refreshed states
+    "algorithm/sac/test_tanh_log_det_epsilon.py",  # the policy's log-density as the learner's losses take it
+    "algorithm/sac/test_train_every_step.py",  # returns, losses, learner and update_graph
+    "algorithm/sac/test_update_order.py",  # joint or critic_first: losses, learner and update_graph
+)
+
+
 def test_the_tests_mirror_the_source() -> None:
     """A test folder below tests/ is the folder of the source it tests (tests/algorithm/replay/ for
     algorithm/replay/, tests/ds/learner/ for ds/learner/), with an ``__init__.py`` so that files of one
     name in two folders (tests/ds/replay/test_service.py, tests/ds/learner/test_service.py) are two
-    modules. In tests/ds/ and tests/protos/ each test file is named after the module it tests,
-    ``test_<module>.py`` or ``test_<module>_<aspect>.py``, and tests/ds/ itself holds only what
-    several of its packages share (conftest.py, fuzz.py). Tests across the packages stay in tests/."""
+    modules. In tests/ds/, tests/protos/ and tests/algorithm/ each test file is named after the module it
+    tests, ``test_<module>.py`` or ``test_<module>_<aspect>.py``, and tests/ds/ itself holds only what
+    several of its packages share (conftest.py, fuzz.py). In tests/algorithm/ a file may instead be named
+    after its own package (tests/algorithm/nn/test_nn.py) or, where a feature spans several modules of its
+    package, be one of ``ALGORITHM_FEATURE_TESTS``. Tests across the packages stay in tests/."""
     tests = ROOT / "tests"
     problems = []
     for folder in sorted({p.parent for p in tests.rglob("*.py") if "__pycache__" not in p.parts}):
@@ -166,13 +181,19 @@ def test_the_tests_mirror_the_source() -> None:
             problems.append(f"{folder.relative_to(ROOT)} has no __init__.py")
         if folder != tests and not (ROOT / folder.relative_to(tests)).is_dir():
             problems.append(f"{folder.relative_to(ROOT)} names no source folder {folder.relative_to(tests)}/")
-    for path in sorted([*(tests / "ds").rglob("test_*.py"), *(tests / "protos").rglob("test_*.py")]):
+    mirrored = [*(tests / "ds").rglob("test_*.py"), *(tests / "protos").rglob("test_*.py")]
+    for path in sorted([*mirrored, *(tests / "algorithm").rglob("test_*.py")]):
         source = ROOT / path.parent.relative_to(tests)
+        name = str(path.relative_to(tests))
         if path.parent == tests / "ds":
             problems.append(f"{path.relative_to(ROOT)} belongs in the folder of the ds/ package it tests")
+        elif name in ALGORITHM_FEATURE_TESTS or (name.startswith("algorithm/") and path.stem == f"test_{source.name}"):
+            continue
         elif not any(path.stem == f"test_{m.stem}" or path.stem.startswith(f"test_{m.stem}_")
                      for m in source.glob("*.py")):  # fmt: skip
             problems.append(f"{path.relative_to(ROOT)} names no module of {source.relative_to(ROOT)}/")
+    problems += [f"tests/{name} is listed in ALGORITHM_FEATURE_TESTS but does not exist"
+                 for name in ALGORITHM_FEATURE_TESTS if not (tests / name).is_file()]  # fmt: skip
     assert not problems, "\n".join(problems)
 
 
@@ -306,7 +327,7 @@ def test_the_two_worker_hooks_are_registered_and_group_by_the_table() -> None:
     assert conftest.pytest_runtest_protocol is workers.pytest_runtest_protocol
     assert workers.serial_group("tests/test_soak.py::test_any[x]") == "roles"
     assert workers.serial_group("tests/test_journeys.py::test_a") == workers.serial_group("tests/test_journeys.py::b")
-    assert workers.serial_group("tests/algorithm/test_sac.py::test_update") is None
+    assert workers.serial_group("tests/algorithm/sac/test_learner.py::test_update") is None
 
 
 def test_a_two_worker_run_leaves_no_lock_files_behind(tmp_path: Path) -> None:
@@ -314,7 +335,7 @@ def test_a_two_worker_run_leaves_no_lock_files_behind(tmp_path: Path) -> None:
     (tests/workers.py); the controller removes them once the last worker is down."""
     env = {**os.environ, "TMPDIR": str(tmp_path)}
     done = subprocess.run([sys.executable, "-m", "pytest", "-n", "2", "--dist", "loadgroup", "-q", "-p",
-                           "no:cacheprovider", "tests/algorithm/test_file_modes.py"],
+                           "no:cacheprovider", "tests/algorithm/run/test_files_modes.py"],
                           cwd=ROOT, env=env, capture_output=True, text=True, timeout=300)  # fmt: skip
     assert done.returncode == 0, done.stdout[-3000:] + done.stderr[-3000:]
     assert not list(tmp_path.glob("asac-tests-*")), sorted(p.name for p in tmp_path.iterdir())

@@ -3,7 +3,7 @@ written here with the keys and values the original's gym and bullet files set (i
 cart_pole folders, of the era with a replay process), trained for a short budget and played through
 ``main.py`` and through ``main_ds.py TASK local`` on real processes, as they are.
 
-What each key became is tests/algorithm/test_original_config.py's; here: the files load and train in both
+What each key became is tests/algorithm/config/test_original.py's; here: the files load and train in both
 modes, ``main_ds.py`` reads ``config_ds.yaml`` and ``main.py`` ``config.yaml``, the bullet id runs as
 its MuJoCo counterpart, the file's hosts (every original ``config_ds.yaml`` names an evolver) do not
 keep ``local`` waiting, and what differs from the original is said in WARNING lines, once per run.

@@ -7,7 +7,7 @@ the GPU was busy 0.58 ms (BENCHMARKS.md section 12). A CUDA graph records those 
 them as one. What stays outside the graph, run eagerly as without it: moving the batch into the graph's
 input buffers, the noise draws (the same generator stream as without the graph), the non-finite check's
 one host sync, the optimizer steps and the target update. So an update computes the same with and without
-the graph (tests/algorithm/test_update_graph.py compares the weights after many updates); on an H200 it
+the graph (tests/algorithm/sac/test_update_graph.py compares the weights after many updates); on an H200 it
 made 5.9x the updates per second with bit-identical weights (bench/results/gpu/README.md).
 
 Recording follows PyTorch's recipe for capturing a whole training step (the CUDA semantics notes, "CUDA

@@ -12,7 +12,7 @@ import torch
 from algorithm.nn.normalization import ObservationNormalizer
 from algorithm.normalizer import RunningMeanStd
 from algorithm.spaces import SensorSpec
-from tests.algorithm.test_trainer import make_trainer, small_config
+from tests.algorithm.run.test_trainer import make_trainer, small_config
 
 
 def test_normalizer_matches_numpy_and_leaves_images_and_masks_alone() -> None:

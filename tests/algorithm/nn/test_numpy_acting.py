@@ -15,7 +15,7 @@ from algorithm.nn.models import stored_action_log_prob
 from algorithm.nn.numpy_acting import NumpyGaussianActor
 from algorithm.sac.learner import SAC
 from algorithm.spaces import ActionSpec, EnvSpec, SensorSpec
-from tests.algorithm.test_sac import make_batch
+from tests.algorithm.sac.test_learner import make_batch
 
 ACT = 3
 TWO_SENSORS = EnvSpec(

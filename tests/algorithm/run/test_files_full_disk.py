@@ -17,7 +17,7 @@ from algorithm.run.checkpoint import load_checkpoint
 from algorithm.run.evaluation import read_evaluations
 from algorithm.run.files import WriteFailures, atomic_write
 from algorithm.run.logging import LogFileHandler, MetricsWriter
-from tests.algorithm.test_trainer import make_trainer, small_config
+from tests.algorithm.run.test_trainer import make_trainer, small_config
 from tests.small_disk import small_disk
 
 NO_SPACE = "No space left on device [ENOSPC]"

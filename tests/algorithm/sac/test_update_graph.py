@@ -21,7 +21,7 @@ from algorithm.config.schema import NNConfig, ReplayConfig, SacConfig
 from algorithm.sac.learner import SAC
 from algorithm.sac.update_graph import MAX_FAILED_RECORDINGS, UpdateGraph, why_not_graphed
 from algorithm.spaces import ActionSpec, EnvSpec, SensorSpec
-from tests.algorithm.test_sac import SPEC, assert_same_state, make_batch
+from tests.algorithm.sac.test_learner import SPEC, assert_same_state, make_batch
 
 DISCRETE = EnvSpec((SensorSpec("obs", (3,)),), ActionSpec((2,), 0, (), ()))
 NN = NNConfig(hidden_units=[16, 16])

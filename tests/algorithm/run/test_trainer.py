@@ -18,7 +18,7 @@ from algorithm.run.learner_core import restore_env_rngs
 from algorithm.run.trainer import EmbeddedTrainer
 from envs.make import make_vector_env, vector_env_factory
 
-ROOT = Path(__file__).resolve().parents[2]
+ROOT = Path(__file__).resolve().parents[3]
 SMALL = [
     "sac.seed=7",
     "nn.hidden_units=[32, 32]",

@@ -16,9 +16,9 @@ import torch
 from algorithm.config.load import load_config
 from algorithm.sac.equations import munchausen_bonus
 from algorithm.types import Batch
-from tests.algorithm.test_discrete import make_batch, make_sac, masked_spec
-from tests.algorithm.test_entropy_penalty import three_step_windows
-from tests.algorithm.test_sac import make_sac as make_continuous_sac
+from tests.algorithm.sac.test_discrete import make_batch, make_sac, masked_spec
+from tests.algorithm.sac.test_equations_entropy_penalty import three_step_windows
+from tests.algorithm.sac.test_learner import make_sac as make_continuous_sac
 
 SPEC = masked_spec((3,))
 
@@ -168,7 +168,7 @@ def test_a_resumed_learner_goes_on_with_the_weight_where_it_was() -> None:
 
 @pytest.mark.parametrize("missing", ["learning_rate_final", "munchausen_scale"])
 def test_a_schedule_without_the_step_size_schedule_or_a_weight_is_refused_naming_both(missing: str) -> None:
-    cartpole = Path(__file__).resolve().parents[2] / "envs" / "gym" / "cartpole"
+    cartpole = Path(__file__).resolve().parents[3] / "envs" / "gym" / "cartpole"
     overrides = [f"sac.munchausen_scale={0 if missing == 'munchausen_scale' else 0.9}", "sac.munchausen_scale_start=0"]
     if missing == "learning_rate_final":
         overrides.append("sac.learning_rate_final=null")

@@ -20,7 +20,7 @@ from algorithm.spaces import ActionSpec, EnvSpec, SensorSpec
 from algorithm.types import Batch
 from envs.make import vector_env_factory
 
-ROOT = Path(__file__).resolve().parents[2]
+ROOT = Path(__file__).resolve().parents[3]
 OBS, ACT, H = 3, 2, 8
 
 

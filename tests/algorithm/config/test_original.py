@@ -18,7 +18,7 @@ from algorithm.config.load import ConfigError, load_config
 from algorithm.config.original import CONVERTED, DROPPED, MOVED, REFUSED, REFUSED_VALUES, RESTATED, UNSET
 from algorithm.config.schema import Config
 
-ROOT = Path(__file__).resolve().parents[2]
+ROOT = Path(__file__).resolve().parents[3]
 
 # The original's algorithm/default_config.yaml (standalone), as its README printed it.
 ORIGINAL_STANDALONE = """

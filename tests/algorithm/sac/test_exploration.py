@@ -18,7 +18,7 @@ from algorithm.sac.learner import SAC
 from algorithm.spaces import ActionSpec, EnvSpec, SensorSpec
 from algorithm.types import ActingProgress
 from envs.make import vector_env_factory
-from tests.algorithm.test_sac import make_batch
+from tests.algorithm.sac.test_learner import make_batch
 
 OBS, ACT = 3, 2
 SPEC = EnvSpec((SensorSpec("obs", (OBS,)),), ActionSpec((), ACT, (-1.0,) * ACT, (1.0,) * ACT))

@@ -11,7 +11,7 @@ import torch
 
 from algorithm.nn.models import squashed_gaussian_log_prob
 from algorithm.sac.learner import SAC
-from tests.algorithm.test_sac import make_batch, make_sac
+from tests.algorithm.sac.test_learner import make_batch, make_sac
 
 
 def test_the_density_with_epsilon_is_sb3s_formula_exact_inside_and_held_near_log_epsilon_at_the_edge() -> None:

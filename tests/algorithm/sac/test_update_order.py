@@ -12,10 +12,10 @@ import torch
 
 from algorithm.config.schema import SacConfig
 from algorithm.sac.update_graph import why_not_graphed
-from tests.algorithm.test_discrete import make_batch as discrete_batch
-from tests.algorithm.test_discrete import make_sac as make_discrete_sac
-from tests.algorithm.test_discrete import masked_spec
-from tests.algorithm.test_sac import make_batch, make_sac
+from tests.algorithm.sac.test_discrete import make_batch as discrete_batch
+from tests.algorithm.sac.test_discrete import make_sac as make_discrete_sac
+from tests.algorithm.sac.test_discrete import masked_spec
+from tests.algorithm.sac.test_learner import make_batch, make_sac
 
 
 def grads(params: list[torch.Tensor]) -> list[torch.Tensor]:

@@ -13,7 +13,7 @@ from algorithm.nn.models import Representation
 from algorithm.nn.prediction import gated_gradients, observation_targets
 from algorithm.sac.learner import SAC
 from algorithm.spaces import ActionSpec, EnvSpec, SensorSpec
-from tests.algorithm.test_sac import make_batch
+from tests.algorithm.sac.test_learner import make_batch
 
 OBS, ACT = 3, 2
 SPEC = EnvSpec((SensorSpec("obs", (OBS,)),), ActionSpec((), ACT, (-1.0,) * ACT, (1.0,) * ACT))

@@ -13,7 +13,7 @@ from algorithm.config.random_params import apply_params, draw_for_run
 from algorithm.config.schema import Config, SacConfig
 from algorithm.sac.learner import SAC
 from algorithm.sac.schedules import learning_rate_at, linear_anneal
-from tests.algorithm.test_sac import make_batch, make_sac
+from tests.algorithm.sac.test_learner import make_batch, make_sac
 
 
 def step_size(sac: SAC) -> float:

@@ -17,7 +17,7 @@ import torch
 from algorithm.run import checkpoint as ck
 
 pytestmark = pytest.mark.fault
-ROOT = Path(__file__).resolve().parents[2]
+ROOT = Path(__file__).resolve().parents[3]
 SIZE = 4_000_000  # float32 values: a 16 MB checkpoint, about as big as a 1024x1024 SAC's
 
 # The child saves checkpoint 100, says so, then saves 200; PAUSE stops it at one point of that save

@@ -20,7 +20,7 @@ from algorithm.config.load import (
 )
 from algorithm.config.schema import Config
 
-ROOT = Path(__file__).resolve().parents[2]
+ROOT = Path(__file__).resolve().parents[3]
 
 
 def write_task(tmp_path: Path, text: str) -> Path:

@@ -13,8 +13,8 @@ import pytest
 import torch
 
 from algorithm.sac.equations import entropy_penalty
-from tests.algorithm.test_discrete import make_batch, make_sac, masked_spec
-from tests.algorithm.test_sac import make_sac as make_continuous_sac
+from tests.algorithm.sac.test_discrete import make_batch, make_sac, masked_spec
+from tests.algorithm.sac.test_learner import make_sac as make_continuous_sac
 
 SPEC = masked_spec((3,))
 

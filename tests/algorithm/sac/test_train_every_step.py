@@ -17,7 +17,7 @@ from algorithm.sac.learner import SAC
 from algorithm.spaces import ActionSpec, EnvSpec, SensorSpec
 from envs.make import vector_env_factory
 
-ROOT = Path(__file__).resolve().parents[2]
+ROOT = Path(__file__).resolve().parents[3]
 OBS, ACT, B = 3, 2, 5
 
 
