@@ -46,7 +46,7 @@ from algorithm.config.original import CONFIG_LOGGER
 from algorithm.config.random_params import draw_for_run
 from algorithm.config.schema import MAX_EXPLORATION_NOISE, Config, NetConfig
 from algorithm.errors import CheckpointError, RoleError
-from algorithm.run.files import WriteFailures, atomic_write
+from algorithm.files import WriteFailures, atomic_write
 from algorithm.run.folder import RunDir
 from algorithm.run.folder_lock import FolderInUse, hold_folder
 from algorithm.run.logging import LogFileHandler

@@ -2,7 +2,7 @@
 (root only: without it these skip, saying why). ``main.py`` trains on and the replay role serves on;
 each kind of file that cannot be written is said once on one line, never with a traceback; the
 files before stay as they were; once the filler is gone they are written again, and the process
-ends with its usual status. tests/algorithm/run/test_files_full_disk.py and
+ends with its usual status. tests/algorithm/test_files_full_disk.py and
 tests/ds/evolver/test_state_full_disk.py check each writer on its own."""
 
 from __future__ import annotations
@@ -111,7 +111,7 @@ def test_main_trains_on_through_a_full_disk_and_saves_again_once_space_is_back(t
         assert not list(run.rglob(".*.tmp"))  # no write, failed or not, left its temp file behind
         counts = no_space_lines(text)
         # log.txt fails only once its last page is full (the page it had is still its own on tmpfs):
-        # a few lines in this run, whether it fails is luck; tests/algorithm/run/test_files_full_disk.py fills it.
+        # a few lines in this run, whether it fails is luck; tests/algorithm/test_files_full_disk.py fills it.
         log_file_failed = counts.pop("log file", 0)
         assert log_file_failed <= 1, text[-4000:]
         assert counts == {"checkpoint": 1, "replay snapshot": 1, "evaluations": 1, "TensorBoard summaries": 1}, counts

@@ -335,7 +335,7 @@ def test_a_two_worker_run_leaves_no_lock_files_behind(tmp_path: Path) -> None:
     (tests/workers.py); the controller removes them once the last worker is down."""
     env = {**os.environ, "TMPDIR": str(tmp_path)}
     done = subprocess.run([sys.executable, "-m", "pytest", "-n", "2", "--dist", "loadgroup", "-q", "-p",
-                           "no:cacheprovider", "tests/algorithm/run/test_files_modes.py"],
+                           "no:cacheprovider", "tests/algorithm/test_files_modes.py"],
                           cwd=ROOT, env=env, capture_output=True, text=True, timeout=300)  # fmt: skip
     assert done.returncode == 0, done.stdout[-3000:] + done.stderr[-3000:]
     assert not list(tmp_path.glob("asac-tests-*")), sorted(p.name for p in tmp_path.iterdir())

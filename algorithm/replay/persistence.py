@@ -4,7 +4,7 @@
 and fsyncs the directory, so a crash leaves either the old file or the new one. :func:`read_checked`
 reads everything and checks the format, the layout the reader expects and every array's name,
 shape and dtype before returning; any problem is a ``ValueError`` that names the file and the field.
-It opens only a regular file, never blocking (:func:`algorithm.run.files.open_regular`): a FIFO, device
+It opens only a regular file, never blocking (:func:`algorithm.files.open_regular`): a FIFO, device
 or socket in its place is refused at once. :func:`restored_state` then checks that what a table file
 holds is consistent with itself (priorities against the rows, counters against each other).
 """
@@ -20,8 +20,8 @@ from typing import Any, Protocol
 import numpy as np
 
 from algorithm.errors import CheckpointError
+from algorithm.files import atomic_write, open_regular
 from algorithm.normalizer import RunningMeanStd
-from algorithm.run.files import atomic_write, open_regular
 from algorithm.spaces import SensorSpec
 
 FORMAT = "asac-replay-v1"
@@ -34,7 +34,7 @@ def write_atomic(
     before_replace: Callable[[], object] | None = None,
 ) -> None:
     """Write ``arrays`` and JSON ``meta`` to ``path`` atomically (temp file, fsync, rename);
-    ``before_replace``: see :func:`algorithm.run.files.atomic_write` (raise to keep the old file)."""
+    ``before_replace``: see :func:`algorithm.files.atomic_write` (raise to keep the old file)."""
     contents: dict[str, Any] = {**arrays, "meta": np.array(json.dumps({"format": FORMAT, **meta}))}
     atomic_write(path, lambda f: np.savez(f, **contents), before_replace)
 

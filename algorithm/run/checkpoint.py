@@ -36,14 +36,14 @@ import torch
 # CheckpointError is defined in algorithm/errors.py (importable without torch), raised here and
 # importable from here as before.
 from algorithm.errors import CheckpointError as CheckpointError
-from algorithm.run.files import atomic_write
+from algorithm.files import atomic_write
 
 # 2: with a digest of the contents. Checkpoints of format 1 (no digest) still load.
 FORMAT_VERSION = 2
 _READABLE_VERSIONS = (1, 2)
 _DIGEST = "digest"
 _NAME = re.compile(r"^(\d+)\.pt$")
-_TEMP = re.compile(r"^\.\d+\.pt\..*\.tmp$")  # algorithm/run/files.py's temp names for <step>.pt
+_TEMP = re.compile(r"^\.\d+\.pt\..*\.tmp$")  # algorithm/files.py's temp names for <step>.pt
 
 
 def list_checkpoints(model_dir: Path) -> list[int]:

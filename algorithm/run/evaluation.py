@@ -2,7 +2,7 @@
 
 The CSV (``env_steps,updates,wall_seconds,return_mean,return_std``) is the interface scripts and
 our own learning checks read; TensorBoard gets the same numbers as ``eval/*``. Rows are appended
-by writing the whole file again atomically (:func:`algorithm.run.files.atomic_write`): a write that
+by writing the whole file again atomically (:func:`algorithm.files.atomic_write`): a write that
 fails (a full disk) leaves the file as it was, never with half a row.
 """
 
@@ -18,8 +18,8 @@ from typing import Any, Protocol
 
 import numpy as np
 
+from algorithm.files import atomic_write, open_regular
 from algorithm.run.actor import ActionSource, VectorEnvLike
-from algorithm.run.files import atomic_write, open_regular
 
 CSV_FIELDS = ("env_steps", "updates", "wall_seconds", "return_mean", "return_std")
 

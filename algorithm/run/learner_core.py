@@ -23,7 +23,7 @@ Checkpoints have one format for both (``model/<env_steps>.pt``: ``sac``, ``count
 its last evaluation.
 
 A checkpoint, an ``evaluations.csv`` row or the run's ``config.yaml`` that cannot be written (a full
-disk, an I/O error) never stops training: it is logged once (:class:`~algorithm.run.files.WriteFailures`),
+disk, an I/O error) never stops training: it is logged once (:class:`~algorithm.files.WriteFailures`),
 the files before it stay as they were, and it is tried again at the next checkpoint (the rows at
 the next evaluation, all of them, in order); a final checkpoint that fails is logged as such.
 """
@@ -42,6 +42,7 @@ import numpy as np
 
 from algorithm.config.load import config_to_yaml
 from algorithm.config.schema import Config
+from algorithm.files import WriteFailures, atomic_write
 from algorithm.run.actor import VectorEnvLike
 from algorithm.run.checkpoint import (
     capture_rng,
@@ -61,7 +62,6 @@ from algorithm.run.evaluation import (
     evaluation_row,
     read_evaluations,
 )
-from algorithm.run.files import WriteFailures, atomic_write
 from algorithm.run.folder import EVAL_SEED_OFFSET, RunDir
 from algorithm.run.logging import MetricsWriter, ProgressLine, RateMeter, Throttle, Timers
 from algorithm.run.progress import RunCounters, budget_spent

@@ -21,7 +21,7 @@ from contextlib import contextmanager, suppress
 from pathlib import Path
 from typing import Any, TextIO
 
-from algorithm.run.files import WriteFailures, describe_os_error
+from algorithm.files import WriteFailures, describe_os_error
 
 log = logging.getLogger("asac.summaries")
 _file_ids = itertools.count()
@@ -33,7 +33,7 @@ class MetricsWriter:
     event record appended to it at once by the calling thread (no writer thread).
 
     A write that fails (a full disk, an I/O error) never reaches the caller: it is logged once
-    (:class:`~algorithm.run.files.WriteFailures`), the file is cut back to its last whole record, so
+    (:class:`~algorithm.files.WriteFailures`), the file is cut back to its last whole record, so
     everything written before stays readable, and the records not written are held, up to
     ``max_pending_bytes`` (the oldest dropped beyond it, counted), to be written at the next write or
     :meth:`flush` at least ``retry_s`` later; when one works again the held records follow in order.

@@ -30,11 +30,11 @@ import numpy as np
 import torch
 
 from algorithm.config.schema import Config
+from algorithm.files import WriteFailures
 from algorithm.nn.user import model_builder
 from algorithm.replay import PrioritizedTable
 from algorithm.replay.persistence import load_replay_snapshot, snapshot_kept
 from algorithm.run.actor import ActorLoop, StepStats, VectorEnvLike
-from algorithm.run.files import WriteFailures
 from algorithm.run.folder import EVAL_SEED_OFFSET, RunDir
 from algorithm.run.learner_core import LearnerCore, UpdateBudget, restore_env_rngs
 from algorithm.run.progress import RunSummary

@@ -62,7 +62,7 @@ import yaml
 
 from algorithm.config.schema import Config
 from algorithm.evolution import CemPopulation, RoundResult, cem_due, sample_weights
-from algorithm.run.files import WriteFailures
+from algorithm.files import WriteFailures
 from algorithm.run.logging import MetricsWriter, Throttle
 from ds.evolver.registry import LearnerRegistry, Return, check_address, check_host, check_port
 from ds.evolver.state import (

@@ -3,7 +3,7 @@ it keeps, and how they persist: ``<state_dir>/state.json`` plus one ``.npz`` per
 ``<state_dir>/samples/`` and, once a CEM round ran, the last round's distribution (its mean and std,
 from which a learner that joins later is drawn) in ``<state_dir>/cem.round_<R>.npz``.
 
-Every file is written atomically (temp file, fsync, rename; :func:`algorithm.run.files.atomic_write`),
+Every file is written atomically (temp file, fsync, rename; :func:`algorithm.files.atomic_write`),
 samples before the state that names them, so a crash at any point leaves a state whose files exist;
 files no state names (a crash between the two writes, or an acknowledged sample) are deleted when the
 state is next loaded (:func:`remove_unreferenced`). Nothing is unpickled: the state is JSON and
@@ -38,7 +38,7 @@ from typing import Any
 
 import numpy as np
 
-from algorithm.run.files import atomic_write
+from algorithm.files import atomic_write
 
 FORMAT = "asac.evolver/2"  # 2: with a "sha256" digest of the rest; states of format 1 still load
 _FORMATS = ("asac.evolver/1", FORMAT)

@@ -15,7 +15,7 @@ import shutil
 from dataclasses import replace
 
 from algorithm.config.load import config_to_yaml
-from algorithm.run.files import WriteFailures, atomic_write
+from algorithm.files import WriteFailures, atomic_write
 from algorithm.run.folder import EVAL_SEED_OFFSET, RunDir
 from algorithm.sac.learner import SAC
 from algorithm.seeding import seed_everything

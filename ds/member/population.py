@@ -39,7 +39,7 @@ import grpc
 
 from algorithm.config.load import apply_overrides, config_from_yaml
 from algorithm.config.schema import Config
-from algorithm.run.files import WriteFailures, atomic_write
+from algorithm.files import WriteFailures, atomic_write
 from algorithm.run.folder_lock import FolderLock, try_hold
 from algorithm.run.logging import Throttle
 from ds.evolver.client import EvolverClient

@@ -11,7 +11,7 @@ refuses it (a :class:`~ds.net.wire.WireError`, INVALID_ARGUMENT, naming the prob
   or file pointing out of it is refused too;
 - what it names must be a regular file or not exist yet: a FIFO, device, socket or folder is
   refused at once, before anything opens it (Load opens the file only with ``O_NOFOLLOW |
-  O_NONBLOCK`` and checks it again, :func:`algorithm.run.files.open_regular`). Save also refuses a
+  O_NONBLOCK`` and checks it again, :func:`algorithm.files.open_regular`). Save also refuses a
   symlink in the file's place (it replaces only regular files, and never one outside the folder);
   Load follows a symlink that stays inside.
 
@@ -32,7 +32,7 @@ import time
 from collections.abc import Callable
 from pathlib import Path, PurePosixPath
 
-from algorithm.run.files import file_kind
+from algorithm.files import file_kind
 from algorithm.run.folder import RunDir
 from ds.net.wire import WireError
 

@@ -19,9 +19,9 @@ from dataclasses import replace
 from grpc_health.v1 import health
 
 from algorithm.config.schema import Config
+from algorithm.files import WriteFailures
 from algorithm.replay import PrioritizedTable
 from algorithm.replay.persistence import load_replay_snapshot, snapshot_kept
-from algorithm.run.files import WriteFailures
 from algorithm.run.folder import RunDir
 from algorithm.run.logging import MetricsWriter
 from algorithm.seeding import seed_python_and_numpy

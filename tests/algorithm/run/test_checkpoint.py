@@ -14,8 +14,8 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from algorithm.files import atomic_write
 from algorithm.run import checkpoint as ck
-from algorithm.run.files import atomic_write
 
 
 def test_keep_last_k_and_latest(tmp_path: Path) -> None:

@@ -28,7 +28,8 @@ CHILD = f"""
 import io, os, sys, time
 from pathlib import Path
 import torch
-from algorithm.run import checkpoint as ck, files
+from algorithm import files
+from algorithm.run import checkpoint as ck
 
 model, pause = Path(sys.argv[1]), sys.argv[2]
 

@@ -13,9 +13,9 @@ from pathlib import Path
 import pytest
 import torch
 
+from algorithm.files import WriteFailures, atomic_write
 from algorithm.run.checkpoint import load_checkpoint
 from algorithm.run.evaluation import read_evaluations
-from algorithm.run.files import WriteFailures, atomic_write
 from algorithm.run.logging import LogFileHandler, MetricsWriter
 from tests.algorithm.run.test_trainer import make_trainer, small_config
 from tests.small_disk import small_disk

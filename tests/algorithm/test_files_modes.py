@@ -13,9 +13,9 @@ from pathlib import Path
 
 import pytest
 
-ROOT = Path(__file__).resolve().parents[3]
+ROOT = Path(__file__).resolve().parents[2]
 WRITE = (
-    "import sys; from pathlib import Path; from algorithm.run.files import atomic_write; "
+    "import sys; from pathlib import Path; from algorithm.files import atomic_write; "
     "atomic_write(Path(sys.argv[1]), lambda f: f.write(b'rows'))"
 )
 
