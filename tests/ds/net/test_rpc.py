@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import logging
 import threading
+import time
 
 import grpc
 import pytest
@@ -102,3 +103,36 @@ def test_a_role_waiting_for_a_peer_says_once_after_a_bounded_time_what_it_waits_
     assert len(warnings) == 1, warnings
     assert f"no replay has answered at {address} for" in warnings[0]
     assert "--replay_host/--replay_port" in warnings[0] and "net_config.replay_host" in warnings[0]
+
+
+@pytest.mark.slow
+def test_a_role_that_started_long_before_its_peer_connects_within_seconds_of_the_peer_serving() -> None:
+    """A role waits for its peer through a channel from ``open_channel``; the peer starts 16.5 s later
+    (a slow import, a pod rescheduled). gRPC's own reconnect backoff (1 s growing 1.6x) would next try
+    at ~26 s and fail every health check in between; the channel's 2 s cap notices the peer in ~2 s."""
+    from concurrent import futures
+
+    from grpc_health.v1 import health, health_pb2, health_pb2_grpc
+
+    from ds.net.security import Credentials, open_channel
+
+    address = f"{LOCAL_HOST}:{free_port()}"
+    server = grpc.server(futures.ThreadPoolExecutor(max_workers=2))
+    servicer = health.HealthServicer()
+    servicer.set("asac.LearnerService", health_pb2.HealthCheckResponse.SERVING)
+    health_pb2_grpc.add_HealthServicer_to_server(servicer, server)
+    serving_at: list[float] = []
+
+    def start() -> None:  # the port is bound here: gRPC listens from add_insecure_port on
+        server.add_insecure_port(address)
+        server.start()
+        serving_at.append(time.monotonic())
+
+    threading.Timer(16.5, start).start()
+    try:
+        with open_channel(address, "learner", Credentials(), []) as channel:
+            assert wait_until_serving(channel, "asac.LearnerService", "learner", address, threading.Event())
+            noticed_after = time.monotonic() - serving_at[0]
+    finally:
+        server.stop(0)
+    assert noticed_after < 4.0, f"the waiting role noticed its peer {noticed_after:.1f} s after it was serving"
