@@ -1,9 +1,9 @@
 """Soft Actor-Critic, the learner's side: :class:`SAC` extends the acting :class:`~algorithm.sac.policy.Policy`
-with the target networks, the optimizers and the update step; the checkpoint state is
-:mod:`algorithm.sac.checkpoint_state`'s.
+with the target networks, the optimizers and the update step, and composes what an update computes
+(:class:`~algorithm.sac.losses.SacLosses`: plain SAC, with the transforms of the features the config
+turns on, :mod:`algorithm.sac.features`); its checkpoint state is :mod:`algorithm.sac.checkpoint_state`'s.
 
-What an update computes is in :mod:`algorithm.sac.losses` (plain SAC first, each feature in its own
-method); the losses are pure functions in :mod:`algorithm.sac.equations`, targets over windows in
+The losses are pure functions in :mod:`algorithm.sac.equations`, targets over windows in
 :mod:`algorithm.sac.returns`. Actions may be continuous, discrete (several branches, optional action
 masks, ``discrete_dqn_like``) or both (docs/architecture.md sections 3 and 5).
 
@@ -26,7 +26,7 @@ from __future__ import annotations
 import copy
 import dataclasses
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -40,13 +40,15 @@ from algorithm.nn.layers import uses_bfloat16
 from algorithm.nn.models import SacModels
 from algorithm.nn.noisy import reset_noise
 from algorithm.nn.prediction import gated_gradients, observation_targets
+from algorithm.sac import checkpoint_state
 from algorithm.sac.batch_checks import check_batch, check_config_for_task
-from algorithm.sac.checkpoint_state import SacCheckpoint
 from algorithm.sac.equations import Metrics, importance_weights
 from algorithm.sac.losses import Losses, SacLosses
+from algorithm.sac.parts import LearnerParts
 from algorithm.sac.policy import Policy
 from algorithm.sac.schedules import discrete_target_entropy_ratio, learning_rate_at, munchausen_scale_at
 from algorithm.sac.update_graph import graph_for
+from algorithm.sac.window import PassInputs
 from algorithm.spaces import EnvSpec
 from algorithm.types import Batch
 
@@ -64,7 +66,7 @@ class UpdateResult:
     refreshed_rnn_states: tuple[np.ndarray, np.ndarray] | None = None
 
 
-class SAC(SacCheckpoint, SacLosses, Policy):
+class SAC(Policy):
     """One learner: the :class:`~algorithm.sac.policy.Policy` (models, acting) plus target copies,
     optimizers, ``log_alpha``, PER ``beta`` and counters.
 
@@ -139,7 +141,17 @@ class SAC(SacCheckpoint, SacLosses, Policy):
 
         # torch.compile of the loss computation (forward and, through AOTAutograd, backward);
         # its first update compiles for ~20 s on CPU. See bench/learner.py for what it gains.
-        self._compute_losses = torch.compile(self._losses) if compile else self._losses
+        self.losses = SacLosses(
+            LearnerParts(
+                spec=spec, sac=sac_config, device=self.device, models=self.models,
+                target_representation=self.target_representation, target_q=self.target_q, policy=self._policy,
+                branches=self._branches, mask_index=self._mask_index, log_alpha=self.log_alpha,
+                log_alpha_discrete=self.log_alpha_discrete, target_entropy=self.target_entropy,
+                discrete_target_entropy=self.discrete_target_entropy, munchausen_weight=self.munchausen_weight,
+                trains_alpha=self.alpha_optimizer is not None, observation_targets=self._observation_targets,
+            )
+        )  # fmt: skip
+        self._compute_losses = torch.compile(self.losses.__call__) if compile else self.losses
         # Hidden layers in bfloat16 (sac_config.compute_dtype): 2.2x faster matmuls on this project's AVX512-BF16
         # CPUs, 1.4x faster updates (bench/learner.py); output layers stay float32 (nn.layers.in_float32).
         self._low_precision = uses_bfloat16(sac_config.compute_dtype, self.device)
@@ -156,10 +168,36 @@ class SAC(SacCheckpoint, SacLosses, Policy):
     def _adam(self, params: Sequence[Tensor]) -> torch.optim.Adam:
         return torch.optim.Adam(params, lr=self.sac.learning_rate, fused=True)
 
+    def _named_optimizers(self) -> dict[str, torch.optim.Optimizer]:
+        return checkpoint_state.named_optimizers(self)
+
+    def _optimizers(self) -> list[torch.optim.Optimizer]:
+        return list(self._named_optimizers().values())
+
+    def state_dict(self) -> dict[str, Any]:
+        """Everything needed to resume bit-identically (:func:`algorithm.sac.checkpoint_state.learner_state`)."""
+        return checkpoint_state.learner_state(self)
+
+    def load_state_dict(self, state: Mapping[str, Any]) -> None:
+        """Restore what :meth:`state_dict` returned (from an identically configured SAC)."""
+        checkpoint_state.load_learner_state(self, state)
+
+    def load_model_weights(self, weights: Mapping[str, Tensor | np.ndarray]) -> None:
+        """An evolver's weights in place of this learner's
+        (:func:`algorithm.sac.checkpoint_state.load_model_weights`)."""
+        checkpoint_state.load_model_weights(self, weights)
+
+    def _subset(self) -> Tensor | None:
+        """A fresh random subset of ``ensemble_q_sample`` heads; None (all heads) when it is all."""
+        n, k = self.sac.ensemble_q_num, self.sac.ensemble_q_sample
+        if k == n:
+            return None
+        return torch.randperm(n, generator=self._learn_rng, device=self.device)[:k]
+
     def update(self, batch: Batch, with_metrics: bool = False) -> UpdateResult:
         """One gradient step on every part from one batch (docs/architecture.md section 5).
 
-        By default all losses are computed from the same parameters (:meth:`_losses`) and applied
+        By default all losses are computed from the same parameters (:attr:`losses`) and applied
         together (as Acme's SAC learner does; ``update_order: critic_first`` is SB3's order,
         :meth:`_critic_first_step`), which lets the whole step be skipped when anything is
         non-finite: no optimizer step, no target update, weights and optimizer state unchanged.
@@ -263,7 +301,7 @@ class SAC(SacCheckpoint, SacLosses, Policy):
         if self.policy_optimizer is None or terms is None:
             return losses, critic_norm, torch.zeros((), device=self.device), False
         with self._autocast():
-            pi_loss, _ = self._policy_loss(terms)
+            pi_loss, _ = self.losses.policy_loss(terms)
         pi_loss.backward()
         policy_norm = _grad_norm(self._policy_params)
         losses = dataclasses.replace(losses, policy=pi_loss)
@@ -313,8 +351,8 @@ class SAC(SacCheckpoint, SacLosses, Policy):
 
     def _noise(self, batch: Batch, generator: torch.Generator) -> Tensor:
         """The standard normal draws one pass over ``batch`` turns into policy samples (see
-        :meth:`_losses`): ``[B, samples, A]``, or ``[B, T, samples, A]`` with one draw per trained step
-        (``train_every_step``: the ``T`` window steps from the first trained one)."""
+        :class:`~algorithm.sac.window.PassInputs`): ``[B, samples, A]``, or ``[B, T, samples, A]`` with
+        one draw per trained step (``train_every_step``: the ``T`` window steps from the first trained one)."""
         sac = self.sac
         samples = sac.n_step + 2 if sac.use_n_step_is else 2
         trained: tuple[int, ...] = ()
@@ -327,8 +365,8 @@ class SAC(SacCheckpoint, SacLosses, Policy):
         self, batch: Batch, weights: Tensor | None, noise: Tensor, target_heads: Tensor | None,
         policy_heads: Tensor | None,
     ) -> list[np.ndarray | Tensor | None]:  # fmt: skip
-        """What one pass over ``batch`` takes, in :meth:`_losses`'s order (the sensors' observations first);
-        the batch's arrays still on the host."""
+        """What one pass over ``batch`` takes, as :meth:`PassInputs.flat` lists it (a CUDA graph records
+        that list); the batch's arrays still on the host."""
         rnn_state = batch.rnn_state if self.rnn_state_size else None
         return [*batch.obs, batch.actions, batch.prev_actions, batch.rewards, batch.terminated, batch.truncated,
                 batch.mask, batch.behaviour_logp, rnn_state, weights, noise, target_heads, policy_heads]  # fmt: skip
@@ -341,13 +379,12 @@ class SAC(SacCheckpoint, SacLosses, Policy):
                 for x in inputs]  # fmt: skip
 
     def _batch_losses(self, inputs: list[Tensor | None]) -> Losses:
-        """:meth:`_losses` of a pass's inputs on the device, observations normalized. Autocast's cache of
-        cast weights is off with a CUDA graph (its recipe says so); the values are the same."""
-        n = len(self.spec.sensors)
-        rest: list[Any] = inputs[n:]
-        obs = [o for o in inputs[:n] if o is not None]
+        """:class:`SacLosses` of a pass's inputs on the device, observations normalized. Autocast's cache
+        of cast weights is off with a CUDA graph (its recipe says so); the values are the same."""
+        batch = PassInputs.from_flat(inputs, len(self.spec.sensors))
+        batch.obs = self._normalize(batch.obs)
         with self._autocast():
-            return self._compute_losses(self._normalize(obs), *rest)
+            return self._compute_losses(batch)
 
     def _autocast(self) -> torch.autocast:
         cache = self.update_graph is None

@@ -11,7 +11,9 @@ import torch
 
 from algorithm.config.schema import NNConfig, ReplayConfig, SacConfig
 from algorithm.nn.models import TanhGaussianPolicy
+from algorithm.sac.features import Temperatures, VTraceTarget
 from algorithm.sac.learner import SAC
+from algorithm.sac.window import PassInputs, cut_window
 from algorithm.spaces import ActionSpec, EnvSpec, SensorSpec
 from algorithm.types import Batch
 
@@ -50,13 +52,14 @@ def make_batch(spec: EnvSpec, behaviour_logp: np.ndarray | None = None, seed: in
 
 
 def current_log_pi(sac: SAC, batch: Batch) -> np.ndarray:
-    obs = torch.from_numpy(batch.obs[0])
-    noise = torch.zeros(B, N_STEP + 1, sac.spec.action.continuous_dim)
+    noise = torch.zeros(B, N_STEP + 2, sac.spec.action.continuous_dim)
+    inputs = PassInputs.from_flat([torch.from_numpy(x) if isinstance(x, np.ndarray) else x
+                                   for x in sac._pass_inputs(batch, None, noise, None, None)], 1)  # fmt: skip
+    parts = sac.losses.parts
     with torch.no_grad():
-        online = sac.models.representation([obs.flatten(0, 1)]).view(B, N_STEP + 1, -1)
-        target = sac.target_representation([obs.flatten(0, 1)]).view(B, N_STEP + 1, -1)
-        _, log_pi = sac._window_values(online, target, None, torch.from_numpy(batch.actions), noise,
-                                       torch.tensor(0.1), sac.log_alpha_discrete.exp(), None)  # fmt: skip
+        window = cut_window(inputs, sac.sac, sac.models, sac.target_representation, None)
+        temperatures = Temperatures(torch.tensor(0.1), sac.log_alpha_discrete.exp())
+        _, log_pi = VTraceTarget(parts).window_values(window, temperatures, None)
     return log_pi.numpy()
 
 

@@ -16,6 +16,7 @@ from algorithm.nn.models import VectorRepresentation
 from algorithm.nn.recurrent import RecurrentRepresentation
 from algorithm.run.trainer import EmbeddedTrainer
 from algorithm.sac.learner import SAC
+from algorithm.sac.window import sequence_states
 from algorithm.spaces import ActionSpec, EnvSpec, SensorSpec
 from algorithm.types import Batch
 from envs.make import vector_env_factory
@@ -105,8 +106,9 @@ def test_the_bootstrap_position_is_fed_the_last_action_taken(cut: int) -> None:
     obs = torch.from_numpy(rng.standard_normal((b, length + 1, OBS), dtype=np.float32))
     state = torch.from_numpy(rng.standard_normal((b, H), dtype=np.float32))
     with torch.no_grad():
-        online, _, _ = sac._sequence_states([obs], torch.from_numpy(actions), torch.from_numpy(prev_actions),
-                                            torch.from_numpy(mask), state)  # fmt: skip
+        online, _, _ = sequence_states([obs], torch.from_numpy(actions), torch.from_numpy(prev_actions),
+                                       torch.from_numpy(mask), state, sac.sac, sac.models,
+                                       sac.target_representation)  # fmt: skip
         rep = sac.models.representation
         assert isinstance(rep, RecurrentRepresentation)
         for t in range(cut + 1):  # the step rows, then the bootstrap position

@@ -14,6 +14,7 @@ from algorithm.config.load import load_config
 from algorithm.config.schema import NNConfig, ReplayConfig, SacConfig
 from algorithm.run.trainer import EmbeddedTrainer
 from algorithm.sac.learner import SAC
+from algorithm.sac.window import PassInputs
 from algorithm.spaces import ActionSpec, EnvSpec, SensorSpec
 from envs.make import vector_env_factory
 
@@ -51,8 +52,9 @@ def window_tensors(length: int, seed: int, end: int = 1, look_back: int = 0) -> 
 
 
 def losses(sac: SAC, w: dict[str, torch.Tensor], noise: torch.Tensor, weights: torch.Tensor | None):  # type: ignore[no-untyped-def]
-    return sac._losses([w["obs"]], w["actions"], w["prev_actions"], w["rewards"], w["terminated"],
-                       w["truncated"], w["mask"], w["behaviour_logp"], None, weights, noise, None, None)  # fmt: skip
+    inputs = PassInputs([w["obs"]], w["actions"], w["prev_actions"], w["rewards"], w["terminated"], w["truncated"],
+                        w["mask"], w["behaviour_logp"], None, weights, noise, None, None)  # fmt: skip
+    return sac.losses(inputs)
 
 
 def shifted(w: dict[str, torch.Tensor], t: int, rows: torch.Tensor) -> dict[str, torch.Tensor]:
@@ -103,8 +105,9 @@ def test_a_recurrent_window_trains_its_burn_in_steps_when_their_states_carry_gra
 
     def q_loss(sac: SAC, rewards: torch.Tensor, trained: int) -> torch.Tensor:
         noise = torch.zeros(B, *((trained,) if sac.sac.train_every_step else ()), 2, ACT)
-        return sac._losses([w["obs"]], w["actions"], w["prev_actions"], rewards, w["terminated"], w["truncated"],
-                           w["mask"], w["behaviour_logp"], state, None, noise, None, None).q  # fmt: skip
+        return sac.losses(PassInputs([w["obs"]], w["actions"], w["prev_actions"], rewards, w["terminated"],
+                                     w["truncated"], w["mask"], w["behaviour_logp"], state, None, noise, None,
+                                     None)).q  # fmt: skip
 
     trained = burn_in + n if burn_in_gradient else n
     moved = w["rewards"].clone()
