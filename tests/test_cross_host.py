@@ -7,92 +7,25 @@ from __future__ import annotations
 
 import csv
 import os
-import shutil
 import signal
 import subprocess
-import sys
 import time
-from collections.abc import Iterator
-from contextlib import contextmanager
-from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
+
+from tests.network import Host, hosts, namespaces_available, start_role
 
 ROOT = Path(__file__).resolve().parents[1]
 ENV = {**os.environ, "OMP_WAIT_POLICY": "PASSIVE", "OMP_NUM_THREADS": "1", "MUJOCO_GL": "egl"}
 BUDGET = 1_500
 
 
-def ip(*args: str) -> None:
-    done = subprocess.run(["ip", *args], capture_output=True, text=True)
-    if done.returncode != 0:
-        raise OSError(f"ip {' '.join(args)}: {done.stderr.strip()}")
-
-
-@dataclass(frozen=True)
-class Host:
-    namespace: str
-    address: str
-
-
-@contextmanager
-def hosts(names: list[str]) -> Iterator[dict[str, Host]]:
-    """One namespace per name, each with an address on a private /24 and a veth to a bridge in a
-    switch namespace (names carry this process's pid, so parallel runs do not collide); all are
-    deleted on exit, whatever happened."""
-    tag = f"asac{os.getpid() % 100000}"
-    subnet = f"10.{100 + os.getpid() % 100}.{os.getpid() // 100 % 250}"
-    switch = f"{tag}sw"
-    made: list[str] = []
-    try:
-        ip("netns", "add", switch)
-        made.append(switch)
-        ip("-n", switch, "link", "add", "br0", "type", "bridge")
-        ip("-n", switch, "link", "set", "br0", "up")
-        out: dict[str, Host] = {}
-        for i, name in enumerate(names, start=1):
-            ns, address = f"{tag}{name}", f"{subnet}.{i}"
-            ip("netns", "add", ns)
-            made.append(ns)
-            ip("link", "add", f"{tag}h{i}", "type", "veth", "peer", "name", f"{tag}s{i}")
-            ip("link", "set", f"{tag}h{i}", "netns", ns)
-            ip("link", "set", f"{tag}s{i}", "netns", switch)
-            ip("-n", switch, "link", "set", f"{tag}s{i}", "master", "br0", "up")
-            ip("-n", ns, "link", "set", f"{tag}h{i}", "name", "eth0")
-            ip("-n", ns, "addr", "add", f"{address}/24", "dev", "eth0")
-            ip("-n", ns, "link", "set", "eth0", "up")
-            ip("-n", ns, "link", "set", "lo", "up")
-            out[name] = Host(ns, address)
-        yield out
-    finally:
-        for ns in reversed(made):  # deleting a namespace deletes its end of each veth, and so the pair
-            subprocess.run(["ip", "netns", "del", ns], capture_output=True)
-
-
-def namespaces_available() -> str:
-    """Empty if this process may create network namespaces, else why not."""
-    if shutil.which("ip") is None:
-        return "the ip command (iproute2) is not installed"
-    if os.geteuid() != 0:
-        return "creating network namespaces needs root (CAP_SYS_ADMIN, CAP_NET_ADMIN)"
-    probe = f"asacprobe{os.getpid()}"
-    done = subprocess.run(["ip", "netns", "add", probe], capture_output=True, text=True)
-    if done.returncode != 0:
-        return f"cannot create a network namespace here: {done.stderr.strip()}"
-    subprocess.run(["ip", "netns", "del", probe], capture_output=True)
-    return ""
-
-
 def role(host: Host, name: str, model_root: Path, log: Path, *args: str) -> subprocess.Popen[bytes]:
     """``main_ds.py gym/pendulum <name>`` inside ``host``, listening on its address only."""
-    command = ["ip", "netns", "exec", host.namespace, sys.executable, str(ROOT / "main_ds.py"), "gym/pendulum", name,
-               "-n", "xhost", "--model_root", str(model_root), "--no_progress",
-               "--override", f"net.bind_host={host.address}", "--override", "sac.seed=0",
-               "--override", f"base.max_step={BUDGET}", "--override", "eval.eval_per_step=500",
-               "--override", "eval.eval_episodes=2", *args]  # fmt: skip
-    with log.open("wb") as out:
-        return subprocess.Popen(command, cwd=ROOT, env=ENV, stdout=out, stderr=subprocess.STDOUT)
+    common = ["-n", "xhost", "--no_progress", "--override", "sac.seed=0", "--override", f"base.max_step={BUDGET}",
+              "--override", "eval.eval_per_step=500", "--override", "eval.eval_episodes=2"]  # fmt: skip
+    return start_role(host, model_root, name, "gym/pendulum", [*common, *args], ENV, log)
 
 
 @pytest.mark.slow

@@ -254,7 +254,7 @@ def test_a_killed_replay_comes_back_from_its_snapshot_and_the_actors_carry_on(tm
             run.signal(["replay"], signal.SIGKILL)
             saved, meta = read_table(snapshot), meta_of(snapshot)
             until(run, "both actors find the replay gone and keep their chunks",
-                  lambda: all("keeping the chunks and retrying" in run.log(a).read_text() for a in actors))  # fmt: skip
+                  lambda: all("the actor keeps its chunks" in run.log(a).read_text() for a in actors))  # fmt: skip
             # Freeze the peers so that nothing changes the restored table before the test has read it: every
             # thread stopped, as a thread inside a system call stops only when the call returns.
             run.signal(peers, signal.SIGSTOP)

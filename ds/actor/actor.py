@@ -60,6 +60,7 @@ from ds.actor.sink import ReplaySink
 from ds.actor.staleness import Staleness
 from ds.learner import service as learner_service
 from ds.learner.client import LearnerClient, LeaseExpired, Registration, RemotePolicy
+from ds.net.outage import Outage
 from ds.net.params import ParamsError, ParamsSubscriber, decode_params, params_spec
 from ds.net.rpc import peer_unresponsive, wait_until_serving
 from ds.net.stream_key import StreamKey
@@ -161,9 +162,8 @@ class DistributedActor:
         self._rejoin = threading.Event()  # set by the heartbeat thread: the learner forgot us, or restarted
         self._beats_done = threading.Event()
         self._beat_error: Exception | None = None
-        self._log_learner = Throttle()
         self._log_params = Throttle()
-        self._learner_gone_since: float | None = None  # the first of the current run of failed learner calls
+        self._learner_link = Outage(f"learner at {learner.address}", log, LEARNER_GONE_WARN_S)
 
     # -- the loop ---------------------------------------------------------------------------
     def run(self) -> ActorSummary:
@@ -357,7 +357,7 @@ class DistributedActor:
             try:
                 beat = self.learner.heartbeat(reg.actor_id, self.env_steps)
                 self.staleness.learner_said(beat.updates)
-                self._learner_gone_since = None
+                self._learner_link.ok()
                 known = beat.learner_id == reg.learner_id
                 if known:
                     self.live_actors = max(1, beat.live_actors)
@@ -392,7 +392,7 @@ class DistributedActor:
                 if self.update_mode:
                     self._fetch_params()
                 self._rejoin.clear()
-                self._learner_gone_since = None
+                self._learner_link.ok()
             except grpc.RpcError as e:
                 self._learner_unreachable(e)
             except ParamsError as e:  # a learner that restarted again between RegisterActor and GetParams
@@ -441,13 +441,5 @@ class DistributedActor:
             raise error
         if self.stop.is_set():  # told to stop: the learner may be gone already (a local run stops it first)
             return
-        now = time.monotonic()
-        since = self._learner_gone_since  # read once: the other thread may clear it meanwhile
-        if since is None:
-            self._learner_gone_since = since = now
-        if now - since < LEARNER_GONE_WARN_S:
-            return
-        if self._log_learner():
-            code, version, gone_s = error.code().name, self.params_version, now - since
-            log.warning("learner unreachable (%s) for %.0f s; acting with parameter version %d meanwhile",
-                        code, gone_s, version)  # fmt: skip
+        meanwhile = f"acting with parameter version {self.params_version} meanwhile"
+        self._learner_link.failed(error.code().name, meanwhile)

@@ -28,10 +28,12 @@ import grpc
 from algorithm.replay import ChunkIds, InsertTimeout
 from algorithm.run.logging import Throttle
 from algorithm.types import Chunk
+from ds.net.outage import BLIP_S, GRPC_DEADLINE_DETAILS, Outage, unanswered
 from ds.replay.client import PendingInsert, ReplayClient, ReplayRpcError
 from ds.replay.codec import chunk_payload_bytes
 
 log = logging.getLogger("asac.actor")
+KEEPING = "the actor keeps its chunks, stops stepping once it holds its backlog, and sends them again"
 
 
 class ReplaySink:
@@ -117,6 +119,7 @@ class ReplaySink:
         self._reported_unsent = 0
         self._acknowledged = 0  # every number below it acknowledged to the replay
         self._log = Throttle()
+        self._replay_link = Outage(f"replay at {getattr(replay, 'address', 'in process')}", log, BLIP_S)
 
     @property
     def max_backlog(self) -> int:
@@ -215,7 +218,9 @@ class ReplaySink:
             inserted = pending.result(while_waiting=self.waiting)
         except InsertTimeout as e:
             self.insert_waits += 1
-            if not self.stopping() and self._log():  # while stopping, the final inserts pass the limiter anyway
+            if unanswered(e):  # not the rate limiter: the replay did not answer (a partition, a stalled process)
+                self._replay_link.failed(GRPC_DEADLINE_DETAILS, KEEPING)
+            elif not self.stopping() and self._log():  # while stopping, the final inserts pass the limiter anyway
                 log.info("waiting to insert: %s", e)
         except ReplayRpcError as e:
             if e.code != grpc.StatusCode.UNAVAILABLE:
@@ -224,11 +229,11 @@ class ReplaySink:
             if self.stopping():
                 self._replay_gone = True  # no retries against a replay that is gone: the run is ending
             else:
-                if self._log():
-                    log.warning("replay unreachable; keeping the chunks and retrying: %s", e)
+                self._replay_link.failed(str(e), KEEPING)
                 self._backoff = min(max(2 * self._backoff, 0.05), self.max_backoff_s)
                 time.sleep(self._backoff)
         else:
+            self._replay_link.ok()
             self.duplicates += sum(inserted.duplicate)
             self.inserted_steps += pending.steps()
             self.replay_inserted_steps = max(self.replay_inserted_steps, inserted.inserted_steps)

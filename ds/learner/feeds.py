@@ -30,8 +30,15 @@ import numpy as np
 from algorithm.replay import ReplayTable, ReplayUnavailable, SampleTimeout
 from algorithm.run.logging import Throttle
 from algorithm.types import Batch
+from ds.net.outage import BLIP_S, GRPC_DEADLINE_DETAILS, Outage, unanswered
 
 log = logging.getLogger("asac.learner")
+TRAINING_ON = "the learner trains on the batches it holds, then waits"
+
+
+def replay_link(replay: ReplayTable) -> Outage:
+    """The learner's link to ``replay``, told once down and once back (one for its three threads)."""
+    return Outage(f"replay at {getattr(replay, 'address', 'in process')}", log, BLIP_S)
 
 
 class _Worker:
@@ -92,9 +99,11 @@ class BatchPrefetcher(_Worker):
         sample_timeout_s: float = 1.0,
         pin_memory: bool = False,
         per_call: int = 16,
+        link: Outage | None = None,
     ) -> None:
         super().__init__()
         self.replay = replay
+        self.link = link or replay_link(replay)
         self.batch_size = int(batch_size)
         self.per_call = max(1, int(per_call))
         self.sample_timeout_s = float(sample_timeout_s)
@@ -138,18 +147,20 @@ class BatchPrefetcher(_Worker):
         while not self._stop.is_set():
             try:
                 batches = self._draw()
-            except SampleTimeout as e:  # too little data yet, or the learner is ahead of the actors
+            except SampleTimeout as e:  # too little data yet, the learner ahead of the actors, or no answer
                 self.sample_waits += 1
-                if self._log_wait():
+                if unanswered(e):
+                    self.link.failed(GRPC_DEADLINE_DETAILS, TRAINING_ON)
+                elif self._log_wait():
                     log.info("waiting for data in replay: %s", e)
                 continue
             except ReplayUnavailable as e:
                 self.unavailable += 1
-                if self._log_wait():
-                    log.warning("replay unreachable, retrying: %s", e)
+                self.link.failed(str(e), TRAINING_ON)
                 self._stop.wait(backoff)
                 backoff = min(2 * backoff, 5.0)
                 continue
+            self.link.ok()
             backoff = 0.1
             self.calls += 1
             self.sampled += len(batches)
@@ -199,9 +210,10 @@ class PriorityUpdater(_Worker):
 
     name = "priorities"
 
-    def __init__(self, replay: ReplayTable, depth: int = 64, merge: int = 16) -> None:
+    def __init__(self, replay: ReplayTable, depth: int = 64, merge: int = 16, link: Outage | None = None) -> None:
         super().__init__()
         self.replay = replay
+        self.link = link or replay_link(replay)
         self.merge = int(merge)
         self._queue: queue.Queue[tuple[np.ndarray, np.ndarray]] = queue.Queue(maxsize=depth)
         self.sent_calls = 0
@@ -272,13 +284,13 @@ class PriorityUpdater(_Worker):
         while not self._stop.is_set():
             try:
                 self.replay.update_priorities(keys, priorities)
+                self.link.ok()
                 self.sent_calls += 1
                 self.sent_keys += len(keys)
                 return
             except ReplayUnavailable as e:
                 self.unavailable += 1
-                if self._log_wait():
-                    log.warning("replay unreachable for priority updates, retrying: %s", e)
+                self.link.failed(str(e), "the learner keeps the priority updates and sends them again")
                 self._stop.wait(backoff)
                 backoff = min(2 * backoff, 5.0)
         self.unsent += len(keys)

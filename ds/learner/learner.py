@@ -47,11 +47,10 @@ from algorithm.run.actor import VectorEnvLike
 from algorithm.run.evaluation import AcceptsWeights
 from algorithm.run.folder import RunDir
 from algorithm.run.learner_core import LearnerCore
-from algorithm.run.logging import Throttle
 from algorithm.run.progress import RunSummary
 from algorithm.sac.learner import SAC
 from algorithm.types import Batch
-from ds.learner.feeds import BatchPrefetcher, PriorityUpdater
+from ds.learner.feeds import BatchPrefetcher, PriorityUpdater, replay_link
 from ds.learner.service import ActorRegistry, ParamsStore, PublishedPolicy
 from ds.member.link import Membership
 from ds.net.params import ParamsPublisher
@@ -140,8 +139,9 @@ class Learner:
         self.stop = stop or threading.Event()
         self.info_every_s = info_every_s
         self.republish_every_s = republish_every_s
+        self.replay_link = replay_link(replay)
         self.prefetcher = self._prefetcher(replay)
-        self.priorities = PriorityUpdater(replay)
+        self.priorities = PriorityUpdater(replay, link=self.replay_link)
         self.rnn_refreshes_skipped = 0
         self.publish_deferred = 0  # updates whose publish waited for the budget (the next one carries them)
         self._next_publish = 0.0  # perf_counter time before which a publish waits (publish_budget)
@@ -156,7 +156,6 @@ class Learner:
         )  # fmt: skip
         self.paths = self.core.paths
         self.env_steps = EnvSteps()
-        self._log_replay = Throttle()
         self.core.resume_then_open(self.restore, ckpt_step)
 
     @property
@@ -220,7 +219,7 @@ class Learner:
 
     def _prefetcher(self, replay: ReplayTable) -> BatchPrefetcher:
         batch_size, on_cuda = self.config.replay_config.batch_size, self.sac.device.type == "cuda"
-        return BatchPrefetcher(replay, batch_size, self.prefetch_depth, pin_memory=on_cuda)
+        return BatchPrefetcher(replay, batch_size, self.prefetch_depth, pin_memory=on_cuda, link=self.replay_link)
 
     def _train_on(self, batch: Batch) -> None:
         self.core.train_on(batch, self.sink, self._metrics)
@@ -303,8 +302,9 @@ class Learner:
             self.priorities.close(timeout=1.0)
             self.replay, self.replay_address = member.connect_replay(address), address
             self.env_steps.seen = 0  # a new table counts its inserts from 0; each is an env step of this run
+            self.replay_link = replay_link(self.replay)
             self.prefetcher = self._prefetcher(self.replay)
-            self.priorities = PriorityUpdater(self.replay)
+            self.priorities = PriorityUpdater(self.replay, link=self.replay_link)
             self.prefetcher.start()
             self.priorities.start()
 
@@ -324,9 +324,9 @@ class Learner:
         try:
             info = self.replay.info()
         except ReplayUnavailable as e:
-            if self._log_replay():
-                log.warning("replay unreachable, waiting for it: %s", e)
+            self.replay_link.failed(str(e), "training goes on with the batches the learner holds")
             return
+        self.replay_link.ok()
         self.core.counters.env_steps = self.env_steps.observe(int(info["inserted_steps"]))
         self.core.counters.replay_inserted_seen = self.env_steps.seen
         self.replay_surplus = float(info.get("rate_limiter_surplus", 0.0))

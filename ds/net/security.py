@@ -218,7 +218,7 @@ def new_server(
     # as well and the kernel would spread connections over both (a new run's learner would sample from a
     # forgotten earlier run's replay while its actor inserts into the new one, and both wait forever).
     # Off, the second bind fails and the role says the port is taken.
-    exclusive = [("grpc.so_reuseport", 0), *options]
+    exclusive = [("grpc.so_reuseport", 0), *SERVER_KEEPALIVE_OPTIONS, *options]
     return grpc.server(executor, options=exclusive, interceptors=[*guard, *interceptors])
 
 
@@ -380,19 +380,41 @@ def _checked(handler: grpc.RpcMethodHandler, check: Callable[[grpc.ServicerConte
 # ---------------------------------------------------------------------- clients
 
 
-RECONNECT_OPTIONS = [("grpc.initial_reconnect_backoff_ms", 200), ("grpc.max_reconnect_backoff_ms", 2000)]
-"""How often a channel retries a peer that is not up: gRPC's defaults (1 s, growing by 1.6x to 120 s)
-leave a role that started before its peer connecting 5-10 s after the peer is serving (measured), and
-calls fail fast while the channel waits out that backoff. A connect attempt every 2 s at most costs
-nothing and matches the 2 s cap of :func:`ds.net.rpc.wait_until_serving`."""
+CLIENT_LINK_OPTIONS = [
+    ("grpc.initial_reconnect_backoff_ms", 200),
+    ("grpc.max_reconnect_backoff_ms", 2000),
+    ("grpc.min_reconnect_backoff_ms", 2000),
+    ("grpc.keepalive_time_ms", 10_000),
+    ("grpc.keepalive_timeout_ms", 5_000),
+    ("grpc.keepalive_permit_without_calls", 1),
+    ("grpc.http2.max_pings_without_data", 0),
+]
+"""How a channel finds a peer that is not there and comes back to it. Reconnects: gRPC's defaults (1 s,
+growing by 1.6x to 120 s) leave a role that started before its peer connecting 5-10 s after the peer
+is serving (measured), and calls fail fast while the channel waits out that backoff; a connect attempt
+every 2 s at most costs nothing and matches the 2 s cap of :func:`ds.net.rpc.wait_until_serving`; each
+attempt gives up after 2 s (gRPC's "min reconnect backoff", 20 s by default, is how long a connect
+may take: a SYN dropped by a partition would otherwise hold the next attempt for up to 20 s).
+Keepalive: across a partition (packets dropped, no reset) a connection looks alive to both ends and,
+once the link heals, resumes only at TCP's next retransmission, tens of seconds later; a ping every
+10 s, unanswered for 5 s, closes it, and the channel reconnects within 2 s of the heal. Servers accept
+these pings (:data:`SERVER_KEEPALIVE_OPTIONS`)."""
+
+SERVER_KEEPALIVE_OPTIONS = [
+    ("grpc.keepalive_permit_without_calls", 1),
+    ("grpc.http2.min_recv_ping_interval_without_data_ms", 5_000),
+    ("grpc.http2.max_ping_strikes", 0),
+]
+"""A server takes a client's keepalive pings (:data:`CLIENT_LINK_OPTIONS`) every 10 s, with or without calls
+in flight; by default it would answer pings more often than every 5 minutes with GOAWAY."""
 
 
 def open_channel(address: str, role: str, credentials: Credentials, options: Sequence[tuple[str, Any]]) -> grpc.Channel:
     """A channel to the ``role`` server at ``address``: TLS when ``credentials`` have a CA or a
     certificate (accepting only a server certificate that names ``role``; presenting this process's
     certificate when the server asks), carrying the token's bearer key on every call when there is one.
-    A peer that is down is retried every 2 s at most (:data:`RECONNECT_OPTIONS`)."""
-    options = [*RECONNECT_OPTIONS, *options]
+    A peer that is down is retried every 2 s at most (:data:`CLIENT_LINK_OPTIONS`)."""
+    options = [*CLIENT_LINK_OPTIONS, *options]
     if credentials.tls:
         tls = grpc.ssl_channel_credentials(credentials.ca, credentials.key, credentials.cert)
         channel = grpc.secure_channel(address, tls, options=[*options, ("grpc.ssl_target_name_override", role)])
