@@ -92,6 +92,16 @@ ParamsSpec = Mapping[str, tuple[Any, Sequence[int]]]
 """Name -> (dtype, shape); dtype is anything ``np.dtype`` accepts or a ``torch.dtype``."""
 
 
+def _notice_dead_links(socket: zmq.Socket) -> None:
+    """ZeroMQ heartbeats on ``socket`` (a ping every 10 s, the link dropped when 5 s pass without an
+    answer) and a connect that gives up after 2 s: across a partition a TCP connection otherwise looks
+    alive until TCP's next retransmission, tens of seconds after the heal, and weights would not reach
+    an actor meanwhile; as the gRPC channels do (:data:`ds.net.security.CLIENT_LINK_OPTIONS`)."""
+    socket.setsockopt(zmq.HEARTBEAT_IVL, 10_000)
+    socket.setsockopt(zmq.HEARTBEAT_TIMEOUT, 5_000)
+    socket.setsockopt(zmq.CONNECT_TIMEOUT, 2_000)
+
+
 class ParamsError(ValueError):
     """A parameter message that must not be applied; the text names the tensor (or header) and the problem."""
 
@@ -334,6 +344,7 @@ class ParamsPublisher:
         self._socket = (context or zmq.Context.instance()).socket(zmq.PUB)
         self._socket.setsockopt(zmq.LINGER, 0)  # close() must not wait for subscribers that stopped reading
         self._socket.setsockopt(zmq.SNDHWM, sndhwm)
+        _notice_dead_links(self._socket)
         self._socket.bind(address)
         self.address: str = self._socket.getsockopt_string(zmq.LAST_ENDPOINT)
         self.version: int | None = None
@@ -432,6 +443,7 @@ class ParamsSubscriber:
         self._socket.setsockopt(zmq.LINGER, 0)
         self._socket.setsockopt(zmq.RCVHWM, rcvhwm)
         self._socket.setsockopt(zmq.SUBSCRIBE, b"")
+        _notice_dead_links(self._socket)
         self._socket.connect(address)  # works before the publisher binds; ZeroMQ retries until it does
         self.version: int | None = None
         self.received = self.accepted = self.rejected = self.skipped = 0
