@@ -20,7 +20,7 @@ import os
 import shutil
 import subprocess
 import sys
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
@@ -127,3 +127,31 @@ def start_role(
                "--model_root", str(folder), "--override", f"net.bind_host={host.address}", *args]  # fmt: skip
     with log.open("wb") as out:
         return subprocess.Popen(command, cwd=ROOT, env=env, stdout=out, stderr=subprocess.STDOUT)
+
+
+@contextmanager
+def names(clients: Sequence[Host]) -> Iterator[Callable[[str, Host], None]]:
+    """A name that moves between hosts, as a Kubernetes Service's name follows a rescheduled pod:
+    yields ``point(name, host)``, which makes ``name`` resolve to ``host``'s address in every one of
+    ``clients``. ``ip netns exec`` mounts ``/etc/netns/NS/hosts`` over ``/etc/hosts`` for the process it
+    starts, so the files exist before the clients start and are rewritten in place (same inode, which
+    the mount shows); they are removed on exit."""
+    folders = [Path("/etc/netns") / c.namespace for c in clients]
+    entries: dict[str, str] = {}
+
+    def point(name: str, host: Host) -> None:
+        entries[name] = host.address
+        text = "127.0.0.1 localhost\n" + "".join(f"{address} {n}\n" for n, address in entries.items())
+        for folder in folders:
+            with (folder / "hosts").open("r+") as hosts_file:
+                hosts_file.truncate(0)
+                hosts_file.write(text)
+
+    try:
+        for folder in folders:
+            folder.mkdir(parents=True, exist_ok=True)
+            (folder / "hosts").write_text("127.0.0.1 localhost\n")
+        yield point
+    finally:
+        for folder in folders:
+            shutil.rmtree(folder, ignore_errors=True)

@@ -1,8 +1,9 @@
 """Partitions between hosts heal by themselves: replay, learner and actor each in a network namespace of
 its own (tests/network.py), and for 30 s every packet between one role and some of its peers is
-dropped, as a cut link or a firewall drops them (no reset, no error). No role exits; nothing the actor
-collected is lost (the replay's count is the actor's); each link is back within seconds of the heal;
-each outage is logged once when it is noticed and once when it ends, not a line per retry."""
+dropped, as a cut link or a firewall drops them (no reset, no error); or the replay moves to another
+host behind its name. No role exits; nothing the actor collected is lost (the replay's count is the
+actor's); each link is back within seconds of the heal; each outage is logged once when it is noticed
+and once when it ends, not a line per retry."""
 
 from __future__ import annotations
 
@@ -16,7 +17,8 @@ from pathlib import Path
 
 import pytest
 
-from tests.network import Host, hosts, nft_available, partition, start_role
+from ds.net.outage import BLIP_S
+from tests.network import Host, hosts, names, namespaces_available, nft_available, partition, start_role
 from tests.role_runs import TINY
 
 ENV = {**os.environ, "OMP_WAIT_POLICY": "PASSIVE", "OMP_NUM_THREADS": "1", "GRPC_VERBOSITY": "ERROR"}
@@ -35,6 +37,11 @@ def wait_for(log: Path, pattern: str, timeout: float, proc: subprocess.Popen[byt
 
 def logged_at(line: str) -> datetime:
     return datetime.strptime(line[:23], "%Y-%m-%d %H:%M:%S,%f")
+
+
+def after(log: Path, at: datetime) -> str:
+    """The lines of ``log`` logged after ``at``."""
+    return "\n".join(line for line in log.read_text().splitlines() if line[:4].isdigit() and logged_at(line) > at)
 
 
 def evaluations(learner_log: str) -> list[datetime]:
@@ -133,3 +140,74 @@ def test_a_learner_cut_off_from_its_replay_for_30_s_comes_back_and_loses_nothing
     print(f"learner -> replay: back {back_after:.1f} s after a {CUT_S:.0f} s cut healed")  # pytest -s: the figure
     assert back_after < BACK_WITHIN_S, f"the learner's link to its replay came back {back_after:.1f} s after the heal"
     nothing_lost(text)
+
+
+@pytest.mark.slow
+@pytest.mark.grpc
+@pytest.mark.fault
+def test_a_replay_rescheduled_at_another_address_behind_its_name_is_found_again_and_nothing_is_lost(
+    tmp_path: Path,
+) -> None:
+    """The learner and the actor know the replay by a name (``--replay_host asac-replay``), as pods know a
+    Service. The replay is stopped (SIGTERM, as Kubernetes stops a pod; it saves its table to its
+    volume) and started on another host with the same volume, and the name moves there. Both find it
+    by the name within seconds of its serving there (looked up again every 2 s: it was 16-24 s with
+    gRPC's default of 30 s), saying nothing of a blip under 3 s and else once each way, and the table
+    holds every step the actor collected, the restarted replay's count continuing the first one's."""
+    reason = namespaces_available()
+    if reason:
+        pytest.skip(reason)
+    names_in_logs = ("replay", "replay2", "learner", "actor")
+    logs = {name: tmp_path / f"{name}.log" for name in names_in_logs}
+    volume = tmp_path / "volume"  # the replay's persistent volume, mounted by whichever host runs it
+    with hosts(list(names_in_logs)) as net, names([net["learner"], net["actor"]]) as point:
+        point("asac-replay", net["replay"])
+        common = ["-n", "moved", *TINY, "--override", "sac.seed=0", "--override", "base.max_step=-1",
+                  "--replay_host", "asac-replay", "--learner_host", net["learner"].address]  # fmt: skip
+        replay_args = [*common, "--override", "replay.save_replay=true"]
+        procs = {
+            "replay": start_role(net["replay"], volume, "replay", "gym/pendulum", replay_args, ENV, logs["replay"])
+        }
+        for name in ("learner", "actor"):
+            procs[name] = start_role(net[name], tmp_path / name, name, "gym/pendulum", common, ENV, logs[name])
+        try:
+            wait_for(logs["actor"], r"actor \S+: index 0", 120, procs["actor"])
+            wait_for(logs["learner"], r"eval at \d+ env steps, [1-9]\d* updates", 120, procs["learner"])
+            procs["replay"].send_signal(signal.SIGTERM)
+            assert procs["replay"].wait(timeout=60) == 143, logs["replay"].read_text()[-3000:]
+            point("asac-replay", net["replay2"])
+            procs["replay2"] = start_role(net["replay2"], volume, "replay", "gym/pendulum", replay_args, ENV,
+                                          logs["replay2"])  # fmt: skip
+            wait_for(logs["replay2"], r"replay serving on", 60, procs["replay2"])
+            serving = logged_at(re.findall(r"^.*replay serving on.*$", logs["replay2"].read_text(), re.M)[0])
+            restored = int(re.findall(r"replay restored from \S+: (\d+) steps", logs["replay2"].read_text())[0])
+            deadline = time.monotonic() + 120  # the learner evaluates at env steps the moved replay took in
+            while not any(
+                int(n) > restored for n in re.findall(r"eval at (\d+) env steps", after(logs["learner"], serving))
+            ):
+                assert procs["learner"].poll() is None and time.monotonic() < deadline, "no evaluation after the move"
+                time.sleep(0.5)
+        finally:
+            for name in ("actor", "learner", "replay2", "replay"):
+                if name in procs and procs[name].poll() is None:
+                    procs[name].send_signal(signal.SIGINT)
+                    try:
+                        procs[name].wait(timeout=60)
+                    except subprocess.TimeoutExpired:
+                        procs[name].kill()
+    text = {name: log.read_text() for name, log in logs.items()}
+    for name in ("actor", "learner", "replay2"):
+        assert procs[name].wait(timeout=10) == 130, text[name][-3000:]
+    for name in ("actor", "learner"):  # a short move is a blip (nothing said); a longer one is said once each way
+        down = re.findall(r"replay at asac-replay:\d+ unreachable", text[name])
+        if down:
+            back_after = told_once_each_way(text[name], r"replay at asac-replay:\d+", serving)
+            print(f"{name} -> replay: back {back_after:.1f} s after the moved replay served")  # pytest -s: the figure
+            assert back_after < BACK_WITHIN_S, f"the {name} found the moved replay {back_after:.1f} s after it served"
+        else:
+            print(f"{name} -> replay: back within {BLIP_S:.0f} s (a blip: nothing logged)")
+    collected = re.findall(r"actor \d+ stopped after (\d+) env steps", text["actor"])
+    stored = re.findall(r"replay saved to \S+: (\d+) env steps inserted over the run", text["replay2"])
+    assert len(collected) == 1 and stored == collected, (collected, stored, text["replay2"][-2000:])
+    for name in names_in_logs:
+        assert "Traceback" not in text[name], text[name][-3000:]

@@ -93,12 +93,16 @@ ParamsSpec = Mapping[str, tuple[Any, Sequence[int]]]
 
 
 def _notice_dead_links(socket: zmq.Socket) -> None:
-    """ZeroMQ heartbeats on ``socket`` (a ping every 10 s, the link dropped when 5 s pass without an
-    answer) and a connect that gives up after 2 s: across a partition a TCP connection otherwise looks
-    alive until TCP's next retransmission, tens of seconds after the heal, and weights would not reach
-    an actor meanwhile; as the gRPC channels do (:data:`ds.net.security.CLIENT_LINK_OPTIONS`)."""
-    socket.setsockopt(zmq.HEARTBEAT_IVL, 10_000)
-    socket.setsockopt(zmq.HEARTBEAT_TIMEOUT, 5_000)
+    """TCP keepalive on ``socket`` (probes after 10 s of silence, every 5 s, the connection dropped after 2
+    unanswered) and a connect that gives up after 2 s: across a partition a TCP connection otherwise
+    looks alive until TCP's next retransmission, tens of seconds after the heal, and weights would not
+    reach an actor meanwhile (it still fetches them when it registers again). Not ZeroMQ's own
+    heartbeats (ZMQ_HEARTBEAT_IVL): with a subscriber's small receive queue they crash libzmq 4.3
+    (``Assertion failed: _input_stopped``, zeromq/libzmq#3937; seen here in an actor after a heal)."""
+    socket.setsockopt(zmq.TCP_KEEPALIVE, 1)
+    socket.setsockopt(zmq.TCP_KEEPALIVE_IDLE, 10)
+    socket.setsockopt(zmq.TCP_KEEPALIVE_INTVL, 5)
+    socket.setsockopt(zmq.TCP_KEEPALIVE_CNT, 2)
     socket.setsockopt(zmq.CONNECT_TIMEOUT, 2_000)
 
 

@@ -388,6 +388,7 @@ CLIENT_LINK_OPTIONS = [
     ("grpc.keepalive_timeout_ms", 5_000),
     ("grpc.keepalive_permit_without_calls", 1),
     ("grpc.http2.max_pings_without_data", 0),
+    ("grpc.dns_min_time_between_resolutions_ms", 2000),
 ]
 """How a channel finds a peer that is not there and comes back to it. Reconnects: gRPC's defaults (1 s,
 growing by 1.6x to 120 s) leave a role that started before its peer connecting 5-10 s after the peer
@@ -398,7 +399,9 @@ may take: a SYN dropped by a partition would otherwise hold the next attempt for
 Keepalive: across a partition (packets dropped, no reset) a connection looks alive to both ends and,
 once the link heals, resumes only at TCP's next retransmission, tens of seconds later; a ping every
 10 s, unanswered for 5 s, closes it, and the channel reconnects within 2 s of the heal. Servers accept
-these pings (:data:`SERVER_KEEPALIVE_OPTIONS`)."""
+these pings (:data:`SERVER_KEEPALIVE_OPTIONS`). A name is looked up again at most every 2 s (30 s by
+default) when its address stops answering: a peer rescheduled behind a Kubernetes Service name is
+found at its new address within seconds of serving there."""
 
 SERVER_KEEPALIVE_OPTIONS = [
     ("grpc.keepalive_permit_without_calls", 1),
