@@ -25,6 +25,12 @@ ENV = {**os.environ, "OMP_WAIT_POLICY": "PASSIVE", "OMP_NUM_THREADS": "1", "GRPC
 CUT_S = 30.0
 BACK_WITHIN_S = 10.0  # keepalive notices a dead link in <= 15 s while cut; after the heal a connect is tried every 2 s
 ROLES = ("replay", "learner", "actor")
+pytestmark = [pytest.mark.slow, pytest.mark.grpc, pytest.mark.fault]
+
+
+def skip_unless(missing: str) -> None:
+    if missing:
+        pytest.skip(missing)
 
 
 def wait_for(log: Path, pattern: str, timeout: float, proc: subprocess.Popen[bytes]) -> None:
@@ -104,6 +110,13 @@ def told_once_each_way(text: str, pattern: str, healed: datetime) -> float:
     return (logged_at(back[0]) - healed).total_seconds()
 
 
+def back_soon(text: str, what: str, pattern: str, since: datetime, event: str) -> None:
+    """The link ``what`` was told once down and once back, within :data:`BACK_WITHIN_S` of ``event``."""
+    back_after = told_once_each_way(text, pattern, since)
+    print(f"{what}: back {back_after:.1f} s after {event}")  # pytest -s: the figure
+    assert back_after < BACK_WITHIN_S, f"{what}: back {back_after:.1f} s after {event}"
+
+
 def nothing_lost(text: dict[str, str]) -> None:
     collected = re.findall(r"actor \d+ stopped after (\d+) env steps", text["actor"])
     stored = re.findall(r"replay saved to \S+: (\d+) env steps inserted over the run", text["replay"])
@@ -112,39 +125,22 @@ def nothing_lost(text: dict[str, str]) -> None:
         assert "Traceback" not in text[name], text[name][-3000:]
 
 
-@pytest.mark.slow
-@pytest.mark.grpc
-@pytest.mark.fault
 def test_an_actor_cut_off_from_its_replay_and_learner_for_30_s_comes_back_and_loses_nothing(tmp_path: Path) -> None:
-    reason = nft_available()
-    if reason:
-        pytest.skip(reason)
+    skip_unless(nft_available())
     text, net, healed = run_with_a_cut(tmp_path, "actor", ("replay", "learner"))
     for peer in ("replay", "learner"):
-        back_after = told_once_each_way(text["actor"], link(peer, net), healed)
-        print(f"actor -> {peer}: back {back_after:.1f} s after a {CUT_S:.0f} s cut healed")  # pytest -s: the figure
-        assert back_after < BACK_WITHIN_S, f"the actor's link to its {peer} came back {back_after:.1f} s after the heal"
+        back_soon(text["actor"], f"actor -> {peer}", link(peer, net), healed, f"a {CUT_S:.0f} s cut healed")
     nothing_lost(text)
     assert " unreachable" not in text["learner"] + text["replay"]  # their link was never cut
 
 
-@pytest.mark.slow
-@pytest.mark.grpc
-@pytest.mark.fault
 def test_a_learner_cut_off_from_its_replay_for_30_s_comes_back_and_loses_nothing(tmp_path: Path) -> None:
-    reason = nft_available()
-    if reason:
-        pytest.skip(reason)
+    skip_unless(nft_available())
     text, net, healed = run_with_a_cut(tmp_path, "learner", ("replay",))
-    back_after = told_once_each_way(text["learner"], link("replay", net), healed)
-    print(f"learner -> replay: back {back_after:.1f} s after a {CUT_S:.0f} s cut healed")  # pytest -s: the figure
-    assert back_after < BACK_WITHIN_S, f"the learner's link to its replay came back {back_after:.1f} s after the heal"
+    back_soon(text["learner"], "learner -> replay", link("replay", net), healed, f"a {CUT_S:.0f} s cut healed")
     nothing_lost(text)
 
 
-@pytest.mark.slow
-@pytest.mark.grpc
-@pytest.mark.fault
 def test_a_replay_rescheduled_at_another_address_behind_its_name_is_found_again_and_nothing_is_lost(
     tmp_path: Path,
 ) -> None:
@@ -154,9 +150,7 @@ def test_a_replay_rescheduled_at_another_address_behind_its_name_is_found_again_
     by the name within seconds of its serving there (looked up again every 2 s: it was 16-24 s with
     gRPC's default of 30 s), saying nothing of a blip under 3 s and else once each way, and the table
     holds every step the actor collected, the restarted replay's count continuing the first one's."""
-    reason = namespaces_available()
-    if reason:
-        pytest.skip(reason)
+    skip_unless(namespaces_available())
     names_in_logs = ("replay", "replay2", "learner", "actor")
     logs = {name: tmp_path / f"{name}.log" for name in names_in_logs}
     volume = tmp_path / "volume"  # the replay's persistent volume, mounted by whichever host runs it
@@ -201,9 +195,7 @@ def test_a_replay_rescheduled_at_another_address_behind_its_name_is_found_again_
     for name in ("actor", "learner"):  # a short move is a blip (nothing said); a longer one is said once each way
         down = re.findall(r"replay at asac-replay:\d+ unreachable", text[name])
         if down:
-            back_after = told_once_each_way(text[name], r"replay at asac-replay:\d+", serving)
-            print(f"{name} -> replay: back {back_after:.1f} s after the moved replay served")  # pytest -s: the figure
-            assert back_after < BACK_WITHIN_S, f"the {name} found the moved replay {back_after:.1f} s after it served"
+            back_soon(text[name], f"{name} -> replay", r"replay at asac-replay:\d+", serving, "the moved replay served")
         else:
             print(f"{name} -> replay: back within {BLIP_S:.0f} s (a blip: nothing logged)")
     collected = re.findall(r"actor \d+ stopped after (\d+) env steps", text["actor"])
