@@ -20,6 +20,7 @@ import os
 import shutil
 import subprocess
 import sys
+import time
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -155,3 +156,25 @@ def names(clients: Sequence[Host]) -> Iterator[Callable[[str, Host], None]]:
     finally:
         for folder in folders:
             shutil.rmtree(folder, ignore_errors=True)
+
+
+@contextmanager
+def slow_link(host: Host, to: str, delay_ms: float, log: Path) -> Iterator[str]:
+    """A relay inside ``host`` (tests/relay.py) that holds every byte ``delay_ms`` each way on its way to
+    ``to`` (``ADDRESS:PORT``); yields the ``127.0.0.1:PORT`` a process in ``host`` calls instead. The
+    relay is stopped on exit."""
+    listen = f"127.0.0.1:{40000 + int(to.rsplit(':', 1)[1]) % 20000}"  # the namespace's own loopback: its ports
+    command = ["ip", "netns", "exec", host.namespace, sys.executable, "-m", "tests.relay", "--listen", listen,
+               "--to", to, "--delay-ms", str(delay_ms)]  # fmt: skip
+    with log.open("wb") as out:
+        relay = subprocess.Popen(command, cwd=ROOT, stdout=out, stderr=subprocess.STDOUT)
+    try:
+        deadline = time.monotonic() + 30
+        while "relay listening" not in log.read_text():
+            if relay.poll() is not None or time.monotonic() > deadline:
+                raise OSError(f"the relay to {to} did not start: {log.read_text()[-2000:]}")
+            time.sleep(0.1)
+        yield listen
+    finally:
+        relay.terminate()
+        relay.wait(timeout=10)
