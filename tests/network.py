@@ -178,3 +178,33 @@ def slow_link(host: Host, to: str, delay_ms: float, log: Path) -> Iterator[str]:
     finally:
         relay.terminate()
         relay.wait(timeout=10)
+
+
+@contextmanager
+def lossy(host: Host, percent: int) -> Iterator[None]:
+    """Drop ``percent`` % of ``host``'s TCP packets at random, each way (nftables ``numgen random``)."""
+    _nft(host, "add", "table", "inet", "loss")
+    try:
+        for chain, hook in (("out", "output"), ("in", "input")):
+            _nft(host, "add", "chain", "inet", "loss", chain, f"{{ type filter hook {hook} priority 0 ; }}")
+            _nft(host, "add", "rule", "inet", "loss", chain, "meta", "l4proto", "tcp", "numgen", "random", "mod",
+                 "100", "<", str(percent), "drop")  # fmt: skip
+        yield
+    finally:
+        _nft(host, "delete", "table", "inet", "loss")
+
+
+@contextmanager
+def capped(host: Host, mbit: float) -> Iterator[None]:
+    """``host``'s link capped at ``mbit`` Mbit/s in its sending direction (``tc ... tbf`` on its eth0; the
+    kernel here has tbf, not netem). What it receives is not shaped: for an actor that is the weights."""
+    done = subprocess.run(["ip", "netns", "exec", host.namespace, "tc", "qdisc", "add", "dev", "eth0", "root",
+                           "tbf", "rate", f"{mbit}mbit", "burst", "32kb", "latency", "400ms"],
+                          capture_output=True, text=True)  # fmt: skip
+    if done.returncode != 0:
+        raise OSError(f"tc tbf in {host.namespace}: {done.stderr.strip()}")
+    try:
+        yield
+    finally:
+        subprocess.run(["ip", "netns", "exec", host.namespace, "tc", "qdisc", "del", "dev", "eth0", "root"],
+                       capture_output=True)  # fmt: skip
