@@ -23,7 +23,7 @@ from tests.role_runs import TINY
 
 ENV = {**os.environ, "OMP_WAIT_POLICY": "PASSIVE", "OMP_NUM_THREADS": "1", "GRPC_VERBOSITY": "ERROR"}
 CUT_S = 30.0
-BACK_WITHIN_S = 10.0  # keepalive notices a dead link in <= 15 s while cut; after the heal a connect is tried every 2 s
+BACK_WITHIN_S = 20.0  # measured 9.5-9.8 s; a connect attempt made during the cut may take up to 20 s
 ROLES = ("replay", "learner", "actor")
 pytestmark = [pytest.mark.slow, pytest.mark.grpc, pytest.mark.fault]
 
