@@ -159,7 +159,8 @@ def test_ctrl_c_mid_run_stops_the_learner_before_the_replay_and_says_interrupted
         again, passed = None, False
         try:
             deadline = time.monotonic() + 60
-            while "eval at" not in log.read_text():
+            # mid-run: training, and both actors registered (one may take 10 s to import on a loaded machine)
+            while "eval at" not in log.read_text() or len(re.findall(r"registered as actor-", log.read_text())) < 2:
                 assert proc.poll() is None, log.read_text()[-4000:]
                 assert time.monotonic() < deadline, "the run did not get going: " + log.read_text()[-4000:]
                 time.sleep(0.3)
