@@ -8,6 +8,7 @@ Usage::
     local = pki.issue("local", "actor", "learner", "replay", "evolver")   # one certificate, every role
     stranger = pki.issue("replay", ca="wrong") # a replay certificate from the wrong CA
     uri = pki.issue("uri", sans=[x509.UniformResourceIdentifier("evolver")], common_name="evolver")  # no DNS SAN
+    old = pki.issue("old", "actor", expired=True)  # its validity ended an hour ago
     learner.cert, learner.key, pki.ca          # paths, for --tls_cert / --tls_key / --tls_ca
 
 Role names travel as DNS subject alternative names: that is what ds/net/security.py checks (docs/security.md section 3).
@@ -44,9 +45,11 @@ def _name(common_name: str) -> x509.Name:
     return x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, common_name)])
 
 
-def _validity(builder: x509.CertificateBuilder) -> x509.CertificateBuilder:
+def _validity(builder: x509.CertificateBuilder, expired: bool = False) -> x509.CertificateBuilder:
     now = datetime.datetime.now(datetime.UTC)
     hour = datetime.timedelta(hours=1)
+    if expired:  # valid for a day that ended an hour ago
+        return builder.not_valid_before(now - 25 * hour).not_valid_after(now - hour)
     return builder.not_valid_before(now - hour).not_valid_after(now + 24 * hour)
 
 
@@ -91,17 +94,18 @@ class Pki:
         ca: str = "ca",
         sans: Sequence[x509.GeneralName] | None = None,
         common_name: str | None = None,
+        expired: bool = False,
     ) -> Issued:
         """``<name>.crt`` and ``<name>.key``, signed by ``ca`` ("ca" or "wrong"), naming ``roles`` (default:
         ``name``) as DNS SANs, usable as server and as client certificate. ``sans`` replaces those
         subject alternative names (e.g. ``[x509.UniformResourceIdentifier("evolver")]``: no DNS SAN);
-        ``common_name`` replaces the subject CN (default: ``name``)."""
+        ``common_name`` replaces the subject CN (default: ``name``); ``expired``: its validity ended an hour ago."""
         authority = self._cas["wrong-ca" if ca == "wrong" else "ca"]
         key = ec.generate_private_key(ec.SECP256R1())
         if sans is None:
             sans = [x509.DNSName(r) for r in roles or (name,)]
         cert = (
-            _validity(x509.CertificateBuilder())
+            _validity(x509.CertificateBuilder(), expired)
             .subject_name(_name(common_name or name))
             .issuer_name(authority.cert.subject)
             .public_key(key.public_key())

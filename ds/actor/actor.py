@@ -61,7 +61,7 @@ from ds.actor.staleness import Staleness
 from ds.learner import service as learner_service
 from ds.learner.client import LearnerClient, LeaseExpired, Registration, RemotePolicy
 from ds.net.outage import Outage
-from ds.net.params import ParamsError, ParamsSubscriber, decode_params, params_spec
+from ds.net.params import ParamsError, ParamsSubscriber, Token, decode_params, params_spec
 from ds.net.rpc import peer_unresponsive, wait_until_serving
 from ds.net.stream_key import StreamKey
 from ds.replay import service as replay_service
@@ -111,7 +111,7 @@ class DistributedActor:
         *,
         noise: float | None = None,
         stop: threading.Event | None = None,
-        token: bytes | None = None,
+        token: Token = None,
         heartbeat_s: float = 3.0,
         metrics_every_s: float = 10.0,
         name: str | None = None,

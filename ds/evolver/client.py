@@ -50,7 +50,7 @@ from ds.evolver.state import (
 )
 from ds.net import rpc, security
 from ds.net.client import RpcClient
-from ds.net.params import ParamsError, ParamsSpec, decode_params
+from ds.net.params import ParamsError, ParamsSpec, Token, decode_params
 from ds.net.security import NO_CREDENTIALS, Credentials
 from protos import evolver_pb2, evolver_pb2_grpc
 
@@ -87,7 +87,7 @@ class EvolverClient(RpcClient):
         self,
         address: str,
         *,
-        token: bytes | None = None,
+        token: Token = None,
         max_message_bytes: int = EVOLVER_MESSAGE_BYTES,
         rpc_timeout_s: float = 10.0,
         retry: rpc.RetryPolicy | None = None,

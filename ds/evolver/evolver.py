@@ -85,7 +85,7 @@ from ds.evolver.state import (
     write_sample,
 )
 from ds.learner.client import LearnerClient
-from ds.net.params import ParamsError, decode_params
+from ds.net.params import ParamsError, Token, decode_params
 from ds.net.rpc import RetryPolicy
 from ds.net.security import NO_CREDENTIALS, Credentials
 
@@ -113,7 +113,7 @@ class Evolver:
         experiment: str,
         *,
         lease_s: float = 30.0,
-        token: bytes | None = None,
+        token: Token = None,
         credentials: Credentials = NO_CREDENTIALS,
         metrics: MetricsWriter | None = None,
         seed: int | None = None,

@@ -48,7 +48,7 @@ from ds.evolver.state import (
     Role,
     UnknownLearner,
 )
-from ds.net.params import encode_params
+from ds.net.params import Token, encode_params
 
 
 @dataclass(frozen=True)
@@ -65,7 +65,7 @@ class LearnerRegistry:
     """Learners, pending samples, queued returns and assignments, behind one short lock. Thread-safe."""
 
     def __init__(
-        self, config: Config, experiment: str, lease_s: float, clock: Callable[[], float], token: bytes | None = None
+        self, config: Config, experiment: str, lease_s: float, clock: Callable[[], float], token: Token = None
     ) -> None:
         self.config = config
         self.experiment = experiment

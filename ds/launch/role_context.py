@@ -44,8 +44,8 @@ from algorithm.run.actor import VectorEnvLike
 from algorithm.spaces import EnvSpec
 from ds.evolver import service as evolver_service
 from ds.evolver.client import EvolverClient
+from ds.net.credentials import NO_CREDENTIALS, Credentials, Keyring
 from ds.net.rpc import LOCAL_HOST, wait_until_serving
-from ds.net.security import NO_CREDENTIALS, Credentials
 from ds.replay.client import ReplayClient
 from ds.replay.codec import message_limit_bytes
 
@@ -86,7 +86,8 @@ class RoleContext:
     overrides: tuple[str, ...] = ()
 
     @property
-    def token(self) -> bytes | None:
+    def token(self) -> Keyring | None:
+        """The run's token(s), read again when the token file changes (ds/net/credentials.py)."""
         return self.credentials.token
 
     @property

@@ -31,7 +31,7 @@ from algorithm.run.logging import Throttle
 from ds.evolver.client import EvolverClient, Sample
 from ds.evolver.state import Instruction, LearnerRetired, UnknownLearner
 from ds.member.population import Joined, register, unreachable
-from ds.net.params import ParamsError, ParamsSpec, encode_params
+from ds.net.params import ParamsError, ParamsSpec, Token, encode_params
 from ds.net.rpc import PEER_WARN_AFTER_S
 
 log = logging.getLogger("asac.population")
@@ -199,7 +199,7 @@ class WeightsSnapshot:
     asked); if none comes it serves the last copy, or None (the evolver then leaves the learner out
     of the round)."""
 
-    def __init__(self, token: bytes | None = None, timeout_s: float = 20.0) -> None:
+    def __init__(self, token: Token = None, timeout_s: float = 20.0) -> None:
         self.token = token
         self.timeout_s = float(timeout_s)
         self._cond = threading.Condition()

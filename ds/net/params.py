@@ -41,7 +41,9 @@ frames it already has (no serialisation) and also reaches subscribers that joine
 late joiner gets the next published version (``GetParams`` in the learner service is the fallback).
 
 **Signed frames.** The publisher appends an HMAC-SHA256 over the length-prefixed header and tensor
-frames; the subscriber verifies it (:func:`hmac.compare_digest`) before it parses anything, whatever
+frames (one per token when the run's token file holds several while a token is rotated, in one frame of
+``32 x n`` bytes, n <= MAX_MACS; ds/net/credentials.py); the subscriber verifies it (any of them under
+any of its own tokens) (:func:`hmac.compare_digest`) before it parses anything, whatever
 the version says, and counts messages that fail. The learner's stream (and ``GetParams``, the same
 frames) is signed under its :class:`StreamKey`: a fresh random secret per learner start, handed to
 each actor in its ``RegisterActorReply``, bound to the learner's id and, when the run has a token,
@@ -70,6 +72,7 @@ from typing import TYPE_CHECKING, Any, NamedTuple
 import numpy as np
 import zmq
 
+from ds.net.credentials import Keyring, token_keys
 from ds.net.stream_key import StreamKey
 
 if TYPE_CHECKING:
@@ -77,6 +80,10 @@ if TYPE_CHECKING:
 
 FORMAT = "asac.params/1"
 MAC_BYTES = hashlib.sha256().digest_size
+MAX_MACS = 4
+"""At most this many MACs in a message's MAC frame (one per token of the signer's token file)."""
+Token = bytes | Keyring | None
+"""The run's token: a keyring (read again when its file changes), one token, or None (unsigned)."""
 # What may travel: plain numeric dtypes, no object/structured/string dtypes (and no bfloat16, which
 # numpy lacks).
 DTYPES = frozenset(
@@ -111,17 +118,24 @@ class ParamsError(ValueError):
 
 
 class _Signer(NamedTuple):
-    """The MAC key of a message (None: unsigned) and who holds it, for error messages."""
+    """The MAC keys of a message (none: unsigned), one per token now, and who holds them, for error messages."""
 
-    key: bytes | None
+    keys: tuple[bytes, ...]
     holder: str
 
 
-def _signer(token: bytes | None, stream: StreamKey | None) -> _Signer:
-    token = _check_token(token)
+def _signer(token: Token, stream: StreamKey | None) -> _Signer:
+    tokens = token_keys(token)
     if stream is not None:
-        return _Signer(stream.mac_key(token), f"learner {stream.learner_id}" + (" and the token" if token else ""))
-    return _Signer(token, "the token")
+        keys = tuple(stream.mac_key(t) for t in tokens) or (stream.mac_key(None),)
+        return _Signer(keys, f"learner {stream.learner_id}" + (" and the token" if tokens else ""))
+    return _Signer(tokens, "the token")
+
+
+def _sign(keys: tuple[bytes, ...], frames: Sequence[bytes]) -> bytes:
+    """The MAC frame: one MAC per key (a token file with two tokens while one is rotated signs under
+    both, so that a subscriber holding either takes it; ds/net/credentials.py)."""
+    return b"".join(_mac(key, frames) for key in keys)
 
 
 class _Entry(NamedTuple):
@@ -144,9 +158,7 @@ def params_spec(state_dict: Params) -> dict[str, tuple[np.dtype, tuple[int, ...]
     return _normalise_spec({name: (value.dtype, value.shape) for name, value in state_dict.items()})
 
 
-def encode_params(
-    version: int, params: Params, token: bytes | None = None, *, stream: StreamKey | None = None
-) -> list[bytes]:
+def encode_params(version: int, params: Params, token: Token = None, *, stream: StreamKey | None = None) -> list[bytes]:
     """Frames for one version: the JSON header, one raw little-endian frame per tensor, and an
     HMAC-SHA256 frame when ``stream`` or ``token`` is set (the stream's key when there is one, else the
     token). Tensors are copied (CPU, C order), so the caller may keep updating its weights while ZeroMQ
@@ -161,8 +173,8 @@ def encode_params(
         blobs.append(array.astype(array.dtype.newbyteorder("<"), copy=False).tobytes())
         entries.append(_Entry(name, array.dtype, tuple(array.shape), len(blobs[-1])))
     frames = [_header(version, entries), *blobs]
-    if (key := _signer(token, stream).key) is not None:
-        frames.append(_mac(key, frames))
+    if keys := _signer(token, stream).keys:
+        frames.append(_sign(keys, frames))
     return frames
 
 
@@ -199,17 +211,11 @@ def _mac(token: bytes, frames: Sequence[bytes]) -> bytes:
     return mac.digest()
 
 
-def _check_token(token: bytes | None) -> bytes | None:
-    if token is not None and (not isinstance(token, bytes) or not token):
-        raise ValueError("token must be non-empty bytes (or None for no signing)")
-    return token
-
-
 # -- decoding --------------------------------------------------------------------------------------
 def decode_params(
     frames: Sequence[bytes],
     expected: ParamsSpec | None = None,
-    token: bytes | None = None,
+    token: Token = None,
     *,
     stream: StreamKey | None = None,
 ) -> tuple[int, dict[str, np.ndarray]]:
@@ -227,12 +233,14 @@ def decode_params(
 
 def _read_message(frames: Sequence[bytes], signer: _Signer) -> _Message:
     """The MAC, header and frame lengths: everything but the tensor values (cheap)."""
-    token = signer.key
-    if token is not None:
-        if len(frames) < 2 or len(frames[-1]) != MAC_BYTES:
+    if signer.keys:
+        signature = frames[-1] if len(frames) >= 2 else b""
+        if not signature or len(signature) % MAC_BYTES or len(signature) > MAX_MACS * MAC_BYTES:
             raise ParamsError(f"message: no MAC frame, but messages must be signed by {signer.holder} "
                               "(a publisher without the key?)")  # fmt: skip
-        if not hmac.compare_digest(frames[-1], _mac(token, frames[:-1])):
+        macs = [signature[i : i + MAC_BYTES] for i in range(0, len(signature), MAC_BYTES)]
+        mine = [_mac(key, frames[:-1]) for key in signer.keys]
+        if not any(hmac.compare_digest(mac, want) for mac in macs for want in mine):
             raise ParamsError(f"message: MAC does not verify: not signed by {signer.holder} (another publisher on "
                               "its port, a wrong token, or altered frames)")  # fmt: skip
         frames = frames[:-1]
@@ -258,7 +266,7 @@ def _read_message(frames: Sequence[bytes], signer: _Signer) -> _Message:
     if len(set(names)) != len(names):
         raise ParamsError(f"header: duplicate tensor names {sorted({n for n in names if names.count(n) > 1})}")
     if len(frames) != 1 + len(entries):
-        signed = token is None and len(frames) == 2 + len(entries)
+        signed = not signer.keys and len(frames) == 2 + len(entries)
         hint = " (a trailing MAC? this subscriber has no token)" if signed else ""
         raise ParamsError(f"message: {len(frames)} frames, expected 1 header + {len(entries)} tensor frames{hint}")
     for entry, frame in zip(entries, frames[1:], strict=True):
@@ -338,12 +346,13 @@ class ParamsPublisher:
         self,
         address: str,
         *,
-        token: bytes | None = None,
+        token: Token = None,
         stream: StreamKey | None = None,
         sndhwm: int = 2,
         context: zmq.Context | None = None,
     ) -> None:
-        self._token = _check_token(token)
+        token_keys(token)  # a bad token fails here, not at the first publish
+        self._token = token
         self.stream = stream
         self._socket = (context or zmq.Context.instance()).socket(zmq.PUB)
         self._socket.setsockopt(zmq.LINGER, 0)  # close() must not wait for subscribers that stopped reading
@@ -366,9 +375,9 @@ class ParamsPublisher:
             raise ValueError(f"version {version} after {self.version}: subscribers ignore versions that do not grow")
         started = time.perf_counter()
         frames = encode_params(version, params)
-        if (key := _signer(self._token, self.stream).key) is not None:
+        if keys := _signer(self._token, self.stream).keys:
             signing = time.perf_counter()
-            frames.append(_mac(key, frames))
+            frames.append(_sign(keys, frames))
             self.mac_seconds += time.perf_counter() - signing
         self._send(frames)
         self.version, self._frames = version, frames
@@ -435,14 +444,15 @@ class ParamsSubscriber:
         address: str,
         expected: ParamsSpec,
         *,
-        token: bytes | None = None,
+        token: Token = None,
         stream: StreamKey | None = None,
         rcvhwm: int = 2,
         context: zmq.Context | None = None,
     ) -> None:
         self.address = address
         self._spec = _normalise_spec(expected)
-        self._signer = _signer(token, stream)
+        token_keys(token)
+        self._token, self._stream = token, stream
         self._socket = (context or zmq.Context.instance()).socket(zmq.SUB)
         self._socket.setsockopt(zmq.LINGER, 0)
         self._socket.setsockopt(zmq.RCVHWM, rcvhwm)
@@ -466,7 +476,7 @@ class ParamsSubscriber:
                 break
             self.received += 1
             try:
-                message = _read_message(frames, self._signer)
+                message = _read_message(frames, _signer(self._token, self._stream))
             except ParamsError as e:
                 self._reject(e)
                 continue

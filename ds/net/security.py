@@ -35,25 +35,25 @@ docs/security.md section 3 give each a DNS SAN).
 
 from __future__ import annotations
 
-import collections
 import functools
-import hashlib
 import hmac
 import ipaddress
 import logging
-import os
-import secrets
-import ssl
 from collections.abc import Callable, Mapping, Sequence
 from concurrent import futures
-from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any
 
 import grpc
 
-from algorithm.config.load import ConfigError
-from algorithm.config.schema import NetConfig
+from ds.net.channels import CLIENT_LINK_OPTIONS, open_channel
+from ds.net.credentials import (
+    NO_CREDENTIALS,
+    Credentials,
+    bearer,
+    check_server_credentials,
+    load_credentials,
+    write_token_file,
+)
 
 log = logging.getLogger("asac.security")
 
@@ -63,100 +63,10 @@ Callers = Mapping[str, frozenset[str]]
 """Per service: rpc name -> the roles whose certificates may call it (under mutual TLS)."""
 
 HEALTH_PREFIX = "/grpc.health.v1.Health/"
-_BEARER_LABEL = b"asac grpc bearer"
 _TOKEN_HINT = "every role of a run must name the same secret in net_config.token_file"
 _REMEDY = "net_config.token_file and/or TLS (--tls_cert, --tls_key, --tls_ca)"
 _SET_TOKEN = ("set --override net.token_file=FILE on every role of the run (FILE: a secret only they can read, "
               "e.g. `openssl rand -hex 32 > FILE; chmod 600 FILE`; docs/security.md section 2)")  # fmt: skip
-
-
-@dataclass(frozen=True)
-class Credentials:
-    """What this process proves and trusts: the run's shared ``token``, and PEM bytes of its own
-    certificate ``cert`` and ``key`` and of the ``ca`` it trusts. All None: plaintext, no token.
-    The secrets stay out of ``repr`` (logs, tracebacks)."""
-
-    token: bytes | None = field(default=None, repr=False)
-    cert: bytes | None = None
-    key: bytes | None = field(default=None, repr=False)
-    ca: bytes | None = None
-
-    @property
-    def tls(self) -> bool:
-        """Whether channels and (with a certificate) servers speak TLS."""
-        return self.cert is not None or self.ca is not None
-
-    @property
-    def mutual(self) -> bool:
-        """Whether this process's servers require client certificates (and check roles)."""
-        return self.cert is not None and self.ca is not None
-
-    @property
-    def secured(self) -> bool:
-        """Whether a server with these credentials refuses strangers (token or TLS)."""
-        return self.token is not None or self.tls
-
-
-NO_CREDENTIALS = Credentials()
-
-
-def bearer(token: bytes) -> str:
-    """The value rpcs carry for ``token``: derived from it, so that the token itself never travels."""
-    return hmac.new(token, _BEARER_LABEL, hashlib.sha256).hexdigest()
-
-
-# ---------------------------------------------------------------------- loading
-
-
-def load_credentials(net: NetConfig) -> Credentials:
-    """Read and check ``net.token_file``, ``net.tls_cert``, ``net.tls_key`` and ``net.tls_ca``:
-    a file that cannot be read, an empty token, a file that is not PEM, a key that is not the
-    certificate's (or is encrypted), a certificate without its key: :class:`ConfigError` naming the
-    key and the path, before anything starts."""
-    token = _read("token_file", net.token_file)
-    if token is not None:
-        token = token.strip()
-        if not token:
-            raise ConfigError(f"net_config.token_file: {net.token_file!r} is empty; put the run's shared secret in it")
-    if (net.tls_cert is None) != (net.tls_key is None):
-        given, missing = ("tls_cert", "tls_key") if net.tls_key is None else ("tls_key", "tls_cert")
-        raise ConfigError(f"net_config.{given} needs net_config.{missing} (--{missing}): a certificate and its key")
-    cert, key, ca = _read("tls_cert", net.tls_cert), _read("tls_key", net.tls_key), _read("tls_ca", net.tls_ca)
-    context = ssl.SSLContext(ssl.PROTOCOL_TLS_CLIENT)
-    if net.tls_ca is not None:
-        _pem("tls_ca", net.tls_ca, ca, b"CERTIFICATE")
-        try:
-            context.load_verify_locations(cadata=(ca or b"").decode("ascii", "replace"))
-        except ssl.SSLError as e:
-            raise ConfigError(f"net_config.tls_ca: {net.tls_ca!r} holds no usable CA certificate ({e})") from None
-    if net.tls_cert is not None and net.tls_key is not None:
-        _pem("tls_cert", net.tls_cert, cert, b"CERTIFICATE")
-        _pem("tls_key", net.tls_key, key, b"PRIVATE KEY")
-
-        def encrypted() -> bytes:
-            raise ConfigError(f"net_config.tls_key: {net.tls_key!r} is encrypted; gRPC needs the key unencrypted")
-
-        try:
-            context.load_cert_chain(net.tls_cert, net.tls_key, password=encrypted)
-        except ssl.SSLError as e:
-            raise ConfigError(
-                f"net_config.tls_key: {net.tls_key!r} is not the key of net_config.tls_cert {net.tls_cert!r} ({e})"
-            ) from None
-    return Credentials(token, cert, key, ca)
-
-
-def write_token_file(path: Path) -> bytes:
-    """A fresh random token (64 hex digits) in a new file ``path`` that only its owner may read or
-    write (mode 0600, whatever the umask; a file already there is replaced, not reused); returns it.
-    What ``main_ds.py local`` does when no ``net_config.token_file`` is given."""
-    token = secrets.token_hex(32).encode()
-    path.unlink(missing_ok=True)
-    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW, 0o600)
-    try:
-        os.write(fd, token + b"\n")
-    finally:
-        os.close(fd)
-    return token
 
 
 def warn_without_token(role: str, credentials: Credentials) -> bool:
@@ -174,30 +84,15 @@ def warn_without_token(role: str, credentials: Credentials) -> bool:
     return True
 
 
-def _read(name: str, path: str | None) -> bytes | None:
-    if path is None:
-        return None
-    try:
-        return Path(path).read_bytes()
-    except OSError as e:
-        raise ConfigError(f"net_config.{name}: cannot read {path!r} ({e.strerror})") from None
-
-
-def _pem(name: str, path: str, data: bytes | None, kind: bytes) -> None:
-    if data is None or b"-----BEGIN " not in data or kind + b"-----" not in data:
-        raise ConfigError(f"net_config.{name}: {path!r} is not a PEM file with a {kind.decode().lower()}")
-
-
-def check_server_credentials(credentials: Credentials, what: str) -> None:
-    """A process that serves gRPC and trusts a CA needs its own certificate to speak TLS."""
-    if credentials.ca is not None and credentials.cert is None:
-        raise ConfigError(
-            f"net_config.tls_ca is set but tls_cert/tls_key are not: the {what} serves gRPC and needs its own "
-            "certificate and key (--tls_cert, --tls_key) to speak TLS"
-        )
-
-
 # ---------------------------------------------------------------------- servers
+
+SERVER_KEEPALIVE_OPTIONS = [
+    ("grpc.keepalive_permit_without_calls", 1),
+    ("grpc.http2.min_recv_ping_interval_without_data_ms", 5_000),
+    ("grpc.http2.max_ping_strikes", 0),
+]
+"""A server takes a client's keepalive pings (``CLIENT_LINK_OPTIONS``, ds/net/channels.py) every 10 s, with or
+without calls in flight; by default it would answer pings more often than every 5 minutes with GOAWAY."""
 
 
 def new_server(
@@ -231,12 +126,7 @@ def listen(
     host is not loopback and the server has neither token nor TLS."""
     check_server_credentials(credentials, what)
     if credentials.cert is not None and credentials.key is not None:
-        tls = grpc.ssl_server_credentials(
-            [(credentials.key, credentials.cert)],
-            root_certificates=credentials.ca,
-            require_client_auth=credentials.ca is not None,
-        )
-        port = server.add_secure_port(address, tls)
+        port = server.add_secure_port(address, _server_tls(credentials))
     else:
         port = server.add_insecure_port(address)
     host = address.rsplit(":", 1)[0]
@@ -245,6 +135,27 @@ def listen(
     if not warn_if_exposed(host, f"{what} on {address}", credentials.secured):
         log.info("%s on %s: %s", what, address, describe(credentials))
     return port
+
+
+def _server_tls(credentials: Credentials) -> grpc.ServerCredentials:
+    """TLS that presents the certificate and trusts the CA of the files now at each handshake
+    (ds/net/credentials.py: rotated files are taken up without a restart)."""
+
+    def configuration(tls: Any) -> Any:
+        return grpc.ssl_server_certificate_configuration([(tls.key, tls.cert)], root_certificates=tls.ca)
+
+    served = [credentials.tls_generation()]
+
+    def fetch() -> Any:  # gRPC asks before each handshake; None keeps the configuration it has
+        generation = credentials.tls_generation()
+        if generation == served[0]:
+            return None
+        served[0] = generation
+        return configuration(credentials.tls_now())
+
+    return grpc.dynamic_ssl_server_credentials(
+        configuration(credentials.tls_now()), fetch, require_client_authentication=credentials.ca is not None
+    )
 
 
 def describe(credentials: Credentials) -> str:
@@ -289,7 +200,7 @@ class _Guard(grpc.ServerInterceptor):
     def __init__(self, service: str, callers: Callers, credentials: Credentials) -> None:
         self._prefix = f"/{service}/"
         self._callers = dict(callers)
-        self._bearer = None if credentials.token is None else f"Bearer {bearer(credentials.token)}".encode()
+        self._token = credentials.token
         self._tls = credentials.cert is not None
         self._mutual = credentials.mutual
 
@@ -302,7 +213,7 @@ class _Guard(grpc.ServerInterceptor):
         method = details.method
         if handler is None or method.startswith(HEALTH_PREFIX):
             return handler
-        if self._bearer is not None and not self._bearer_matches(details.invocation_metadata):
+        if self._token is not None and not self._bearer_matches(details.invocation_metadata):
             # Refused before its request is even parsed.
             message = f"{method}: missing or wrong token; {_TOKEN_HINT}"
             return _refusal(handler, grpc.StatusCode.UNAUTHENTICATED, message)
@@ -314,11 +225,15 @@ class _Guard(grpc.ServerInterceptor):
         return _checked(handler, functools.partial(self._authorise, method, allowed))
 
     def _bearer_matches(self, metadata: Sequence[tuple[str, str | bytes]] | None) -> bool:
-        assert self._bearer is not None
+        """Whether any ``authorization`` entry is the bearer key of any token accepted now (a client
+        sends one per token of its own file: ds/net/credentials.py, rotation)."""
+        assert self._token is not None
+        accepted = [f"Bearer {key}".encode() for key in self._token.bearers()]
         for key, value in metadata or ():
             if key == "authorization":
                 got = value if isinstance(value, bytes) else value.encode("utf-8", "surrogateescape")
-                return hmac.compare_digest(got, self._bearer)
+                if any(hmac.compare_digest(got, want) for want in accepted):
+                    return True
         return False
 
     def _authorise(self, method: str, allowed: frozenset[str], context: grpc.ServicerContext) -> None:
@@ -377,103 +292,9 @@ def _checked(handler: grpc.RpcMethodHandler, check: Callable[[grpc.ServicerConte
     return handler._replace(**{kind: run})
 
 
-# ---------------------------------------------------------------------- clients
-
-
-CLIENT_LINK_OPTIONS = [
-    ("grpc.initial_reconnect_backoff_ms", 200),
-    ("grpc.max_reconnect_backoff_ms", 2000),
-    ("grpc.keepalive_time_ms", 10_000),
-    ("grpc.keepalive_timeout_ms", 5_000),
-    ("grpc.keepalive_permit_without_calls", 1),
-    ("grpc.http2.max_pings_without_data", 0),
-    ("grpc.dns_min_time_between_resolutions_ms", 2000),
-]
-"""How a channel finds a peer that is not there and comes back to it. Reconnects: gRPC's defaults (1 s,
-growing by 1.6x to 120 s) leave a role that started before its peer connecting 5-10 s after the peer
-is serving (measured), and calls fail fast while the channel waits out that backoff; a connect attempt
-every 2 s at most costs nothing and matches the 2 s cap of :func:`ds.net.rpc.wait_until_serving`. A
-connect attempt itself may take gRPC's default 20 s ("min reconnect backoff"): set to 2 s it let a
-partitioned link come back 4-6 s after the heal instead of ~10 s, but a TLS channel to a learner
-that had just started then never completed its handshake (a local run with mutual TLS stalled), so
-it is left as it is. Keepalive: across a partition (packets dropped, no reset) a connection looks
-alive to both ends and, once the link heals, resumes only at TCP's next retransmission, tens of
-seconds later; a ping every 10 s, unanswered for 5 s, closes it, and the channel reconnects. Servers accept
-these pings (:data:`SERVER_KEEPALIVE_OPTIONS`). A name is looked up again at most every 2 s (30 s by
-default) when its address stops answering: a peer rescheduled behind a Kubernetes Service name is
-found at its new address within seconds of serving there."""
-
-SERVER_KEEPALIVE_OPTIONS = [
-    ("grpc.keepalive_permit_without_calls", 1),
-    ("grpc.http2.min_recv_ping_interval_without_data_ms", 5_000),
-    ("grpc.http2.max_ping_strikes", 0),
-]
-"""A server takes a client's keepalive pings (:data:`CLIENT_LINK_OPTIONS`) every 10 s, with or without calls
-in flight; by default it would answer pings more often than every 5 minutes with GOAWAY."""
-
-
-def open_channel(address: str, role: str, credentials: Credentials, options: Sequence[tuple[str, Any]]) -> grpc.Channel:
-    """A channel to the ``role`` server at ``address``: TLS when ``credentials`` have a CA or a
-    certificate (accepting only a server certificate that names ``role``; presenting this process's
-    certificate when the server asks), carrying the token's bearer key on every call when there is one.
-    A peer that is down is retried every 2 s at most (:data:`CLIENT_LINK_OPTIONS`)."""
-    options = [*CLIENT_LINK_OPTIONS, *options]
-    if credentials.tls:
-        tls = grpc.ssl_channel_credentials(credentials.ca, credentials.key, credentials.cert)
-        channel = grpc.secure_channel(address, tls, options=[*options, ("grpc.ssl_target_name_override", role)])
-    else:
-        channel = grpc.insecure_channel(address, options=list(options))
-    if credentials.token is None:
-        return channel
-    return grpc.intercept_channel(channel, _BearerInterceptor(bearer(credentials.token)))
-
-
-class _CallDetails(
-    collections.namedtuple(
-        "_CallDetails", ["method", "timeout", "metadata", "credentials", "wait_for_ready", "compression"]
-    ),
-    grpc.ClientCallDetails,
-):
-    """A call's details with our metadata added (grpc.ClientCallDetails is abstract)."""
-
-
-class _BearerInterceptor(
-    grpc.UnaryUnaryClientInterceptor,
-    grpc.UnaryStreamClientInterceptor,
-    grpc.StreamUnaryClientInterceptor,
-    grpc.StreamStreamClientInterceptor,
-):
-    """Adds ``authorization: Bearer <key>`` to every call (blocking, ``.future()`` and streaming)."""
-
-    def __init__(self, key: str) -> None:
-        self._metadata = ("authorization", f"Bearer {key}")
-
-    def _with_bearer(self, details: grpc.ClientCallDetails) -> grpc.ClientCallDetails:
-        metadata = [*(details.metadata or ()), self._metadata]
-        return _CallDetails(
-            details.method,
-            details.timeout,
-            metadata,
-            details.credentials,
-            getattr(details, "wait_for_ready", None),
-            getattr(details, "compression", None),
-        )
-
-    def intercept_unary_unary(self, continuation: Any, client_call_details: Any, request: Any) -> Any:
-        return continuation(self._with_bearer(client_call_details), request)
-
-    def intercept_unary_stream(self, continuation: Any, client_call_details: Any, request: Any) -> Any:
-        return continuation(self._with_bearer(client_call_details), request)
-
-    def intercept_stream_unary(self, continuation: Any, client_call_details: Any, request_iterator: Any) -> Any:
-        return continuation(self._with_bearer(client_call_details), request_iterator)
-
-    def intercept_stream_stream(self, continuation: Any, client_call_details: Any, request_iterator: Any) -> Any:
-        return continuation(self._with_bearer(client_call_details), request_iterator)
-
-
 __all__ = [
     "ACTOR",
+    "CLIENT_LINK_OPTIONS",
     "EVOLVER",
     "HEALTH_PREFIX",
     "LEARNER",

@@ -22,11 +22,12 @@ def material(tmp_path_factory: pytest.TempPathFactory) -> Material:
 
 @pytest.fixture
 def servers(tmp_path: Path) -> Iterator[Callable[..., Served]]:
-    """``servers(role, credentials, health_port=None) -> Served``: real servers, every one stopped after the test."""
+    """``servers(role, credentials, health_port=None, port=0) -> Served``: real servers, every one stopped after
+    the test."""
     started: list[Served] = []
 
-    def start(role: str, credentials: Credentials, health_port: int | None = None) -> Served:
-        started.append(serve(role, credentials, tmp_path, health_port))
+    def start(role: str, credentials: Credentials, health_port: int | None = None, port: int = 0) -> Served:
+        started.append(serve(role, credentials, tmp_path, health_port, port))
         return started[-1]
 
     yield start

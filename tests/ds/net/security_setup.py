@@ -95,11 +95,12 @@ class Served:
         return f"127.0.0.1:{self.port}"
 
 
-def serve(role: str, credentials: Credentials, tmp_path: Path, health_port: int | None = None) -> Served:
-    """A real server of ``role`` on loopback with ``credentials`` (its own certificate decides who it is)."""
+def serve(role: str, credentials: Credentials, tmp_path: Path, health_port: int | None = None, port: int = 0) -> Served:
+    """A real server of ``role`` on loopback with ``credentials`` (its own certificate decides who it is);
+    ``port`` (0: a free one) for the replay only."""
     if role == "replay":
         table = PrioritizedTable(100, (VECTOR,), 2, window=2, alpha=0.6, seed=0)
-        server, port = serve_replay(table, "127.0.0.1:0", credentials=credentials, health_port=health_port)
+        server, port = serve_replay(table, f"127.0.0.1:{port}", credentials=credentials, health_port=health_port)
         return Served(role, port, health_port, lambda: server.stop(None))
     if role == "learner":
         store = ParamsStore()
