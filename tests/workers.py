@@ -47,6 +47,7 @@ SERIAL: dict[str, tuple[str, ...]] = {
         "tests/test_cross_host.py",
         "tests/test_partitions.py",
         "tests/test_slow_links.py",
+        "tests/test_rotation.py",
         "tests/test_token_by_default.py",
         "tests/test_main_ds.py::test_replay_learner_and_two_actors_learn_pendulum",
         "tests/test_main_ds.py::test_roles_started_by_hand_without_a_name_share_one_run_and_the_same_commands_resume_it",

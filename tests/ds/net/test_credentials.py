@@ -67,7 +67,9 @@ def test_a_token_file_is_read_again_when_it_changes_and_a_bad_change_keeps_the_l
     assert "second" not in repr(keyring), "tokens stay out of repr"
 
 
-def test_a_token_rotates_in_two_steps_while_one_channel_keeps_calling(servers: Callable[..., Served], tmp_path: Path) -> None:
+def test_a_token_rotates_in_two_steps_while_one_channel_keeps_calling(
+    servers: Callable[..., Served], tmp_path: Path
+) -> None:
     server_file, client_file = tmp_path / "server-token", tmp_path / "client-token"
     replace_file(server_file, b"old\n")
     replace_file(client_file, b"old\n")
