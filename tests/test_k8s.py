@@ -367,11 +367,13 @@ def test_overlays_have_the_sizes_they_promise(render: Any) -> None:
 
 
 def test_token_component_names_the_mounted_secret(render: Any) -> None:
+    """The Secret is mounted as a folder, without subPath (a subPath mount never sees the Secret's
+    updates, and the token rotates without a restart: ds/net/credentials.py)."""
     for c in asac_containers(render("smoke+token")):
-        assert c.config.net_config.token_file == "/var/run/asac/token"
-        (mount,) = [m for m in c.spec["volumeMounts"] if m["mountPath"] == c.config.net_config.token_file]
+        assert c.config.net_config.token_file == "/var/run/asac/secret/token"
+        (mount,) = [m for m in c.spec["volumeMounts"] if m["mountPath"] == "/var/run/asac/secret"]
         (volume,) = [v for v in c.pod["volumes"] if v["name"] == mount["name"]]
-        assert volume["secret"]["secretName"] == "asac-token" and mount["subPath"] == "token"
+        assert volume["secret"]["secretName"] == "asac-token" and "subPath" not in mount
 
 
 def test_tls_component_gives_each_role_its_own_secret_through_the_tls_flags(render: Any) -> None:

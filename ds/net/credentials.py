@@ -20,7 +20,7 @@ rotation in progress never stops a run.
 A token file may hold several tokens, one per line: a role proves itself with each (one bearer
 key per token on every rpc, one MAC per token on every parameter message) and accepts any. So a
 token is rotated by adding the new one as a second line on every role, then removing the old one:
-at every moment of either step any two roles share a token (docs/security.md section 5). TLS:
+at every moment of either step any two roles share a token (docs/security.md section 8). TLS:
 servers present the certificate and trust the CA of the files now at each new handshake; clients
 open new connections with them (ds/net/channels.py). A CA rollover is the same two steps with the CA
 file: both CAs (one PEM file holding both certificates), then the new one alone.
