@@ -9,9 +9,8 @@ Replay, learner and actor each run in a Linux network namespace of their own (te
 hits all alike:
 
 - ``perfect``: the bare veth bridge;
-- ``50ms``: the actor reaches replay and learner through relays that hold every byte 25 ms each way
-  (tests/relay.py; the kernel here has no netem). The weights stream (ZeroMQ, to the address the
-  learner announces) does not go through a relay: staleness here is the inserts' and heartbeats' part;
+- ``50ms``: the actor reaches replay and learner, and the learner's weights stream (ZeroMQ), through
+  relays that hold every byte 25 ms each way (tests/relay.py; the kernel here has no netem);
 - ``50ms+1%``: also 1% of the actor's TCP packets dropped at random, each way (nftables);
 - ``50ms+1%+20mbit``: also the actor's sending side capped at 20 Mbit/s (``tc ... tbf``).
 
@@ -47,6 +46,7 @@ FIELDS = ["task", "condition", "round", "seconds", "env_steps_per_s", "ratio_to_
 CONDITIONS = ("perfect", "50ms", "50ms+1%", "50ms+1%+20mbit")
 OVERRIDES = ["base.n_agents=8", "base.max_step=-1", "replay.samples_per_insert_tolerance=1e15",
              "eval.eval_per_step=0", "sac.seed=0"]  # fmt: skip
+PARAMS_PORT = 61003  # net_config.params_port's default: where the learner publishes its weights
 ENV = {**os.environ, "OMP_WAIT_POLICY": "PASSIVE", "OMP_NUM_THREADS": "1", "GRPC_VERBOSITY": "ERROR"}
 
 
@@ -61,6 +61,10 @@ def actor_links(condition: str, net: dict[str, Host], folder: Path) -> Iterator[
                                                folder / "relay_replay.log"))  # fmt: skip
         learner = stack.enter_context(slow_link(net["actor"], f"{net['learner'].address}:61001", 25.0,
                                                 folder / "relay_learner.log"))  # fmt: skip
+        # The weights stream: the actor connects to the learner's host as it knows it (here the relays'
+        # 127.0.0.1) at the port the learner announces (61003), so a relay listens there too.
+        stack.enter_context(slow_link(net["actor"], f"{net['learner'].address}:{PARAMS_PORT}", 25.0,
+                                      folder / "relay_params.log", port=PARAMS_PORT))  # fmt: skip
         if "1%" in condition:
             stack.enter_context(lossy(net["actor"], 1))
         if "20mbit" in condition:

@@ -55,14 +55,16 @@ class InsertRequest(_message.Message):
     def __init__(self, chunks: _Optional[_Iterable[_Union[Chunk, _Mapping]]] = ..., timeout_s: _Optional[float] = ..., producer: _Optional[int] = ..., sequence: _Optional[_Iterable[int]] = ..., acked_below: _Optional[int] = ..., producer_stopping: _Optional[bool] = ...) -> None: ...
 
 class InsertReply(_message.Message):
-    __slots__ = ("keys", "duplicate", "inserted_steps")
+    __slots__ = ("keys", "duplicate", "inserted_steps", "served_s")
     KEYS_FIELD_NUMBER: _ClassVar[int]
     DUPLICATE_FIELD_NUMBER: _ClassVar[int]
     INSERTED_STEPS_FIELD_NUMBER: _ClassVar[int]
+    SERVED_S_FIELD_NUMBER: _ClassVar[int]
     keys: _containers.RepeatedCompositeFieldContainer[Tensor]
     duplicate: _containers.RepeatedScalarFieldContainer[bool]
     inserted_steps: int
-    def __init__(self, keys: _Optional[_Iterable[_Union[Tensor, _Mapping]]] = ..., duplicate: _Optional[_Iterable[bool]] = ..., inserted_steps: _Optional[int] = ...) -> None: ...
+    served_s: float
+    def __init__(self, keys: _Optional[_Iterable[_Union[Tensor, _Mapping]]] = ..., duplicate: _Optional[_Iterable[bool]] = ..., inserted_steps: _Optional[int] = ..., served_s: _Optional[float] = ...) -> None: ...
 
 class SampleRequest(_message.Message):
     __slots__ = ("batch_size", "timeout_s", "batches")

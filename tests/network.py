@@ -159,11 +159,12 @@ def names(clients: Sequence[Host]) -> Iterator[Callable[[str, Host], None]]:
 
 
 @contextmanager
-def slow_link(host: Host, to: str, delay_ms: float, log: Path) -> Iterator[str]:
+def slow_link(host: Host, to: str, delay_ms: float, log: Path, port: int | None = None) -> Iterator[str]:
     """A relay inside ``host`` (tests/relay.py) that holds every byte ``delay_ms`` each way on its way to
-    ``to`` (``ADDRESS:PORT``); yields the ``127.0.0.1:PORT`` a process in ``host`` calls instead. The
-    relay is stopped on exit."""
-    listen = f"127.0.0.1:{40000 + int(to.rsplit(':', 1)[1]) % 20000}"  # the namespace's own loopback: its ports
+    ``to`` (``ADDRESS:PORT``); yields the ``127.0.0.1:PORT`` a process in ``host`` calls instead (``port``:
+    that port, e.g. the one a peer announces; else one derived from ``to``'s). The relay is stopped on exit."""
+    port = 40000 + int(to.rsplit(":", 1)[1]) % 20000 if port is None else port
+    listen = f"127.0.0.1:{port}"  # the namespace's own loopback: its ports
     command = ["ip", "netns", "exec", host.namespace, sys.executable, "-m", "tests.relay", "--listen", listen,
                "--to", to, "--delay-ms", str(delay_ms)]  # fmt: skip
     with log.open("wb") as out:

@@ -200,3 +200,82 @@ def test_a_replay_rescheduled_at_another_address_behind_its_name_is_found_again_
         else:
             print(f"{name} -> replay: back within {BLIP_S:.0f} s (a blip: nothing logged)")
     nothing_lost(text, replay="replay2")
+
+
+POPULATION = [*TINY, "--override", "sac.seed=0", "--override", "base.max_step=-1", "--override",
+              "base.evolver_cem_length=2", "--override", "base.evolver_cem_min_length=1"]  # fmt: skip
+
+
+def test_an_evolver_cut_off_from_its_learners_for_30_s_finds_them_again_and_the_population_goes_on(
+    tmp_path: Path,
+) -> None:
+    """A population of two learners, each with its replay and an actor, on one host, and the evolver on
+    another; for 30 s every packet between the two hosts is dropped once a CEM round has run. No role
+    exits: the learners train on (their returns wait), replays and actors work on for their learners,
+    each says once that the evolver is unreachable and once that it is back; the evolver takes the
+    learners back under their ids and runs the next round with both; nothing the actors collected is lost."""
+    skip_unless(nft_available())
+    pod_roles = ("replay-0", "replay-1", "learner-0", "learner-1", "actor-0", "actor-1")
+    logs = {name: tmp_path / f"{name}.log" for name in ("evolver", *pod_roles)}
+    with hosts(["evolver", "pod"]) as net:
+        evolver, pod = net["evolver"], net["pod"]
+        common = ["-n", "population", *POPULATION, "--evolver_host", evolver.address, "--evolver_port", "62000"]
+        evolver_args = [*common, "--override", "base.evolver_enabled=true"]
+        procs = {"evolver": start_role(evolver, tmp_path / "evolver", "evolver", "gym/pendulum", evolver_args, ENV,
+                                       logs["evolver"])}  # fmt: skip
+        ports = {"replay": lambda k: ["--replay_host", pod.address, "--replay_port", str(62010 + k)],
+                 "learner": lambda k: ["--learner_host", pod.address, "--learner_port", str(62020 + k), "--override",
+                                       "net.params_port=0"], "actor": lambda k: []}  # fmt: skip
+
+        def start(name: str) -> None:
+            role, k = name.split("-")
+            args = [*common, *ports[role](int(k))]
+            procs[name] = start_role(pod, tmp_path / "pod", role, "gym/pendulum", args, ENV, logs[name])
+
+        try:
+            for name in ("replay-0", "replay-1", "learner-0", "learner-1"):
+                start(name)
+            for k in range(2):  # actors start once both learners have their replays: the evolver spreads them
+                wait_for(logs[f"replay-{k}"], r"serves learner \d", 120, procs[f"replay-{k}"])
+                wait_for(logs[f"learner-{k}"], r"learner \d+ of 'population' in ", 120, procs[f"learner-{k}"])
+            for name in ("actor-0", "actor-1"):
+                start(name)
+            wait_for(logs["evolver"], r"CEM round 1: ", 300, procs["evolver"])
+            with partition(evolver, [pod]):
+                time.sleep(CUT_S)
+            healed = datetime.now()
+            deadline = time.monotonic() + 180
+            while not re.search(r"CEM round \d+: .*sat out \[\]", after(logs["evolver"], healed)):
+                for name, proc in procs.items():
+                    assert proc.poll() is None, f"{name} exited\n{logs[name].read_text()[-3000:]}"
+                assert time.monotonic() < deadline, (
+                    f"no round with both learners after the heal\n{logs['evolver'].read_text()[-3000:]}"
+                )
+                time.sleep(1.0)
+        finally:
+            for name in ("learner-0", "learner-1", "actor-0", "actor-1", "replay-0", "replay-1", "evolver"):
+                if name in procs and procs[name].poll() is None:
+                    procs[name].send_signal(signal.SIGINT)
+                    try:
+                        procs[name].wait(timeout=60)
+                    except subprocess.TimeoutExpired:
+                        procs[name].kill()
+    text = {name: log.read_text() for name, log in logs.items()}
+    for name, proc in procs.items():  # each stopped by its SIGINT (130), none on its own before
+        assert proc.wait(timeout=10) == 130, text[name][-3000:]
+        assert "Traceback" not in text[name], text[name][-3000:]
+    link_to_evolver = re.escape(f"evolver at {evolver.address}:62000")
+    for name in pod_roles:
+        back_soon(text[name], f"{name} -> evolver", link_to_evolver, healed, f"a {CUT_S:.0f} s cut healed")
+    for k in range(2):
+        assert len(re.findall(r"learner \d+ of 'population' in ", text[f"learner-{k}"])) == 1, "joined once, no new id"
+    collected = sum(
+        int(n) for k in range(2) for n in re.findall(r"actor \d+ stopped after (\d+) env steps", text[f"actor-{k}"])
+    )
+    stored = sum(
+        int(n)
+        for k in range(2)
+        for n in re.findall(r"env steps inserted over the run", text[f"replay-{k}"])
+        and re.findall(r"replay saved to \S+: (\d+) env steps inserted over the run", text[f"replay-{k}"])
+    )
+    assert collected == stored and collected > 0, (collected, stored)

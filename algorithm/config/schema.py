@@ -360,7 +360,8 @@ class ActorConfig(Section):
     inserts_in_flight: int = Field(
         1,
         ge=1,
-        description="Distributed actors: insert requests on their way to the replay while the actor steps on. "
+        description="Distributed actors: insert requests on their way to the replay while the actor steps on "
+        "(at least; on a link whose round trip is longer than filling a request, up to 8, ds/actor/sink.py). "
         "With chunks_per_insert, bounds what an actor holds when the replay holds it back: "
         "(inserts_in_flight + 1) * chunks_per_insert chunks, which is how stale its data can get. 1: Pendulum "
         "through local --actors 2 reached -200 in a median 2,056 env steps on seeds 0-4 against 2,784 with 2, at "

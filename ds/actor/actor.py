@@ -252,6 +252,8 @@ class DistributedActor:
             "actor/params_rejected": float(self.params_rejected),
             "actor/nonfinite_steps": float(0 if self.loop is None else self.loop.nonfinite_steps),
             "actor/insert_backlog": float(sink.backlog()),
+            "actor/inserts_in_flight": float(sink.in_flight),
+            "actor/insert_link_ms": 1e3 * sink.link_s,
             "actor/unsent_steps": float(sink.unsent_steps),
             "time/env_steps_per_second": steps_per_s,
             **self.staleness.take(),

@@ -33,6 +33,11 @@ from ds.replay.client import PendingInsert, ReplayClient, ReplayRpcError
 from ds.replay.codec import chunk_payload_bytes
 
 log = logging.getLogger("asac.actor")
+SLOW_LINK_S = 0.010
+"""A link whose inserts spend longer than this on the wire (round trip less the replay's time) is slow: more
+inserts go out at once on it (:meth:`ReplaySink._pace`). Loopback and a LAN stay well below it."""
+MAX_IN_FLIGHT = 8
+"""The most inserts a sink keeps on their way, on a link slow enough to need them (:meth:`ReplaySink._pace`)."""
 KEEPING = "the actor keeps its chunks, stops stepping once it holds its backlog, and sends them again"
 
 
@@ -68,6 +73,16 @@ class ReplaySink:
     :meth:`flush`, which waits for everything on its way. Chunks may be stored out of order after a
     retry; each is self-contained (no window spans two chunks), so order does not matter.
 
+    On a slow link (over :data:`SLOW_LINK_S`, and longer than the actor takes to fill a request) one insert in flight
+    would leave each chunk waiting for another's answer, and the actor waiting with it: so the sink
+    keeps as many on their way as one round trip of the link takes to fill, ``1 + link / fill``,
+    never fewer than ``in_flight`` nor more than :data:`MAX_IN_FLIGHT` (:meth:`_pace`). The link's
+    time is the round trip less the replay's own time on the request (``InsertReply.served_s``, which
+    includes waiting in the rate limiter); while the replay's time is the longer (its rate limiter
+    holds inserts back) it stays at ``in_flight``: more would only wait there, each taking a worker.
+    Through 50 ms round trips this kept an actor's env steps/s where one in flight lost half of them
+    (bench/network_links.py).
+
     Delivery is at least once and storage at most once: every chunk gets a sequence number under
     this sink's random ``producer`` id when handed in and keeps it on every resend, so a chunk that
     was stored although its reply was lost is answered as a duplicate (counted in ``duplicates``)
@@ -96,7 +111,8 @@ class ReplaySink:
         self.between = between
         self.waiting = waiting  # called every 50 ms while an insert is waited for (new weights come in)
         self.timeout_s = timeout_s
-        self.in_flight = in_flight
+        self.in_flight = in_flight  # now: grows on a slow link (_pace)
+        self.configured_in_flight = in_flight
         self.max_chunks_per_insert = max_chunks_per_insert
         self.max_backoff_s = max_backoff_s
         self.last_try_wait_s = last_try_wait_s
@@ -120,13 +136,26 @@ class ReplaySink:
         self._acknowledged = 0  # every number below it acknowledged to the replay
         self._log = Throttle()
         self._replay_link = Outage(f"replay at {getattr(replay, 'address', 'in process')}", log, BLIP_S)
+        self.link_s = 0.0  # the link's part of an insert's round trip (moving average)
+        self.served_s = 0.0  # the replay's part, waiting in its rate limiter included (moving average)
+        self._chunk_s: float | None = None  # the actor's time to make one chunk, outside this sink (moving average)
+        self._returned_at: float | None = None
 
     @property
     def max_backlog(self) -> int:
-        """The most chunks this sink holds while not stopping (see the class docstring)."""
-        return (self.in_flight + 1) * self.max_chunks_per_insert
+        """The most chunks this sink holds now while not stopping (see the class docstring): at most
+        ``(MAX_IN_FLIGHT + 1) * max_chunks_per_insert``, on a slow link."""
+        return (max(self.in_flight, len(self._pending)) + 1) * self.max_chunks_per_insert
 
     def __call__(self, chunk: Chunk) -> None:
+        if self._returned_at is not None:  # chunks come in bursts (one per env): a slow average evens them out
+            self._chunk_s = _average(self._chunk_s, time.monotonic() - self._returned_at, 0.05)
+        try:
+            self._take(chunk)
+        finally:
+            self._returned_at = time.monotonic()
+
+    def _take(self, chunk: Chunk) -> None:
         self._queued.append((self._next_seq, chunk))
         self._next_seq += 1
         while True:
@@ -234,6 +263,7 @@ class ReplaySink:
                 time.sleep(self._backoff)
         else:
             self._replay_link.ok()
+            self._pace(pending)
             self.duplicates += sum(inserted.duplicate)
             self.inserted_steps += pending.steps()
             self.replay_inserted_steps = max(self.replay_inserted_steps, inserted.inserted_steps)
@@ -250,9 +280,29 @@ class ReplaySink:
         self._send(pending.ids.seqs, pending.chunks)
         self._pending.rotate(1)
 
+    def _pace(self, answered: PendingInsert) -> None:
+        """Inserts in flight for the link as measured now: as many as the actor fills in one of its
+        round trips, plus the one being filled (class docstring)."""
+        link_s = answered.link_s() if hasattr(answered, "link_s") else None
+        if link_s is None or self._chunk_s is None:
+            return
+        self.link_s = _average(self.link_s or None, link_s, 0.2)
+        self.served_s = _average(self.served_s or None, answered.served_s or 0.0, 0.2)
+        if self.link_s < SLOW_LINK_S or self.served_s > self.link_s:
+            # A fast link (loopback, a LAN), or the replay (its rate limiter) is the slow part: more requests
+            # would only wait there, each taking one of its workers.
+            self.in_flight = self.configured_in_flight
+            return
+        fill_s = max(self._chunk_s * self.max_chunks_per_insert, 1e-6)
+        self.in_flight = min(MAX_IN_FLIGHT, max(self.configured_in_flight, 1 + int(self.link_s / fill_s)))
+
     def _give_up(self, chunks: list[Chunk]) -> None:
         self.unsent_chunks += len(chunks)
         self.unsent_steps += sum(len(chunk) for chunk in chunks)
 
 
-__all__ = ["ReplaySink"]
+def _average(average: float | None, sample: float, weight: float) -> float:
+    return sample if average is None else (1.0 - weight) * average + weight * sample
+
+
+__all__ = ["MAX_IN_FLIGHT", "SLOW_LINK_S", "ReplaySink"]

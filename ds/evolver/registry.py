@@ -21,6 +21,7 @@ at once even while a round runs (the original system ran CEM inside an rpc under
 
 from __future__ import annotations
 
+import logging
 import math
 import threading
 from collections.abc import Callable, Mapping
@@ -50,6 +51,8 @@ from ds.evolver.state import (
 )
 from ds.net.params import Token, encode_params
 
+log = logging.getLogger("asac.evolver")
+
 
 @dataclass(frozen=True)
 class Return:
@@ -70,6 +73,7 @@ class LearnerRegistry:
         self.config = config
         self.experiment = experiment
         self.lease_s = float(lease_s)
+        self._said_gone: set[int] = set()
         self.token = token
         self._clock = clock
         self._lock = threading.Lock()
@@ -240,9 +244,15 @@ class LearnerRegistry:
             return [i for i, e in self.learners.items() if self._live(e)]
 
     def gone(self) -> set[int]:
-        """Learners whose lease ran out (not retired): they sit rounds out."""
+        """Learners whose lease ran out (not retired): they sit rounds out. Each is logged once when
+        first found gone (and once when back: :meth:`reattach`'s caller)."""
         with self._lock:
-            return {i for i, e in self.learners.items() if not e.retired and not self._live(e)}
+            gone = {i for i, e in self.learners.items() if not e.retired and not self._live(e)}
+            for i in sorted(gone - self._said_gone):
+                log.warning("learner %d at %s: not heard from for over %.0f s (its lease); it sits CEM rounds out "
+                            "until it is back. Said once", i, self.learners[i].address, self.lease_s)  # fmt: skip
+            self._said_gone = gone
+            return gone
 
     def address(self, learner_id: int) -> str:
         with self._lock:

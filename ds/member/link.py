@@ -31,6 +31,7 @@ from algorithm.run.logging import Throttle
 from ds.evolver.client import EvolverClient, Sample
 from ds.evolver.state import Instruction, LearnerRetired, UnknownLearner
 from ds.member.population import Joined, register, unreachable
+from ds.net.outage import BLIP_S, Outage
 from ds.net.params import ParamsError, ParamsSpec, Token, encode_params
 from ds.net.rpc import PEER_WARN_AFTER_S
 
@@ -76,6 +77,7 @@ class EvolverLink:
         self._wake = threading.Event()
         self._thread = threading.Thread(target=self._run, name="evolver-link", daemon=True)
         self._log = Throttle()
+        self.evolver_link = Outage(f"evolver at {client.address}", log, BLIP_S)
 
     def start(self) -> None:
         if self.joined.fresh and self.rounds > 0:
@@ -127,15 +129,17 @@ class EvolverLink:
     def _guarded(self, call: Callable[[], None]) -> None:
         try:
             call()
+            self.evolver_link.ok()
         except UnknownLearner:
+            self.evolver_link.ok()  # it answered: the lease ran out meanwhile
             self._guarded(self._rejoin)
         except LearnerRetired as e:
             self._retire(str(e))
         except grpc.RpcError as e:
             if not unreachable(e):
                 log.error("evolver call failed: %s: %s", e.code().name, e.details())
-            elif self._log():
-                log.warning("evolver unreachable (%s); training on, retrying", e.code().name)
+            else:
+                self.evolver_link.failed(e.code().name, "training on; returns wait to be posted")
             self._stop.wait(1.0)
         except ParamsError as e:
             if self._log():

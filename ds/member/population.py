@@ -51,6 +51,7 @@ from ds.evolver.state import (
     UnknownAssignment,
     UnknownLearner,
 )
+from ds.net.outage import BLIP_S, Outage
 from ds.net.rpc import peer_unresponsive
 
 log = logging.getLogger("asac.population")
@@ -276,6 +277,7 @@ class AssignmentKeeper:
         self._closed = threading.Event()
         self._thread = threading.Thread(target=self._run, name="assignment", daemon=True)
         self._log = Throttle()
+        self.evolver_link = Outage(f"evolver at {client.address}", log, BLIP_S)
 
     def start(self) -> None:
         self._thread.start()
@@ -306,12 +308,12 @@ class AssignmentKeeper:
             next_renew = time.monotonic() + self.renew_s
             try:
                 self._renew()
+                self.evolver_link.ok()
             except grpc.RpcError as e:
                 if not unreachable(e):
                     log.error("evolver call failed: %s: %s", e.code().name, e.details())
-                elif self._log():
-                    log.warning("evolver unreachable (%s); working on for learner %d", e.code().name,
-                                self.job.learner_id)  # fmt: skip
+                else:
+                    self.evolver_link.failed(e.code().name, f"working on for learner {self.job.learner_id}")
 
     def _renew(self) -> None:
         job = self.job

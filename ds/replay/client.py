@@ -15,6 +15,7 @@ its docstring lists how every error maps to a gRPC status and back to the except
 from __future__ import annotations
 
 import threading
+import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any, TypeVar
@@ -335,7 +336,21 @@ class PendingInsert:
         self.chunks = chunks
         self.ids = ids
         self.final = False
+        self.sent_at = time.monotonic()
+        self.answered_at: float | None = None
+        self.served_s: float | None = None  # the server's part of the round trip (InsertReply.served_s)
         self._future = future
+        future.add_done_callback(self._answered)
+
+    def _answered(self, _: grpc.Future) -> None:
+        self.answered_at = time.monotonic()
+
+    def link_s(self) -> float | None:
+        """The link's part of this insert's round trip (its whole round trip less the server's time on
+        it, waiting in the rate limiter included), once answered by a server that says its time."""
+        if self.answered_at is None or not self.served_s:
+            return None
+        return max(0.0, self.answered_at - self.sent_at - self.served_s)
 
     def steps(self) -> int:
         return sum(len(c) for c in self.chunks)
@@ -358,6 +373,7 @@ class PendingInsert:
             if e.code() == grpc.StatusCode.DEADLINE_EXCEEDED:
                 raise InsertTimeout(message) from None
             raise _client_error(e.code(), message, 1) from None
+        self.served_s = reply.served_s
         return _inserted(reply, self.chunks, self.ids)
 
 

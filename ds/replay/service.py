@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import errno
 import threading
+import time
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 from pathlib import Path
@@ -120,6 +121,7 @@ class ReplayServicer(replay_pb2_grpc.ReplayServiceServicer):
         self._file_work = FileWork()
 
     def Insert(self, request: replay_pb2.InsertRequest, context: grpc.ServicerContext) -> replay_pb2.InsertReply:
+        started = time.perf_counter()
         with _status_codes(context):
             if not request.chunks and not request.producer:
                 raise WireError("chunks", "is empty: an Insert carries at least one chunk (or, with a producer, none: "
@@ -135,11 +137,12 @@ class ReplayServicer(replay_pb2_grpc.ReplayServiceServicer):
                     keys=[to_tensor(k) for k in inserted.keys],
                     duplicate=inserted.duplicate,
                     inserted_steps=inserted.inserted_steps,
+                    served_s=time.perf_counter() - started,
                 )
             if request.sequence or request.acked_below:
                 raise ValueError("InsertRequest: sequence and acked_below need a producer, but producer is 0")
             keys = self.table.insert_many(chunks, priorities, wait)
-        return replay_pb2.InsertReply(keys=[to_tensor(k) for k in keys])
+        return replay_pb2.InsertReply(keys=[to_tensor(k) for k in keys], served_s=time.perf_counter() - started)
 
     def Sample(self, request: replay_pb2.SampleRequest, context: grpc.ServicerContext) -> replay_pb2.SampleReply:
         spec, b, window = self.specs, request.batch_size, self.table.window

@@ -9,9 +9,11 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import subprocess
+import sys
 import threading
 import time
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from typing import Any
 
 import numpy as np
@@ -19,7 +21,8 @@ import pytest
 
 from algorithm.replay import ChunkIds, Inserted, PrioritizedTable, RateLimiter, SampleTimeout
 from algorithm.types import Chunk
-from ds.actor.sink import ReplaySink
+from ds.actor.sink import MAX_IN_FLIGHT, ReplaySink
+from ds.launch.local import free_port
 from ds.replay.client import ReplayClient
 from ds.replay.service import serve_replay
 from tests.algorithm.replay.chunks import VECTOR, make_chunk
@@ -142,19 +145,22 @@ def test_a_slow_learner_holds_fast_actors_back_within_the_stated_backlog(over_gr
         client, lambda: False, lambda: checks.append(1), timeout_s=0.01, in_flight=2, max_chunks_per_insert=4
     )
     assert sink.max_backlog == (2 + 1) * 4
-    backlog = []
+    backlog, bounds = [], []
     try:
         for i in range(100):
             handed[0] = i + 1
             sink(make_chunk(5, 5 * i))
             backlog.append(sink.backlog())
+            bounds.append(sink.max_backlog)
         sink.flush()
     finally:
         learning.set()
         sampler.join()
     assert sink.insert_waits > 0 and len(checks) >= sink.insert_waits  # held back; between() ran meanwhile
-    assert max(backlog) <= sink.max_backlog - 1  # after a call returns: one chunk less than the bound
-    assert max(table.ages) <= sink.max_backlog
+    # After a call returns: one chunk less than the bound, which stays near in_flight=2's (the rate limiter
+    # is what holds the actor back here, not the link: ds/actor/sink.py _pace).
+    assert all(held <= bound - 1 for held, bound in zip(backlog, bounds, strict=True)), (backlog, bounds)
+    assert max(table.ages) <= max(bounds) <= (MAX_IN_FLIGHT + 1) * 4
     info = table.info()
     assert (info["inserted_chunks"], info["inserted_steps"], sink.inserted_steps) == (100, 500, 500)
     assert sink.unsent_steps == 0 and len(table.ages) == 100  # every chunk stored, once
@@ -258,3 +264,61 @@ def test_a_stopping_actor_acknowledges_everything_so_the_replay_can_forget_it(ov
         sink.flush()
         sink.acknowledge_all()
     assert client.info()["inserted_steps"] == 5 * 12
+
+
+@contextlib.contextmanager
+def relayed(port: int, delay_ms: float) -> Iterator[str]:
+    """tests/relay.py on loopback, holding every byte ``delay_ms`` each way on its way to ``port``."""
+    listen = free_port()
+    command = [sys.executable, "-m", "tests.relay", "--listen", f"127.0.0.1:{listen}", "--to", f"127.0.0.1:{port}",
+               "--delay-ms", str(delay_ms)]  # fmt: skip
+    relay = subprocess.Popen(command, stdout=subprocess.PIPE, text=True)
+    try:
+        assert relay.stdout is not None and "relay listening" in relay.stdout.readline()
+        yield f"127.0.0.1:{listen}"
+    finally:
+        relay.terminate()
+        relay.wait(timeout=10)
+
+
+@pytest.mark.parametrize(("delay_ms", "limiter_holds"), [(0.0, False), (25.0, False), (25.0, True)])
+def test_a_slow_link_gets_more_inserts_in_flight_and_a_holding_rate_limiter_does_not(
+    delay_ms: float, limiter_holds: bool
+) -> None:
+    """An actor making a 4-chunk request every ~12 ms: through 50 ms round trips (a relay) one insert in
+    flight would keep it waiting; the sink sends ``1 + link / fill`` at once (5 here), and every chunk
+    is stored once. On loopback it keeps the configured one; so it does when the replay's rate limiter,
+    not the link, is what holds inserts back (its time on each request is longer than the link's)."""
+    limiter = RateLimiter(samples_per_insert=1.0, min_size_to_sample=8, tolerance=2.0) if limiter_holds else None
+    table = PrioritizedTable(10_000, (VECTOR,), 2, 1, alpha=0.0, seed=0, rate_limiter=limiter)
+    server, port = serve_replay(table, "127.0.0.1:0")
+    learning = threading.Event()
+
+    def learner() -> None:  # with the rate limiter: 8 windows every 0.2 s, a tenth of the actor's pace
+        while not learning.wait(0.2):
+            with contextlib.suppress(SampleTimeout):
+                table.sample(8, timeout=0)
+
+    sampler = threading.Thread(target=learner, daemon=True)
+    sampler.start()
+    try:
+        with contextlib.ExitStack() as stack:
+            address = f"127.0.0.1:{port}" if delay_ms == 0 else stack.enter_context(relayed(port, delay_ms))
+            client = stack.enter_context(ReplayClient(address, (VECTOR,), 2))
+            sink = ReplaySink(client, lambda: False, in_flight=1, max_chunks_per_insert=4, timeout_s=2.0)
+            in_flight = []
+            for i in range(120 if limiter is None else 40):
+                time.sleep(0.003)  # the actor stepping: a chunk every ~3 ms
+                sink(make_chunk(5, 5 * i))
+                in_flight.append(sink.in_flight)
+            sink.flush()
+    finally:
+        learning.set()
+        sampler.join()
+        server.stop(None)
+    assert table.info()["inserted_steps"] == 5 * len(in_flight) and sink.unsent_steps == 0 and sink.duplicates == 0
+    late = in_flight[len(in_flight) // 2 :]
+    if delay_ms and not limiter_holds:
+        assert 40 <= 1e3 * sink.link_s <= 200 and max(late) >= 3, (sink.link_s, in_flight)
+    else:
+        assert set(late) == {1}, (sink.link_s, in_flight)
