@@ -41,6 +41,18 @@ def wait_for(log: Path, pattern: str, timeout: float, proc: subprocess.Popen[byt
         time.sleep(0.3)
 
 
+def stop_in_order(procs: dict[str, subprocess.Popen[bytes]], names: tuple[str, ...]) -> None:
+    """SIGINT each of ``names`` still running, in that order, as an operator stops a run, waiting up to
+    60 s for each before killing it."""
+    for name in names:
+        if name in procs and procs[name].poll() is None:
+            procs[name].send_signal(signal.SIGINT)
+            try:
+                procs[name].wait(timeout=60)
+            except subprocess.TimeoutExpired:
+                procs[name].kill()
+
+
 def logged_at(line: str) -> datetime:
     return datetime.strptime(line[:23], "%Y-%m-%d %H:%M:%S,%f")
 
@@ -83,13 +95,7 @@ def run_with_a_cut(
                 assert procs["learner"].poll() is None and time.monotonic() < deadline, "no evaluation after the heal"
                 time.sleep(0.5)
         finally:
-            for name in ("actor", "learner", "replay"):
-                if procs[name].poll() is None:
-                    procs[name].send_signal(signal.SIGINT)
-                    try:
-                        procs[name].wait(timeout=60)
-                    except subprocess.TimeoutExpired:
-                        procs[name].kill()
+            stop_in_order(procs, ("actor", "learner", "replay"))
     for name in ROLES:  # each stopped by its SIGINT (130), none on its own before
         assert procs[name].wait(timeout=10) == 130, logs[name].read_text()[-3000:]
     return {name: log.read_text() for name, log in logs.items()}, net, healed
@@ -183,13 +189,7 @@ def test_a_replay_rescheduled_at_another_address_behind_its_name_is_found_again_
                 assert procs["learner"].poll() is None and time.monotonic() < deadline, "no evaluation after the move"
                 time.sleep(0.5)
         finally:
-            for name in ("actor", "learner", "replay2", "replay"):
-                if name in procs and procs[name].poll() is None:
-                    procs[name].send_signal(signal.SIGINT)
-                    try:
-                        procs[name].wait(timeout=60)
-                    except subprocess.TimeoutExpired:
-                        procs[name].kill()
+            stop_in_order(procs, ("actor", "learner", "replay2", "replay"))
     text = {name: log.read_text() for name, log in logs.items()}
     for name in ("actor", "learner", "replay2"):
         assert procs[name].wait(timeout=10) == 130, text[name][-3000:]
@@ -253,13 +253,7 @@ def test_an_evolver_cut_off_from_its_learners_for_30_s_finds_them_again_and_the_
                 )
                 time.sleep(1.0)
         finally:
-            for name in ("learner-0", "learner-1", "actor-0", "actor-1", "replay-0", "replay-1", "evolver"):
-                if name in procs and procs[name].poll() is None:
-                    procs[name].send_signal(signal.SIGINT)
-                    try:
-                        procs[name].wait(timeout=60)
-                    except subprocess.TimeoutExpired:
-                        procs[name].kill()
+            stop_in_order(procs, ("learner-0", "learner-1", "actor-0", "actor-1", "replay-0", "replay-1", "evolver"))
     text = {name: log.read_text() for name, log in logs.items()}
     for name, proc in procs.items():  # each stopped by its SIGINT (130), none on its own before
         assert proc.wait(timeout=10) == 130, text[name][-3000:]

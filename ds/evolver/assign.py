@@ -13,7 +13,10 @@
   Re-calling Assign with a live ``previous`` assignment (or, for a replay, from the same address)
   returns that assignment renewed, so a retry after a lost reply never takes two places. An
   assignment ends when its learner retires; it survives its learner's lease running out (the
-  actor waits for the learner to come back, docs/architecture.md section 8).
+  actor waits for the learner to come back, docs/architecture.md section 8). One whose own lease
+  ran out (its caller was cut off from the evolver) is given back to its caller, same learner,
+  when it calls again with it as ``previous``: after a partition every actor returns to its
+  learner, however the learners' own returns are ordered, instead of to the first one back.
 
 Usage (by :class:`ds.evolver.evolver.Evolver`, under its registry lock; not thread-safe on its own)::
 
@@ -29,6 +32,9 @@ from typing import Any
 
 from ds.evolver.state import AssignmentEntry, LearnerEntry, NoWorkYet, Role, UnknownAssignment
 
+LAPSED_KEPT_LEASES = 10
+"""How many leases an assignment that lapsed is remembered for its caller's return (:meth:`Assignments.assign`)."""
+
 
 class Assignments:
     """The live assignments of actors and replays to learners, with leases."""
@@ -39,6 +45,9 @@ class Assignments:
         self._clock = clock
         self.entries: dict[str, AssignmentEntry] = {}
         self.next_id = 0
+        # Assignments whose lease ran out (a partition, a pause), kept for LAPSED_KEPT_LEASES leases: a caller
+        # back with one as ``previous`` returns to the same learner rather than to whichever is live first.
+        self._lapsed: dict[str, AssignmentEntry] = {}
 
     def assign(
         self,
@@ -62,6 +71,12 @@ class Assignments:
                 assignment.address = learners[assignment.learner_id].replay_address = address
                 changed = True
             return assignment, changed
+        if (back := self._back(role, previous, learners)) is not None:
+            back.name, back.expires = name, self._clock() + self.lease_s
+            if role is Role.REPLAY:
+                back.address = learners[back.learner_id].replay_address = address
+            self.entries[back.assignment_id] = back
+            return back, True
         candidates = sorted((e for e in learners.values() if live(e)), key=lambda e: e.learner_id)
         entry = self._replay_learner(address, candidates) if role is Role.REPLAY else self._actor_learner(candidates)
         if role is Role.REPLAY:
@@ -77,6 +92,20 @@ class Assignments:
         self.next_id += 1
         self.entries[assignment.assignment_id] = assignment
         return assignment, True
+
+    def _back(self, role: Role, previous: str, learners: Mapping[int, LearnerEntry]) -> AssignmentEntry | None:
+        """``previous``'s lapsed assignment, if its learner is still known and not retired and has room for
+        it again (an actor: fewer than ``max_actors``; a replay: no other replay took its place meanwhile)."""
+        lapsed = self._lapsed.pop(previous, None) if previous else None
+        if lapsed is None or lapsed.role is not role:
+            return None
+        learner = learners.get(lapsed.learner_id)
+        if learner is None or learner.retired:
+            return None
+        if role is Role.ACTOR and self.actor_counts().get(lapsed.learner_id, 0) >= self.max_actors:
+            return None
+        taken = any(a.role is Role.REPLAY and a.learner_id == lapsed.learner_id for a in self.entries.values())
+        return None if role is Role.REPLAY and taken else lapsed
 
     def renew(self, assignment_id: str) -> AssignmentEntry:
         self.expire()
@@ -94,12 +123,16 @@ class Assignments:
         expired = [a for a in self.entries.values() if a.expires < now]
         for a in expired:
             del self.entries[a.assignment_id]
+            self._lapsed[a.assignment_id] = a
+        for key in [k for k, a in self._lapsed.items() if a.expires < now - LAPSED_KEPT_LEASES * self.lease_s]:
+            del self._lapsed[key]
         return expired
 
     def end_learner(self, learner_id: int) -> None:
         """Drop every assignment to a retired learner (their next heartbeat answers NOT_FOUND)."""
-        for key in [k for k, a in self.entries.items() if a.learner_id == learner_id]:
-            del self.entries[key]
+        for book in (self.entries, self._lapsed):
+            for key in [k for k, a in book.items() if a.learner_id == learner_id]:
+                del book[key]
 
     def actor_counts(self) -> dict[int, int]:
         counts: dict[int, int] = {}

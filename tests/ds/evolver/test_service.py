@@ -168,6 +168,33 @@ def test_assign_spreads_actors_least_loaded_up_to_the_maximum(setup: Setup) -> N
     assert client.assign_actor("a5").learner_id == ids[1]
 
 
+def test_after_a_partition_each_actor_and_replay_returns_to_its_own_learner(setup: Setup) -> None:
+    """Everyone was cut off from the evolver for longer than the leases; learner 0 calls back first. An
+    actor and a replay of learner 1 that call Assign with their lapsed assignment get learner 1 back (same
+    assignment), not learner 0, the only one live at that moment (tests/test_partitions.py saw both actors
+    of a population land on the first learner back, starving the other)."""
+    _, client = setup.evolver(evolver_config(max_actors_each_learner=2))
+    ids = [client.register_learner(f"l{k}", "10.0.0.1", 61001 + k, 61003).learner_id for k in range(2)]
+    replays = [client.assign_replay(f"r{k}", f"10.0.0.{7 + k}:61002") for k in range(2)]
+    actors = [client.assign_actor(f"a{k}") for k in range(2)]
+    assert [a.learner_id for a in actors] == ids and [r.learner_id for r in replays] == ids
+    setup.clock.t += 1.5 * LEASE_S  # the cut: nobody heard from
+    client.register_learner("l0", "10.0.0.1", 61001, 61003, previous_id=ids[0])  # learner 0 back first
+    for previous in (actors[1], replays[1]):
+        with pytest.raises(UnknownAssignment):
+            client.renew_assignment(previous.assignment_id)
+    back = client.assign_actor("a1", previous=actors[1].assignment_id)
+    assert (back.learner_id, back.assignment_id) == (ids[1], actors[1].assignment_id)
+    replay = client.assign_replay("r1", "10.0.0.8:61002", previous=replays[1].assignment_id)
+    assert (replay.learner_id, replay.assignment_id) == (ids[1], replays[1].assignment_id)
+    assert client.assign_actor("a0", previous=actors[0].assignment_id).learner_id == ids[0]
+    assert [x.actors for x in client.info().learners] == [1, 1]
+    # One that lapsed too long ago, or whose learner retired meanwhile, is placed afresh.
+    setup.clock.t += 12 * LEASE_S
+    client.register_learner("l0", "10.0.0.1", 61001, 61003, previous_id=ids[0])
+    assert client.assign_actor("a1", previous=back.assignment_id).learner_id == ids[0]
+
+
 def test_replay_assignment_pairs_one_replay_with_each_learner(setup: Setup) -> None:
     _, client = setup.evolver(evolver_config())
     ids = [client.register_learner(f"l{k}", "127.0.0.1", 61001 + k).learner_id for k in range(2)]
