@@ -34,6 +34,7 @@ MUJOCO_TASKS = {
     "hopper": "Hopper-v5",
     "walker2d": "Walker2d-v5",
     "ant": "Ant-v5",
+    "inverted_pendulum": "InvertedPendulum-v5",
 }
 EVAL_EPISODES = 10
 EVAL_ENVS = 5
