@@ -33,9 +33,10 @@ from ds.replay.client import PendingInsert, ReplayClient, ReplayRpcError
 from ds.replay.codec import chunk_payload_bytes
 
 log = logging.getLogger("asac.actor")
-SLOW_LINK_S = 0.010
-"""A link whose inserts spend longer than this on the wire (round trip less the replay's time) is slow: more
-inserts go out at once on it (:meth:`ReplaySink._pace`). Loopback and a LAN stay well below it."""
+SLOW_LINK_S = 0.025
+"""A link whose inserts spend longer than this on the wire (round trip less the replay's time, on average) is
+slow: more inserts go out at once on it (:meth:`ReplaySink._pace`). Loopback and a LAN stay well below it,
+also on a loaded machine, where a busy client can take ~10 ms to see an answer that has arrived."""
 MAX_IN_FLIGHT = 8
 """The most inserts a sink keeps on their way, on a link slow enough to need them (:meth:`ReplaySink._pace`)."""
 KEEPING = "the actor keeps its chunks, stops stepping once it holds its backlog, and sends them again"
