@@ -8,11 +8,16 @@ Usage (every server and client of ds/ goes through these; none opens a port or c
     port = listen(server, "0.0.0.0:61002", creds, health_port=None)    # TLS when creds have a certificate
     channel = open_channel("replay-0:61002", REPLAY, creds, options)   # TLS, the token on every call
 
+``load_credentials`` and the credentials' rotation live in ds/net/credentials.py, ``open_channel`` in
+ds/net/channels.py (both re-exported here). A server checks the token(s) and presents the certificate
+of its files as they are now: a rotated token file or certificate is taken up without a restart.
+
 What is checked, on the server, for every rpc but the standard health service (which Kubernetes
 probes call with neither TLS nor metadata; it says SERVING or NOT_SERVING and nothing else):
 
-1. **Token** (``net_config.token_file``): the call must carry ``authorization: Bearer <key>``,
-   where the key is derived from the token (HMAC-SHA256(token, "asac grpc bearer")), so the secret
+1. **Token** (``net_config.token_file``): the call must carry ``authorization: Bearer <key>``
+   (one of them, when the client's file holds several tokens), where the key is derived from a token
+   of this server's file (HMAC-SHA256(token, "asac grpc bearer")), so the secret
    that signs parameters (ds/net/params.py) never travels itself. Missing or wrong: UNAUTHENTICATED.
 2. **TLS** (``tls_cert`` + ``tls_key``): the server speaks only TLS on its port; a call that came
    in over the plaintext health port (``health_port``) is PERMISSION_DENIED.
