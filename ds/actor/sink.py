@@ -18,6 +18,7 @@ without bound, most of it thrown away at the end and the rest minutes old when s
 from __future__ import annotations
 
 import logging
+import math
 import os
 import time
 from collections import deque
@@ -76,7 +77,8 @@ class ReplaySink:
 
     On a slow link (over :data:`SLOW_LINK_S`, and longer than the actor takes to fill a request) one insert in flight
     would leave each chunk waiting for another's answer, and the actor waiting with it: so the sink
-    keeps as many on their way as one round trip of the link takes to fill, ``1 + link / fill``,
+    keeps as many on their way as one round trip of the link takes to fill, and one more,
+    ``1 + ceil(link / fill)``,
     never fewer than ``in_flight`` nor more than :data:`MAX_IN_FLIGHT` (:meth:`_pace`). The link's
     time is the round trip less the replay's own time on the request (``InsertReply.served_s``, which
     includes waiting in the rate limiter); while the replay's time is the longer (its rate limiter
@@ -295,7 +297,7 @@ class ReplaySink:
             self.in_flight = self.configured_in_flight
             return
         fill_s = max(self._chunk_s * self.max_chunks_per_insert, 1e-6)
-        self.in_flight = min(MAX_IN_FLIGHT, max(self.configured_in_flight, 1 + int(self.link_s / fill_s)))
+        self.in_flight = min(MAX_IN_FLIGHT, max(self.configured_in_flight, 1 + math.ceil(self.link_s / fill_s)))
 
     def _give_up(self, chunks: list[Chunk]) -> None:
         self.unsent_chunks += len(chunks)

@@ -286,7 +286,7 @@ def test_a_slow_link_gets_more_inserts_in_flight_and_a_holding_rate_limiter_does
     delay_ms: float, limiter_holds: bool
 ) -> None:
     """An actor making a 4-chunk request every ~12 ms: through 50 ms round trips (a relay) one insert in
-    flight would keep it waiting; the sink sends ``1 + link / fill`` at once (5 here), and every chunk
+    flight would keep it waiting; the sink sends ``1 + ceil(link / fill)`` at once (6 here), and every chunk
     is stored once. On loopback it keeps the configured one; so it does when the replay's rate limiter,
     not the link, is what holds inserts back (its time on each request is longer than the link's)."""
     limiter = RateLimiter(samples_per_insert=1.0, min_size_to_sample=8, tolerance=2.0) if limiter_holds else None
