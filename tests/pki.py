@@ -18,6 +18,7 @@ Keys are EC P-256: generated in milliseconds.
 from __future__ import annotations
 
 import datetime
+import os
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -123,3 +124,40 @@ class Pki:
         issued.cert.write_bytes(cert.public_bytes(serialization.Encoding.PEM))
         _write_key(key, issued.key)
         return issued
+
+
+def replace_file(path: Path, data: bytes) -> None:
+    """Write ``data`` next to ``path`` and move it over ``path``, as a Kubernetes Secret volume replaces its
+    files (a role never reads one half-written)."""
+    fresh = path.with_name(path.name + ".new")
+    fresh.write_bytes(data)
+    os.replace(fresh, path)
+
+
+class RoleFiles:
+    """One role's credential files in a folder of its own (its host): the token file and its TLS
+    certificate, key and CA, replaced as an operator (or cert-manager) rotates them."""
+
+    def __init__(self, folder: Path, issued: Issued, ca: Path, token: bytes) -> None:
+        folder.mkdir(parents=True, exist_ok=True)
+        self.token, self.cert, self.key, self.ca = (folder / n for n in ("token", "tls.crt", "tls.key", "ca.pem"))
+        self.tokens(token)
+        self.use(issued)
+        self.trust(ca)
+
+    def tokens(self, *tokens: bytes) -> None:
+        replace_file(self.token, b"".join(t + b"\n" for t in tokens))
+
+    def use(self, issued: Issued) -> None:
+        replace_file(self.key, issued.key.read_bytes())
+        replace_file(self.cert, issued.cert.read_bytes())
+
+    def trust(self, *cas: Path) -> None:
+        replace_file(self.ca, b"".join(ca.read_bytes() for ca in cas))
+
+    def tls_flags(self) -> list[str]:
+        return ["--tls_cert", str(self.cert), "--tls_key", str(self.key), "--tls_ca", str(self.ca)]
+
+    def flags(self) -> list[str]:
+        """``main_ds.py`` flags naming these files."""
+        return ["--override", f"net.token_file={self.token}", *self.tls_flags()]

@@ -6,7 +6,6 @@ only the new token and a certificate of the new CA joins, and every step collect
 
 from __future__ import annotations
 
-import os
 import re
 import time
 from pathlib import Path
@@ -14,44 +13,12 @@ from pathlib import Path
 import pytest
 
 from ds.net.security import ROLES
-from tests.pki import Issued, Pki
+from tests.pki import Pki, RoleFiles
 from tests.role_runs import TINY_OVERRIDES, RoleRun, flags, scalars
 
 pytestmark = [pytest.mark.slow, pytest.mark.grpc]
 LABELS = {"replay": "replay", "learner": "learner", "actor-0": "actor"}
 TAKEN_UP_S = 30.0  # a role looks at its files every 2 s while it uses them; a loaded machine is slow
-
-
-def replace_file(path: Path, data: bytes) -> None:
-    """Write ``data`` next to ``path`` and move it over ``path``, as a Kubernetes Secret volume does."""
-    fresh = path.with_name(path.name + ".new")
-    fresh.write_bytes(data)
-    os.replace(fresh, path)
-
-
-class RoleFiles:
-    """One role's token file and TLS files, in a folder of its own (its host)."""
-
-    def __init__(self, folder: Path, issued: Issued, ca: Path, token: bytes) -> None:
-        folder.mkdir(parents=True)
-        self.token, self.cert, self.key, self.ca = (folder / n for n in ("token", "tls.crt", "tls.key", "ca.pem"))
-        self.tokens(token)
-        self.use(issued)
-        self.trust(ca)
-
-    def tokens(self, *tokens: bytes) -> None:
-        replace_file(self.token, b"".join(t + b"\n" for t in tokens))
-
-    def use(self, issued: Issued) -> None:
-        replace_file(self.key, issued.key.read_bytes())
-        replace_file(self.cert, issued.cert.read_bytes())
-
-    def trust(self, *cas: Path) -> None:
-        replace_file(self.ca, b"".join(ca.read_bytes() for ca in cas))
-
-    def flags(self) -> list[str]:
-        return ["--override", f"net.token_file={self.token}", "--tls_cert", str(self.cert), "--tls_key",
-                str(self.key), "--tls_ca", str(self.ca)]  # fmt: skip
 
 
 def wait_taken_up(run: RoleRun, labels: list[str], pattern: str, count: int) -> None:

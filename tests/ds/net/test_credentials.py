@@ -7,7 +7,6 @@ volume replaces them (a new file moved over the old one)."""
 from __future__ import annotations
 
 import logging
-import os
 import socket
 import ssl
 from collections.abc import Callable
@@ -24,20 +23,13 @@ from ds.net.credentials import Keyring, load_credentials
 from ds.net.params import MAC_BYTES, ParamsError, decode_params, encode_params
 from ds.net.stream_key import StreamKey
 from tests.ds.net.security_setup import Served, call
-from tests.pki import Issued, Pki
+from tests.pki import Pki, RoleFiles, replace_file
 
 
 @pytest.fixture(autouse=True)
 def look_at_every_use(monkeypatch: pytest.MonkeyPatch) -> None:
     """Files are looked at on every use, not every 2 s, so that each step of a test sees the last one."""
     monkeypatch.setattr(credentials_module, "CHECK_EVERY_S", 0.0)
-
-
-def replace_file(path: Path, data: bytes) -> None:
-    """Write ``data`` next to ``path`` and move it over ``path`` (never a half-written file)."""
-    fresh = path.with_name(path.name + ".new")
-    fresh.write_bytes(data)
-    os.replace(fresh, path)
 
 
 def info(channel: grpc.Channel, tmp_path: Path) -> grpc.StatusCode:
@@ -116,26 +108,12 @@ def test_parameters_signed_with_two_tokens_are_taken_by_holders_of_either() -> N
 # ---------------------------------------------------------------------- TLS
 
 
-class Files:
-    """A role's three TLS files, replaced in place as an operator (or cert-manager) would."""
-
-    def __init__(self, folder: Path, name: str, issued: Issued, *cas: Path) -> None:
-        self.cert, self.key, self.ca = folder / f"{name}.crt", folder / f"{name}.key", folder / f"{name}-ca.pem"
-        self.use(issued)
-        self.trust(*cas)
-
-    def use(self, issued: Issued) -> None:
-        replace_file(self.key, issued.key.read_bytes())
-        replace_file(self.cert, issued.cert.read_bytes())
-
-    def trust(self, *cas: Path) -> None:
-        replace_file(self.ca, b"".join(ca.read_bytes() for ca in cas))
-
-    def net(self) -> NetConfig:
-        return NetConfig(tls_cert=str(self.cert), tls_key=str(self.key), tls_ca=str(self.ca))
+def tls_only(files: RoleFiles) -> NetConfig:
+    """A role's TLS files without its token (these tests rotate certificates alone)."""
+    return NetConfig(tls_cert=str(files.cert), tls_key=str(files.key), tls_ca=str(files.ca))
 
 
-def presented_issuer(port: int, client: Files) -> str:
+def presented_issuer(port: int, client: RoleFiles) -> str:
     """The issuer CN of the certificate the server on ``port`` presents to a new connection."""
     context = ssl.SSLContext(ssl.PROTOCOL_TLS_CLIENT)
     context.check_hostname = False
@@ -152,10 +130,10 @@ def test_certificates_renewed_and_a_ca_rolled_over_are_taken_up_by_serving_serve
 ) -> None:
     pki = Pki(tmp_path / "pki")
     old_ca, new_ca = pki.ca, pki.wrong_ca  # two independent CAs
-    server = Files(tmp_path, "server", pki.issue("replay"), old_ca)
-    client = Files(tmp_path, "client", pki.issue("actor"), old_ca)
-    served = servers("replay", load_credentials(server.net()))
-    with security.open_channel(served.address, "replay", load_credentials(client.net()), []) as channel:
+    server = RoleFiles(tmp_path / "server", pki.issue("replay"), old_ca, b"-")
+    client = RoleFiles(tmp_path / "client", pki.issue("actor"), old_ca, b"-")
+    served = servers("replay", load_credentials(tls_only(server)))
+    with security.open_channel(served.address, "replay", load_credentials(tls_only(client)), []) as channel:
         assert info(channel, tmp_path) == grpc.StatusCode.OK
         assert presented_issuer(served.port, client) == "ASAC test ca"
         # Renewed from the same CA: the server presents the new certificate to new connections.
@@ -177,7 +155,7 @@ def test_certificates_renewed_and_a_ca_rolled_over_are_taken_up_by_serving_serve
         client.trust(new_ca)
         assert info(channel, tmp_path) == grpc.StatusCode.OK
         served.stop()
-        served = servers("replay", load_credentials(server.net()), port=served.port)
+        served = servers("replay", load_credentials(tls_only(server)), port=served.port)
         assert info(channel, tmp_path) == grpc.StatusCode.OK
         # A half-done change (a certificate without its key) is refused with one error; the server
         # keeps what it had.
@@ -192,9 +170,10 @@ def test_certificates_renewed_and_a_ca_rolled_over_are_taken_up_by_serving_serve
         "old-ca": pki.issue("actor-of-old-ca", "actor"),
         "expired": pki.issue("actor-expired", "actor", ca="wrong", expired=True),
     }.items():
-        stale = Files(tmp_path, name, issued, old_ca, new_ca)
-        with security.open_channel(served.address, "replay", load_credentials(stale.net()), []) as channel:
+        stale = RoleFiles(tmp_path / name, issued, old_ca, b"-")
+        stale.trust(old_ca, new_ca)
+        with security.open_channel(served.address, "replay", load_credentials(tls_only(stale)), []) as channel:
             assert info(channel, tmp_path) == grpc.StatusCode.UNAVAILABLE, name
-    fresh = Files(tmp_path, "fresh", pki.issue("actor-fresh", "actor", ca="wrong"), new_ca)
-    with security.open_channel(served.address, "replay", load_credentials(fresh.net()), []) as channel:
+    fresh = RoleFiles(tmp_path / "fresh", pki.issue("actor-fresh", "actor", ca="wrong"), new_ca, b"-")
+    with security.open_channel(served.address, "replay", load_credentials(tls_only(fresh)), []) as channel:
         assert info(channel, tmp_path) == grpc.StatusCode.OK
