@@ -21,6 +21,10 @@ own process (its batch, dtype and net, torch's default threads, as the learner r
   64-wide recurrent state, drawn through the server with the limits ``message_limit_bytes`` gives
   for them: no message-size error, and how many batches one call carried.
 
+Each is measured three ways in every round: batches through a file in /dev/shm (ds/replay/shared.py,
+the default where learner and replay share a host), over the socket (``shared_memory=False``, as
+across hosts), and one batch per call over the socket.
+
 Rows go to ``--out`` as they land; timings drift between runs here, so compare rows of one run.
 """
 
@@ -50,18 +54,19 @@ from bench.rows import append_row  # noqa: E402
 from ds.replay.codec import message_limit_bytes  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
-FIELDS = ["case", "batch_size", "window", "per_call", "pace", "batches_per_s", "steps_per_s", "cpu_us_per_step",
-          "batches_per_call", "error"]  # fmt: skip
+FIELDS = ["case", "batch_size", "window", "per_call", "shared", "pace", "batches_per_s", "steps_per_s",
+          "cpu_us_per_step", "batches_per_call", "error"]  # fmt: skip
 GOAL_CPU_US, GOAL_SERVED = 0.4, 3.0
 DEPTH = 16  # the learner role's prefetch queue (ds/learner/learner.py)
 
 
 def drain(port: int, sensors: tuple[SensorSpec, ...], rnn: int, batch: int, one_per_call: bool, limit: int,
-          seconds: float, pace: float, results: Any) -> None:  # fmt: skip
+          seconds: float, pace: float, shared: bool, results: Any) -> None:  # fmt: skip
     """A learner's prefetcher against the server at ``port``, its queue emptied for ``seconds``, one
     batch every ``1 / pace`` seconds (0: as fast as it fills); puts ``(batches, steps, cpu seconds,
     wall seconds, batches per call, error)``. ``one_per_call``: one batch per call (the prefetcher's
-    ``per_call=1``), as before batches were packed."""
+    ``per_call=1``), as before batches were packed; ``shared``: batches through a file in /dev/shm
+    (the default on one host), else over the socket (as across hosts)."""
     from ds.learner.feeds import BatchPrefetcher
     from ds.net.heap import keep_freed_memory
     from ds.replay.client import ReplayClient
@@ -69,7 +74,9 @@ def drain(port: int, sensors: tuple[SensorSpec, ...], rnn: int, batch: int, one_
     keep_freed_memory()  # as main_ds.py does for every role
 
     try:
-        with ReplayClient(f"127.0.0.1:{port}", sensors, ACT, rnn, max_message_bytes=limit) as replay:
+        with ReplayClient(
+            f"127.0.0.1:{port}", sensors, ACT, rnn, max_message_bytes=limit, shared_memory=shared
+        ) as replay:
             per_call: dict[str, Any] = {"per_call": 1} if one_per_call else {}  # absent: the prefetcher's default
             prefetcher = BatchPrefetcher(replay, batch, DEPTH, sample_timeout_s=10.0, **per_call)
             prefetcher.start()
@@ -99,13 +106,13 @@ def drain(port: int, sensors: tuple[SensorSpec, ...], rnn: int, batch: int, one_
 
 
 def measure(sensors: tuple[SensorSpec, ...], rnn: int, batch: int, window: int, one_per_call: bool,
-            seconds: float, pace: float = 0.0) -> dict[str, Any]:  # fmt: skip
+            seconds: float, pace: float = 0.0, shared: bool = True) -> dict[str, Any]:  # fmt: skip
     limit = message_limit_bytes(sensors, ACT, batch, window, rnn, max_chunk_steps=64)
     ctx = mp.get_context("spawn")
     with replay_process(sensors, ACT, limit, window=window, rnn_state_size=rnn) as port:
         results = ctx.Queue()
         client = ctx.Process(
-            target=drain, args=(port, sensors, rnn, batch, one_per_call, limit, seconds, pace, results)
+            target=drain, args=(port, sensors, rnn, batch, one_per_call, limit, seconds, pace, shared, results)
         )
         client.start()
         batches, steps, cpu, wall, per_call, error = results.get(timeout=300 + seconds)
@@ -114,6 +121,7 @@ def measure(sensors: tuple[SensorSpec, ...], rnn: int, batch: int, window: int, 
         "batch_size": batch,
         "window": window,
         "per_call": "1" if one_per_call else "default",
+        "shared": shared,
         "pace": round(pace, 1),
         "batches_per_s": round(batches / wall, 1),
         "steps_per_s": round(steps / wall),
@@ -159,33 +167,41 @@ def main() -> None:
         print(case, values, flush=True)
         return values
 
-    paced: dict[bool, list[dict[str, Any]]] = {False: [], True: []}
-    drained: dict[bool, list[dict[str, Any]]] = {False: [], True: []}
+    # (one batch per call, through /dev/shm): the prefetcher's default on one host, over the socket
+    # (across hosts), and one batch per call over the socket (before batches were packed)
+    ways = {"shared": (False, True), "socket": (False, False), "one per call": (True, False)}
+    paced: dict[str, list[dict[str, Any]]] = {way: [] for way in ways}
+    drained: dict[str, list[dict[str, Any]]] = {way: [] for way in ways}
     consumed = []
     for r in range(args.rounds):
         consumed.append(consumed_updates_per_s(args.seconds))
         row(f"learner update, round {r}", batches_per_s=round(consumed[-1], 1))
-        for one in (False, True):
-            how = "one batch" if one else "batches"
-            paced[one].append(row(f"halfcheetah default, {how} per call, at the learner's pace, round {r}",
-                                  **measure(vector, 0, 256, 1, one, args.seconds, consumed[-1])))  # fmt: skip
-            drained[one].append(row(f"halfcheetah default, {how} per call, emptied as it fills, round {r}",
-                                    **measure(vector, 0, 256, 1, one, args.seconds)))  # fmt: skip
-    large = [row(f"large, {b} x {w}{', rnn 64' if rnn else ''}", **measure(vector, rnn, b, w, False, args.seconds / 2))
-             for b, w, rnn in ((4096, 1, 0), (16384, 1, 0), (4096, 21, 64))]  # fmt: skip
+        for way, (one, shared) in ways.items():
+            paced[way].append(row(f"halfcheetah default, {way}, at the learner's pace, round {r}",
+                                  **measure(vector, 0, 256, 1, one, args.seconds, consumed[-1], shared)))  # fmt: skip
+            drained[way].append(row(f"halfcheetah default, {way}, emptied as it fills, round {r}",
+                                    **measure(vector, 0, 256, 1, one, args.seconds, 0.0, shared)))  # fmt: skip
+    large = {shared: [row(f"large, {b} x {w}{', rnn 64' if rnn else ''}, {'shared' if shared else 'socket'}",
+                          **measure(vector, rnn, b, w, False, args.seconds / 2, 0.0, shared))
+                      for b, w, rnn in ((4096, 1, 0), (16384, 1, 0), (4096, 21, 64))]
+             for shared in (True, False)}  # fmt: skip
 
-    cpu = {one: statistics.median(x["cpu_us_per_step"] for x in rows) for one, rows in paced.items()}
-    served = {one: statistics.median(x["batches_per_s"] for x in rows) for one, rows in drained.items()}
+    cpu = {way: statistics.median(x["cpu_us_per_step"] for x in rows) for way, rows in paced.items()}
+    fast = {way: statistics.median(x["cpu_us_per_step"] for x in rows) for way, rows in drained.items()}
+    served = {way: statistics.median(x["batches_per_s"] for x in rows) for way, rows in drained.items()}
     used = statistics.median(consumed)
     print(f"\nHalfCheetah default (batch 256, one-step windows), median of {args.rounds} rounds x {args.seconds:.0f} s")
-    print("| measure | the learner's prefetcher | the same, one batch per call | goal |\n|---|---|---|---|")
-    print(f"| learner CPU per sampled step, at its pace ({used:.0f} updates/s) | {cpu[False]:.2f} us | "
-          f"{cpu[True]:.2f} us | <= {GOAL_CPU_US} us |")  # fmt: skip
-    print(f"| replay batches/s to one learner / its updates/s | {served[False]:,.0f} / {used:,.0f} = "
-          f"{served[False] / used:.1f}x | {served[True]:,.0f} / {used:,.0f} | >= {GOAL_SERVED}x |")  # fmt: skip
-    for case, x in zip(("4096 x 1", "16384 x 1", "4096 x 21, rnn 64"), large, strict=True):
-        outcome = x["error"] or f"{x['batches_per_s']} batches/s, {x['batches_per_call']} per call"
-        print(f"| large batch {case} | {outcome} | | no message-size error |")
+    print("| measure | " + " | ".join(ways) + " | goal |\n|---|---|---|---|---|")
+    print(f"| learner CPU per sampled step, at its pace ({used:.0f} updates/s) | "
+          + " | ".join(f"{cpu[w]:.2f} us" for w in ways) + f" | <= {GOAL_CPU_US} us |")  # fmt: skip
+    print("| the same, batches taken as fast as they come | " + " | ".join(f"{fast[w]:.2f} us" for w in ways) + " | |")
+    print(f"| replay batches/s to one learner / its updates/s ({used:.0f}) | "
+          + " | ".join(f"{served[w]:,.0f} = {served[w] / used:.1f}x" for w in ways)
+          + f" | >= {GOAL_SERVED}x |")  # fmt: skip
+    for i, case in enumerate(("4096 x 1", "16384 x 1", "4096 x 21, rnn 64")):
+        outcome = [x[i]["error"] or f"{x[i]['batches_per_s']} batches/s, {x[i]['batches_per_call']} per call"
+                   for x in (large[True], large[False])]  # fmt: skip
+        print(f"| large batch {case} | {outcome[0]} | {outcome[1]} | | no message-size error |")
 
 
 if __name__ == "__main__":

@@ -67,26 +67,34 @@ class InsertReply(_message.Message):
     def __init__(self, keys: _Optional[_Iterable[_Union[Tensor, _Mapping]]] = ..., duplicate: _Optional[_Iterable[bool]] = ..., inserted_steps: _Optional[int] = ..., served_s: _Optional[float] = ...) -> None: ...
 
 class SampleRequest(_message.Message):
-    __slots__ = ("batch_size", "timeout_s", "batches")
+    __slots__ = ("batch_size", "timeout_s", "batches", "shared_name", "shared_size", "shared_seq")
     BATCH_SIZE_FIELD_NUMBER: _ClassVar[int]
     TIMEOUT_S_FIELD_NUMBER: _ClassVar[int]
     BATCHES_FIELD_NUMBER: _ClassVar[int]
+    SHARED_NAME_FIELD_NUMBER: _ClassVar[int]
+    SHARED_SIZE_FIELD_NUMBER: _ClassVar[int]
+    SHARED_SEQ_FIELD_NUMBER: _ClassVar[int]
     batch_size: int
     timeout_s: float
     batches: int
-    def __init__(self, batch_size: _Optional[int] = ..., timeout_s: _Optional[float] = ..., batches: _Optional[int] = ...) -> None: ...
+    shared_name: str
+    shared_size: int
+    shared_seq: int
+    def __init__(self, batch_size: _Optional[int] = ..., timeout_s: _Optional[float] = ..., batches: _Optional[int] = ..., shared_name: _Optional[str] = ..., shared_size: _Optional[int] = ..., shared_seq: _Optional[int] = ...) -> None: ...
 
 class SampleReply(_message.Message):
-    __slots__ = ("batch_size", "window", "table_size", "data")
+    __slots__ = ("batch_size", "window", "table_size", "data", "shared_bytes")
     BATCH_SIZE_FIELD_NUMBER: _ClassVar[int]
     WINDOW_FIELD_NUMBER: _ClassVar[int]
     TABLE_SIZE_FIELD_NUMBER: _ClassVar[int]
     DATA_FIELD_NUMBER: _ClassVar[int]
+    SHARED_BYTES_FIELD_NUMBER: _ClassVar[int]
     batch_size: int
     window: int
     table_size: _containers.RepeatedScalarFieldContainer[int]
     data: bytes
-    def __init__(self, batch_size: _Optional[int] = ..., window: _Optional[int] = ..., table_size: _Optional[_Iterable[int]] = ..., data: _Optional[bytes] = ...) -> None: ...
+    shared_bytes: int
+    def __init__(self, batch_size: _Optional[int] = ..., window: _Optional[int] = ..., table_size: _Optional[_Iterable[int]] = ..., data: _Optional[bytes] = ..., shared_bytes: _Optional[int] = ...) -> None: ...
 
 class WindowsRequest(_message.Message):
     __slots__ = ("from_key", "max_windows")

@@ -124,6 +124,10 @@ def test_a_local_run_finishes_in_order_and_its_summary_plays_it(tmp_path: Path) 
         assert re.search(rf"^{re.escape(role)} ", out, re.M), f"no log lines prefixed {role}"
     pids = child_pids(out)
     assert set(pids) == {"replay", "learner", "actor-0", "actor-1"} and not any(map(running, pids.values()))
+    # on the replay's host the learner's batches come through a file in /dev/shm, gone once it ends
+    shared = re.findall(r"^\[learner\] .*come through (/dev/shm/asac-batches-\S+)", out, re.M)
+    assert len(shared) == 1 and not Path(shared[0]).exists(), out[-4000:]
+    assert "batches come over gRPC" not in out, out[-4000:]
     run = tmp_path / "models/gym/pendulum/journey"
     steps = [int(r["env_steps"]) for r in read_evaluations(run / "evaluations.csv")]
     assert steps and steps == sorted(set(steps)), steps  # one row per evaluation, in order

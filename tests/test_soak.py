@@ -25,8 +25,8 @@ DURATION_S = float(os.environ.get("ASAC_SOAK_S", "600"))
 SAMPLE_EVERY_S = min(10.0, DURATION_S / 30)
 ACTORS = 4
 CAPACITY = 20_000  # rows: full within seconds at full speed, then every insert evicts
-# Batches the learner's prefetcher may hold ahead with ds/learner/learner.py's depth (16 batches, 16 per
-# call: 48) and ds/learner/feeds.py's priority queue size.
+# Batches the learner's prefetcher may hold ahead with ds/learner/learner.py's depth (16 batches, 32 per
+# call: 64, one call drawn or queued and one being handed out) and ds/learner/feeds.py's priority queue size.
 PREFETCH_AHEAD, PRIORITY_DEPTH = BatchPrefetcher(None, batch_size=1, depth=16).max_ahead, 64  # type: ignore[arg-type]
 # ReplaySink with the actor's defaults (actor_config.inserts_in_flight 1, chunks_per_insert = n_agents
 # = 1): one insert of one chunk on its way and one waiting (ReplaySink.max_backlog).

@@ -420,6 +420,12 @@ class NetConfig(Section):
         "replay the evolver has not paired) logs one WARNING naming it and how to fix it; it goes on waiting.",
     )
     replay_port: int = Field(61002, ge=0, le=65535)
+    shared_memory: bool = Field(
+        True,
+        description="A learner on the replay's host takes its batches through a file in /dev/shm rather than the "
+        "socket (ds/replay/shared.py); where the replay cannot open it (another host or container) they come over "
+        "gRPC by themselves. false = always over gRPC.",
+    )
     params_port: int = Field(
         61003, ge=0, le=65535, description="Learner's ZeroMQ parameter broadcast; 0 = any free port (announced)."
     )

@@ -167,6 +167,7 @@ class RoleContext:
             max_message_bytes=limit,
             credentials=self.credentials,
             rpc_timeout_s=self.config.net_config.rpc_timeout_s,
+            shared_memory=self.config.net_config.shared_memory,
         )
 
     def evolver_client(self) -> EvolverClient | None:

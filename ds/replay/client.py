@@ -14,6 +14,7 @@ its docstring lists how every error maps to a gRPC status and back to the except
 
 from __future__ import annotations
 
+import logging
 import threading
 import time
 from collections.abc import Callable, Sequence
@@ -41,10 +42,12 @@ from ds.net.security import NO_CREDENTIALS, Credentials
 from ds.net.wire import TensorSpec, WireError, from_tensor, to_tensor
 from ds.replay.codec import (
     ReplaySpecs,
+    batches_per_reply,
     chunk_to_proto,
     split_sample_reply,
 )
 from ds.replay.packed import Allocate
+from ds.replay.shared import SHARED_DIR, SharedSlot
 from protos import replay_pb2, replay_pb2_grpc
 
 __all__ = [
@@ -63,6 +66,7 @@ __all__ = [
 LAST_INSERTS_WAIT_S = 10.0
 
 _T = TypeVar("_T")
+log = logging.getLogger("asac.replay")
 
 
 class ReplayRpcError(RuntimeError):
@@ -112,6 +116,7 @@ class ReplayClient(RpcClient):
         poll_s: float = 10.0,
         retry: RetryPolicy | None = None,
         credentials: Credentials = NO_CREDENTIALS,
+        shared_memory: bool = True,
     ) -> None:
         super().__init__(
             address,
@@ -133,6 +138,11 @@ class ReplayClient(RpcClient):
         self._sample_bytes = self.channel.unary_unary(
             "/asac.ReplayService/Sample", request_serializer=replay_pb2.SampleRequest.SerializeToString
         )
+        # Sampled batches through a file in /dev/shm while the server can open it (ds/replay/shared.py)
+        self._shared_on = bool(shared_memory)
+        self._shared: SharedSlot | None = None
+        self._shared_lock = threading.Lock()  # one sample at a time uses the file; others go without it
+        self._window = 0  # the table's window, from its first reply: the file is sized by it
 
     # ------------------------------------------------------------------ the table interface
 
@@ -223,10 +233,80 @@ class ReplayClient(RpcClient):
         on CUDA; None: new memory) and the batches are views of it. Raises :class:`SampleTimeout` as
         :meth:`sample` does."""
         request = replay_pb2.SampleRequest(batch_size=int(batch_size), batches=int(count))
+        if self._shared_on and self._window and self._shared_lock.acquire(blocking=False):
+            try:
+                slot = self._shared_slot(int(batch_size), int(count))
+                if slot is not None:
+                    return self._sample_shared(slot, request, timeout, allocate)
+            finally:
+                self._shared_lock.release()
         reply, data = split_sample_reply(self._blocking("Sample", self._sample_bytes, request, timeout, SampleTimeout))
-        if not 1 <= len(reply.table_size) <= max(int(count), 1):
-            raise WireError("table_size", f"holds {len(reply.table_size)} batches, expected 1 to {max(int(count), 1)}")
-        return self.specs.batches_from_reply(reply, int(batch_size), allocate=allocate, data=data)
+        return self._batches(reply, request, data, allocate)
+
+    def _batches(
+        self, reply: replay_pb2.SampleReply, request: replay_pb2.SampleRequest, data: memoryview,
+        allocate: Allocate | None,
+    ) -> list[Batch]:  # fmt: skip
+        count = max(request.batches, 1)
+        if not 1 <= len(reply.table_size) <= count:
+            raise WireError("table_size", f"holds {len(reply.table_size)} batches, expected 1 to {count}")
+        batches = self.specs.batches_from_reply(reply, request.batch_size, allocate=allocate, data=data)
+        self._window = reply.window
+        return batches
+
+    def _sample_shared(
+        self, slot: SharedSlot, request: replay_pb2.SampleRequest, timeout: float | None, allocate: Allocate | None
+    ) -> list[Batch]:
+        request.shared_name, request.shared_size = slot.name, slot.size
+
+        def attempt(req: replay_pb2.SampleRequest, timeout: float) -> bytes:  # a new fence for every attempt
+            req.shared_seq = slot.fence()
+            return self._sample_bytes(req, timeout=timeout)
+
+        reply, data = split_sample_reply(self._blocking("Sample", attempt, request, timeout, SampleTimeout))
+        if reply.shared_bytes:
+            return self._batches(reply, request, slot.payload(reply.shared_bytes), allocate)
+        log.info("the replay at %s cannot open %s (another host, or another /dev/shm): batches come over gRPC",
+                 self.address, slot.path)  # fmt: skip
+        self._shared_on = False
+        self._close_shared()
+        return self._batches(reply, request, data, allocate)
+
+    def _shared_slot(self, batch_size: int, count: int) -> SharedSlot | None:
+        """The file for a reply of ``count`` batches of ``batch_size`` windows (as many as the message
+        limit allows at most), made or grown on demand; None where it cannot be made."""
+        layout = self.specs.layout(batch_size, self._window)
+        fitting = batches_per_reply(self.sensors, self.action_size, batch_size, self._window, self.rnn_state_size,
+                                    self.max_message_bytes)  # fmt: skip
+        needed = max(min(max(count, 1), fitting), 1) * layout.batch_bytes
+        if self._shared is not None and self._shared.capacity >= needed:
+            return self._shared
+        self._close_shared()
+        try:
+            self._shared = SharedSlot(needed)
+        except OSError as e:
+            log.info("no file for batches in %s (%s): batches come over gRPC", SHARED_DIR, e)
+            self._shared_on = False
+            return None
+        log.info("batches from the replay at %s come through %s (%d bytes) while it can open it",
+                 self.address, self._shared.path, self._shared.size)  # fmt: skip
+        return self._shared
+
+    def _close_shared(self) -> None:
+        if self._shared is not None:
+            self._shared.close()
+            self._shared = None
+
+    def close(self) -> None:
+        self._shared_on = False
+        if self._shared_lock.acquire(timeout=1.0):
+            try:
+                self._close_shared()
+            finally:
+                self._shared_lock.release()
+        elif self._shared is not None:  # a sample still waits on the server: its file goes, its mapping with it
+            self._shared.path.unlink(missing_ok=True)
+        super().close()
 
     def windows_after(self, key: int, limit: int) -> Batch | None:
         """The windows of the oldest ``limit`` stored steps with keys ``>= key`` (None: none); see

@@ -207,7 +207,7 @@ def split_sample_reply(raw: bytes) -> tuple[replay_pb2.SampleReply, memoryview]:
         start = pos
         tag, pos = _varint(raw, pos)
         field, wire_type = tag >> 3, tag & 7
-        if wire_type == 0 and field in (1, 2, 3):  # batch_size, window; table_size unpacked
+        if wire_type == 0 and field in (1, 2, 3, 5):  # batch_size, window; table_size unpacked; shared_bytes
             _, pos = _varint(raw, pos)
         elif wire_type == 2 and field in (3, 4):  # table_size packed; data
             size, pos = _varint(raw, pos)

@@ -108,6 +108,16 @@ class BatchLayout:
 def pack_batches(layout: BatchLayout, batches: Sequence[Batch]) -> bytes:
     """The buffer of ``batches`` (each ``layout.batch_size`` x ``layout.window``), one after another."""
     buffer = np.zeros(layout.batch_bytes * len(batches), dtype=np.uint8)
+    pack_batches_into(layout, batches, buffer)
+    return buffer.tobytes()
+
+
+def pack_batches_into(layout: BatchLayout, batches: Sequence[Batch], buffer: np.ndarray) -> None:
+    """Write ``batches`` into ``buffer`` (uint8, ``layout.batch_bytes * len(batches)`` bytes) as
+    :func:`pack_batches` lays them out; the padding between fields is left as it was."""
+    if buffer.shape != (layout.batch_bytes * len(batches),):
+        raise ValueError(f"{len(batches)} batches take {layout.batch_bytes * len(batches)} bytes, the buffer holds "
+                         f"{buffer.shape}")  # fmt: skip
     for n, batch in enumerate(batches):
         base = n * layout.batch_bytes
         for f in layout.fields:
@@ -115,7 +125,6 @@ def pack_batches(layout: BatchLayout, batches: Sequence[Batch]) -> bytes:
             if source.shape != f.shape:
                 raise ValueError(f"{_where(f)} is of shape {list(source.shape)}, the layout expects {list(f.shape)}")
             buffer[base + f.offset : base + f.offset + f.nbytes] = source.reshape(-1).view(np.uint8)
-    return buffer.tobytes()
 
 
 def unpack_batches(

@@ -63,6 +63,8 @@ from ds.replay.codec import (
     sample_reply_bytes,
 )
 from ds.replay.files import FileWork, FileWorkAbandoned, FileWorkBusy, SnapshotFolder
+from ds.replay.packed import pack_batches_into
+from ds.replay.shared import HEADER_BYTES, write_shared
 from protos import replay_pb2, replay_pb2_grpc
 
 __all__ = [
@@ -159,6 +161,10 @@ class ReplayServicer(replay_pb2_grpc.ReplayServiceServicer):
         if request.batches < 0:
             context.abort(grpc.StatusCode.INVALID_ARGUMENT, f"batches must be >= 0, got {request.batches}")
         wanted = min(max(request.batches, 1), fitting)
+        layout = self.specs.layout(b, window)
+        shared = bool(request.shared_name) and request.shared_size - HEADER_BYTES >= layout.batch_bytes
+        if shared:  # no more than the caller's file holds
+            wanted = min(wanted, (request.shared_size - HEADER_BYTES) // layout.batch_bytes)
         with _status_codes(context):
             batches = [self.table.sample(b, _wait_seconds(request, context))]
             while len(batches) < wanted:  # the rest only while the rate limiter allows them at once
@@ -166,7 +172,13 @@ class ReplayServicer(replay_pb2_grpc.ReplayServiceServicer):
                     batches.append(self.table.sample(b, 0.0))
                 except SampleTimeout:
                     break
-        return sample_reply(self.specs.layout(b, window), batches)
+        nbytes = layout.batch_bytes * len(batches)
+        if shared and write_shared(request.shared_name, request.shared_size, request.shared_seq, nbytes,
+                                   lambda out: pack_batches_into(layout, batches, out)):  # fmt: skip
+            return replay_pb2.SampleReply(
+                batch_size=b, window=window, table_size=[x.table_size for x in batches], shared_bytes=nbytes
+            )
+        return sample_reply(layout, batches)  # the caller's file out of reach: the batches in the reply
 
     def Windows(self, request: replay_pb2.WindowsRequest, context: grpc.ServicerContext) -> replay_pb2.SampleReply:
         spec, n, window = self.specs, request.max_windows, self.table.window

@@ -58,23 +58,26 @@ def free_port() -> int:
         return int(s.getsockname()[1])
 
 
-def test_prefetcher_fills_its_queue_then_blocks_and_counts(over_grpc: ServeOverGrpc) -> None:
-    """Three batches per call, a queue of one call: one call queued and one held while the queue is full."""
+def test_prefetcher_draws_only_with_room_and_counts(over_grpc: ServeOverGrpc) -> None:
+    """Three batches per call, room for one call: the thread draws the next call only once the last
+    one is being handed out, and waits (counted) meanwhile; it never drops a batch."""
     client = over_grpc(filled())
     prefetcher = BatchPrefetcher(client, batch_size=8, depth=2, per_call=3)
     prefetcher.start()
     try:
-        until(lambda: prefetcher.full_waits >= 1)  # queue full: the thread waits instead of dropping
-        assert prefetcher.sampled == 6 and prefetcher.metrics()["learner/prefetch_queue"] == 6
+        until(lambda: prefetcher.full_waits >= 1)  # one call drawn, no room for another: it waits
+        assert prefetcher.sampled == 3 and prefetcher.metrics()["learner/prefetch_queue"] == 3
         batches = [prefetcher.get(timeout=5) for _ in range(4)]
         assert all(b is not None and b.batch_size == 8 for b in batches)
-        # taking the first call's batches freed the queue (the second went in, a third was drawn); taking
-        # the second's first freed it again: 4 delivered, 2 taken and not yet handed out, 3 queued, 3 held
-        until(lambda: prefetcher.sampled == 12 and prefetcher.metrics()["learner/prefetch_queue"] == 8)
-        time.sleep(0.3)  # blocked, not dropping: nothing more is drawn while the queue stays full
-        assert prefetcher.sampled == 12 and prefetcher.calls == 4
-        assert prefetcher.max_ahead == 9  # one call queued, one being handed out, one held: 3 batches each
-        assert prefetcher.full_waits >= 2  # the second call's batches, and the fourth's (the third's may not)
+        # taking the first call made room for the second; taking the second, for a third: 4 handed out,
+        # 2 of the second call left, 3 drawn in the third
+        until(lambda: prefetcher.sampled == 9 and prefetcher.metrics()["learner/prefetch_queue"] == 5)
+        time.sleep(0.3)  # waiting, not drawing: nothing more while the third call waits to be taken
+        assert prefetcher.sampled == 9 and prefetcher.calls == 3
+        assert prefetcher.max_ahead == 6  # the call with room and the one being handed out, 3 batches each
+        assert prefetcher.full_waits >= 2
+        rest = [prefetcher.get(timeout=5) for _ in range(5)]  # every batch drawn is handed out
+        assert all(b is not None for b in rest) and prefetcher.delivered == 9
     finally:
         prefetcher.stop()
 

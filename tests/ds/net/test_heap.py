@@ -1,6 +1,7 @@
 """Every role keeps freed memory on glibc's heap (ds/net/heap.py): a learner's buffers for the batches
 it receives are reused rather than page-faulted in again. Run in fresh processes (the setting is
-process-wide), each a replay server and its client on loopback."""
+process-wide), each a replay server and its client on loopback, the batches over the socket (as between
+hosts: on one host they come through a file in /dev/shm, ds/replay/shared.py)."""
 
 from __future__ import annotations
 
@@ -27,7 +28,7 @@ for _ in range(100):
     table.insert(random_chunk(sensors, 6, 64, rng))
 limit = message_limit_bytes(sensors, 6, 256, 1)
 server, port = serve_replay(table, "127.0.0.1:0", max_message_bytes=limit)
-client = ReplayClient(f"127.0.0.1:{port}", sensors, 6, max_message_bytes=limit)
+client = ReplayClient(f"127.0.0.1:{port}", sensors, 6, max_message_bytes=limit, shared_memory=False)  # as across hosts
 for _ in range(5):
     client.sample_many(256, 16, 5.0)
 start = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
