@@ -20,8 +20,8 @@ if ls .whl/*.whl >/dev/null 2>&1; then
 fi
 export PYTHONUNBUFFERED=1
 nvidia-smi -L 2>/dev/null; echo "cores $(nproc)"; $PY -c "import torch; print('torch', torch.__version__)"; date
-echo "== tests/algorithm/sac/test_update_graph.py, tests/ds/replay/test_packed.py (pinned batches)"
-timeout 150 $PY -m pytest -q -p no:cacheprovider tests/algorithm/sac/test_update_graph.py tests/ds/replay/test_packed.py 2>&1 | tail -12
+echo "== tests/algorithm/sac/test_update_graph.py, tests/ds/replay/test_packed.py (pinned batches), test_shared.py (/dev/shm)"
+timeout 150 $PY -m pytest -q -p no:cacheprovider tests/algorithm/sac/test_update_graph.py tests/ds/replay/test_packed.py tests/ds/replay/test_shared.py 2>&1 | tail -12
 echo "== bench.cuda_graph"
 timeout 120 $PY -m bench.cuda_graph --rounds 5 --updates 300 --out "$O/cuda_graph.csv" 2>&1 | tail -6
 echo "== bench/cuda_journeys.sh"

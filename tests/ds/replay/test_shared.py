@@ -186,18 +186,40 @@ def test_files_of_processes_that_are_gone_are_swept(tmp_path: Path) -> None:
     assert not dead.exists() and mine.exists() and other.exists()
 
 
-def test_a_full_shared_memory_is_an_error_when_made_not_later(tmp_path: Path) -> None:
+@pytest.fixture
+def small_tmpfs(tmp_path: Path) -> Iterator[Path]:
+    """A 64 KiB tmpfs: a /dev/shm too full for a learner's file."""
     small = tmp_path / "small"
     small.mkdir()
     mounted = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=64k", "none", str(small)], capture_output=True)
     if mounted.returncode:
         pytest.skip(f"cannot mount a tmpfs here: {mounted.stderr.decode().strip()}")
     try:
-        with pytest.raises(OSError):
-            SharedSlot(1 << 20, folder=small)
-        assert list(small.iterdir()) == []
+        yield small
     finally:
         subprocess.run(["umount", str(small)], check=True)
+
+
+def test_a_full_shared_memory_is_an_error_when_made_not_later(small_tmpfs: Path) -> None:
+    with pytest.raises(OSError):
+        SharedSlot(1 << 20, folder=small_tmpfs)
+    assert list(small_tmpfs.iterdir()) == []
+
+
+def test_a_client_without_room_in_shared_memory_samples_over_grpc(
+    twins: tuple[ReplayClient, PrioritizedTable], small_tmpfs: Path, monkeypatch: pytest.MonkeyPatch,
+    caplog: pytest.LogCaptureFixture,
+) -> None:  # fmt: skip
+    client, twin = twins
+    monkeypatch.setattr(client_module, "SharedSlot", functools.partial(SharedSlot, folder=small_tmpfs))
+    caplog.set_level(logging.INFO, "asac.replay")
+    count = 64 * 1024 // client.specs.layout(16, twin.window).batch_bytes + 1  # their file: over 64 KiB
+    for _ in range(3):
+        for batch in client.sample_many(16, count, timeout=1.0):
+            assert_same_batch(batch, twin.sample(16))
+    said = [r.getMessage() for r in caplog.records if "no file for batches" in r.getMessage()]
+    assert len(said) == 1 and "batches come over gRPC" in said[0], said
+    assert list(small_tmpfs.iterdir()) == []
 
 
 SERVE = textwrap.dedent("""
