@@ -35,6 +35,7 @@ MUJOCO_TASKS = {
     "walker2d": "Walker2d-v5",
     "ant": "Ant-v5",
     "inverted_pendulum": "InvertedPendulum-v5",
+    "humanoid": "Humanoid-v5",
 }
 EVAL_EPISODES = 10
 EVAL_ENVS = 5
