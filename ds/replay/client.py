@@ -230,7 +230,9 @@ class ReplayClient(RpcClient):
         """Draw up to ``count`` batches of ``batch_size`` windows in one call (at least one; the others
         as far as the rate limiter allows at once and the message limit holds), each a sample of its
         own. The reply is copied once into ``allocate(nbytes)`` (a writable uint8 array: pinned memory
-        on CUDA; None: new memory) and the batches are views of it. Raises :class:`SampleTimeout` as
+        on CUDA; None: new memory) and the batches are views of it. From the second call on, the
+        reply's batches come through a file in /dev/shm while the server writes them there (same
+        host; ``shared_memory``, ds/replay/shared.py). Raises :class:`SampleTimeout` as
         :meth:`sample` does."""
         request = replay_pb2.SampleRequest(batch_size=int(batch_size), batches=int(count))
         if self._shared_on and self._window and self._shared_lock.acquire(blocking=False):
@@ -266,8 +268,8 @@ class ReplayClient(RpcClient):
         reply, data = split_sample_reply(self._blocking("Sample", attempt, request, timeout, SampleTimeout))
         if reply.shared_bytes:
             return self._batches(reply, request, slot.payload(reply.shared_bytes), allocate)
-        log.info("the replay at %s cannot open %s (another host, or another /dev/shm): batches come over gRPC",
-                 self.address, slot.path)  # fmt: skip
+        log.info("the replay at %s does not write into %s (another host, another /dev/shm or another user): "
+                 "batches come over gRPC", self.address, slot.path)  # fmt: skip
         self._shared_on = False
         self._close_shared()
         return self._batches(reply, request, data, allocate)
