@@ -81,15 +81,14 @@ class BatchPrefetcher(_Worker):
     of CPU after the thread sat idle, shared by its batches; 32 take the learner's CPU per sampled
     step from ~0.41 to ~0.33 us against 16, bench/results/transport/). Each call's batches go into a
     queue as one item; :meth:`get` hands them out one by one, so the thread is woken once per call,
-    not per batch (waking a thread costs ~0.1 ms of CPU on a virtual machine). The thread draws only
-    when there is room for the call: at most ``ceil(depth / per_call)`` calls (at least ``depth``
-    batches) queued or being drawn, so :attr:`ahead` (batches drawn and not yet handed out, which PER
-    sampled by priorities older than the learner's) never passes :attr:`max_ahead`, those calls and
-    the one being handed out. The replay being short of data (SampleTimeout) or unreachable
-    (UNAVAILABLE) is waited out, logged now and then; waiting for room is counted (``full_waits``,
-    ``full_wait_seconds``); any other replay error stops it and :meth:`get` raises it.
-    ``pin_memory`` (a learner on CUDA): batches land in page-locked memory, so their copies to the
-    device do not block."""
+    not per batch (waking a thread costs ~0.1 ms of CPU on a virtual machine). The thread draws a call
+    only while :attr:`ahead` (batches drawn and not yet handed out, which PER sampled by priorities
+    older than the learner's) leaves room for a whole one below :attr:`max_ahead`, ``per_call`` times
+    ``ceil(depth / per_call) + 1``: calls the rate limiter cut short leave room for the next at once.
+    The replay being short of data (SampleTimeout) or unreachable (UNAVAILABLE) is waited out, logged
+    now and then; waiting for room is counted (``full_waits``, ``full_wait_seconds``); any other
+    replay error stops it and :meth:`get` raises it. ``pin_memory`` (a learner on CUDA): batches land
+    in page-locked memory, so their copies to the device do not block."""
 
     name = "prefetch"
 
@@ -110,8 +109,8 @@ class BatchPrefetcher(_Worker):
         self.per_call = max(1, int(per_call))
         self.sample_timeout_s = float(sample_timeout_s)
         self._allocate = _pinned if pin_memory else None
-        self.calls_ahead = max(1, -(-int(depth) // self.per_call))
-        self._room = threading.Semaphore(self.calls_ahead)  # one per call queued or being drawn
+        self._max_ahead = (max(1, -(-int(depth) // self.per_call)) + 1) * self.per_call
+        self._room = threading.Condition()  # notified when get() takes a call: room may have come
         self._queue: queue.SimpleQueue[list[Batch]] = queue.SimpleQueue()
         self._ready: collections.deque[Batch] = collections.deque()  # the taken call's batches, for get()
         self.sampled = 0
@@ -130,9 +129,8 @@ class BatchPrefetcher(_Worker):
 
     @property
     def max_ahead(self) -> int:
-        """The most batches :attr:`ahead` can reach: the calls with room, each full, and the call
-        being handed out."""
-        return (self.calls_ahead + 1) * self.per_call
+        """The most batches :attr:`ahead` can reach."""
+        return self._max_ahead
 
     def get(self, timeout: float) -> Batch | None:
         """The next batch, or None if none came within ``timeout`` seconds."""
@@ -143,7 +141,8 @@ class BatchPrefetcher(_Worker):
             except queue.Empty:
                 self.check()
                 return None
-            self._room.release()  # its batches are being handed out: room to draw the next call
+            with self._room:  # its batches are being handed out: room for the next call, maybe
+                self._room.notify()
         self.delivered += 1
         return self._ready.popleft()
 
@@ -153,7 +152,6 @@ class BatchPrefetcher(_Worker):
             try:
                 batches = self._draw()
             except SampleTimeout as e:  # too little data yet, the learner ahead of the actors, or no answer
-                self._room.release()
                 self.sample_waits += 1
                 if unanswered(e):
                     self.link.failed(GRPC_DEADLINE_DETAILS, TRAINING_ON)
@@ -161,7 +159,6 @@ class BatchPrefetcher(_Worker):
                     log.info("waiting for data in replay: %s", e)
                 continue
             except ReplayUnavailable as e:
-                self._room.release()
                 self.unavailable += 1
                 self.link.failed(str(e), TRAINING_ON)
                 self._stop.wait(backoff)
@@ -174,14 +171,15 @@ class BatchPrefetcher(_Worker):
             self._queue.put(batches)
 
     def _wait_for_room(self) -> bool:
-        """Block until a call may be drawn (counted when it had to wait); False once stopped."""
-        if self._room.acquire(blocking=False):
+        """Block until a whole call fits below :attr:`max_ahead` (counted when it had to wait); False
+        once stopped. While it waits a call is queued, so get() takes one and says so."""
+        if self.ahead + self.per_call <= self._max_ahead:
             return not self._stop.is_set()
         self.full_waits += 1
         start = time.monotonic()
-        while not self._stop.is_set():
-            if self._room.acquire(timeout=0.5):
-                break
+        with self._room:
+            while not self._stop.is_set() and self.ahead + self.per_call > self._max_ahead:
+                self._room.wait(0.5)
         self.full_wait_seconds += time.monotonic() - start
         return not self._stop.is_set()
 

@@ -59,25 +59,39 @@ def free_port() -> int:
 
 
 def test_prefetcher_draws_only_with_room_and_counts(over_grpc: ServeOverGrpc) -> None:
-    """Three batches per call, room for one call: the thread draws the next call only once the last
-    one is being handed out, and waits (counted) meanwhile; it never drops a batch."""
+    """Three batches per call, at most six ahead: the thread draws a call only while a whole one fits,
+    and waits (counted) meanwhile; it never drops a batch."""
     client = over_grpc(filled())
     prefetcher = BatchPrefetcher(client, batch_size=8, depth=2, per_call=3)
     prefetcher.start()
     try:
-        until(lambda: prefetcher.full_waits >= 1)  # one call drawn, no room for another: it waits
-        assert prefetcher.sampled == 3 and prefetcher.metrics()["learner/prefetch_queue"] == 3
+        until(lambda: prefetcher.full_waits >= 1)  # two calls drawn, no room for a third: it waits
+        assert prefetcher.sampled == 6 and prefetcher.metrics()["learner/prefetch_queue"] == 6
         batches = [prefetcher.get(timeout=5) for _ in range(4)]
         assert all(b is not None and b.batch_size == 8 for b in batches)
-        # taking the first call made room for the second; taking the second, for a third: 4 handed out,
-        # 2 of the second call left, 3 drawn in the third
+        # 4 handed out left 2 ahead: room for one more call, and only one (3 + 2 + 3 > 6)
         until(lambda: prefetcher.sampled == 9 and prefetcher.metrics()["learner/prefetch_queue"] == 5)
-        time.sleep(0.3)  # waiting, not drawing: nothing more while the third call waits to be taken
+        time.sleep(0.7)  # waiting, not drawing, past its 0.5 s look again
         assert prefetcher.sampled == 9 and prefetcher.calls == 3
-        assert prefetcher.max_ahead == 6  # the call with room and the one being handed out, 3 batches each
+        assert prefetcher.max_ahead == 6
         assert prefetcher.full_waits >= 2
         rest = [prefetcher.get(timeout=5) for _ in range(5)]  # every batch drawn is handed out
         assert all(b is not None for b in rest) and prefetcher.delivered == 9
+    finally:
+        prefetcher.stop()
+
+
+def test_prefetcher_draws_again_at_once_when_calls_come_back_short(over_grpc: ServeOverGrpc) -> None:
+    """A rate limiter that lets one batch through per call (calls cut short) leaves room ahead: the
+    thread draws the next call without waiting for the last one to be taken."""
+    client = over_grpc(filled())
+    real = client.sample_many
+    client.sample_many = lambda b, n, t, a=None: real(b, 1, t, a)  # type: ignore[method-assign]
+    prefetcher = BatchPrefetcher(client, batch_size=8, depth=2, per_call=3)
+    prefetcher.start()
+    try:
+        until(lambda: prefetcher.sampled == 4)  # 1 + 1 + 1 + 1: four short calls fill the six, no get
+        assert prefetcher.delivered == 0 and prefetcher.ahead == 4
     finally:
         prefetcher.stop()
 
